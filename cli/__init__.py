@@ -1,0 +1,1 @@
+"""sonarset.cli: the ``sonarset`` command-line interface (a thin layer over the library)."""

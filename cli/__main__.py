@@ -1,0 +1,3 @@
+from sonarset.cli.app import main
+
+main()

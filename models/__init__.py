@@ -1,0 +1,1 @@
+"""sonarset.models: predictors, training and evaluation (imports torch)."""

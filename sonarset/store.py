@@ -1,0 +1,556 @@
+"""SonarSet stores: a Zarr v3 root group with one group per run (spec/FORMAT.md).
+
+Writing is crash-safe by construction: a run group is created with ``complete: false``, its
+arrays are written, and only then is ``complete`` set true and the root's consolidated metadata
+rewritten. Readers list only complete runs, so a killed writer never leaves a run that looks
+finished. One process writes one run group; never let two processes write one array.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+import numpy as np
+import zarr
+from pydantic import ValidationError
+from zarr.codecs import BloscCodec
+
+from . import __version__
+from .errors import FormatError, GridMismatchError, InputValidationError, SonarSetError
+from .schema import (
+    FORMAT_VERSION, NAMESPACE, RUN_NAME_RE, SUPPORTED_MAJOR, RunAttrs, SensorGrid, StoreAttrs,
+    parse_version, pydantic_problems,
+)
+
+# zarr-python warns on every consolidation that consolidated metadata is not yet in the v3 spec;
+# the spec (FORMAT.md §6) makes it optional and advisory, so the warning is noise to our users.
+warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part")
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    dims: tuple[str, ...]
+    dtypes: tuple[str, ...]
+    required: bool
+    last: int | None = None  # fixed size of the last axis, if any
+    units: str | None = None
+    description: str = ""
+
+
+#: Every array a run group may hold. Time-indexed arrays all have length n_frames.
+ARRAYS: dict[str, ArraySpec] = {
+    "images": ArraySpec(("time", "range", "azimuth"), ("float16", "float32"), True,
+                        units="1", description="energyscape, log energy in [0, 1]"),
+    "velocity": ArraySpec(("time", "velocity_component"), ("float32", "float64"), True, last=2,
+                          units="m/s, rad/s", description="command (v, omega) that moved the robot from frame k-1 to k"),
+    "time": ArraySpec(("time",), ("float64",), True, units="s", description="frame time stamps"),
+    "range": ArraySpec(("range",), ("float64", "float32"), True, units="m", description="range bin centres"),
+    "azimuth": ArraySpec(("azimuth",), ("float64", "float32"), True, units="rad",
+                         description="azimuth bin centres, positive to the left"),
+    "pose": ArraySpec(("time", "pose_component"), ("float64", "float32"), False, last=3,
+                      units="m, m, rad", description="ground-truth robot pose (x, y, heading) in the world frame"),
+    "snr_db": ArraySpec(("time",), ("float32", "float64"), False, units="dB",
+                        description="per-frame SNR at the microphones"),
+    "slip": ArraySpec(("time", "wheel"), ("float32", "float64"), False, last=2, units="1",
+                      description="wheel speed factors (left, right); 1 = no slip"),
+}
+TIME_ARRAYS = [k for k, s in ARRAYS.items() if s.dims[0] == "time"]
+OPTIONAL_ARRAYS = [k for k, s in ARRAYS.items() if not s.required]
+
+DEFAULT_CHUNK_FRAMES = 64  # 64 x 200 x 90 float16 = 2.3 MB: large enough to stream, small to cache
+
+
+def _compressor(dtype: np.dtype) -> BloscCodec:
+    return BloscCodec(cname="zstd", clevel=3, shuffle="shuffle", typesize=np.dtype(dtype).itemsize)
+
+
+def _is_url(location: str) -> bool:
+    return "://" in location and not location.startswith("file://")
+
+
+def _display(location: Any) -> str:
+    return str(location)
+
+
+class SonarStore:
+    """A SonarSet store opened for reading (``mode='r'``) or writing (``'r+'``)."""
+
+    def __init__(self, group: zarr.Group, location: str, mode: str):
+        self.group = group
+        self.location = location
+        self.mode = mode
+        self.attrs = read_store_attrs(group, location)
+
+    # ---- structure ------------------------------------------------------------------------
+    @property
+    def grid(self) -> SensorGrid:
+        return self.attrs.grid
+
+    @property
+    def format_version(self) -> str:
+        return self.attrs.format_version
+
+    def _run_attrs(self, name: str) -> RunAttrs | None:
+        try:
+            raw = self.group[name].attrs.get(NAMESPACE)
+            return RunAttrs.model_validate(raw)
+        except (ValidationError, KeyError, TypeError):
+            return None
+
+    def runs(self, split: str | None = None, include_incomplete: bool = False) -> list[str]:
+        """Names of the runs (complete ones unless asked), sorted, optionally of one split."""
+        names = []
+        for name in sorted(self.group.group_keys()):
+            attrs = self._run_attrs(name)
+            if attrs is None or not (attrs.complete or include_incomplete):
+                continue
+            if split is not None and attrs.split != split:
+                continue
+            names.append(name)
+        return names
+
+    def splits(self) -> dict[str, list[str]]:
+        out: dict[str, list[str]] = {}
+        for name in self.runs():
+            out.setdefault(self.run(name).split, []).append(name)
+        return out
+
+    def run(self, name: str) -> "Run":
+        if name not in self.group.group_keys():
+            raise SonarSetError(f"{self.location}: no run named {name!r} (runs: {', '.join(self.runs()) or 'none'})")
+        attrs = self._run_attrs(name)
+        if attrs is None:
+            raise FormatError(f"{self.location}/{name}: run attributes are missing or invalid")
+        if not attrs.complete:
+            raise FormatError(f"{self.location}/{name}: run is incomplete (its writer did not finish)")
+        return Run(self, name, attrs)
+
+    def __iter__(self) -> Iterator["Run"]:
+        return (self.run(n) for n in self.runs())
+
+    def __len__(self) -> int:
+        return len(self.runs())
+
+    def __repr__(self) -> str:
+        return f"SonarStore({self.location!r}, runs={len(self)}, grid={self.grid.describe()})"
+
+    def n_frames(self, split: str | None = None) -> int:
+        return sum(self.run(n).n_frames for n in self.runs(split))
+
+    def nbytes_stored(self) -> int | None:
+        """Bytes on disk for a local store; None where it cannot be measured cheaply."""
+        if _is_url(self.location):
+            return None
+        total = 0
+        for dirpath, _, files in os.walk(self.location):
+            total += sum(os.path.getsize(os.path.join(dirpath, f)) for f in files)
+        return total
+
+    # ---- writing --------------------------------------------------------------------------
+    def _require_writable(self) -> None:
+        if self.mode == "r":
+            raise SonarSetError(f"{self.location}: store is open read-only")
+
+    def run_writer(self, name: str, n_frames: int, **kwargs: Any) -> "RunWriter":
+        self._require_writable()
+        return RunWriter(self, name, n_frames, **kwargs)
+
+    def write_run(
+        self,
+        name: str,
+        images: np.ndarray,
+        velocity: np.ndarray,
+        time: np.ndarray,
+        *,
+        pose: np.ndarray | None = None,
+        snr_db: np.ndarray | None = None,
+        slip: np.ndarray | None = None,
+        split: str = "train",
+        source: Mapping[str, Any] | None = None,
+        overwrite: bool = False,
+        consolidate: bool = True,
+        chunk_frames: int = DEFAULT_CHUNK_FRAMES,
+    ) -> "Run":
+        """Validate, then write a whole run in one go; it becomes visible only when complete."""
+        arrays = {"images": images, "velocity": velocity, "time": time,
+                  "pose": pose, "snr_db": snr_db, "slip": slip}
+        arrays = {k: np.asarray(v) for k, v in arrays.items() if v is not None}
+        problems = check_run_arrays(self.grid, arrays)
+        if problems:
+            raise InputValidationError(f"run {name!r}", problems)
+        T = arrays["images"].shape[0]
+        optional = tuple(k for k in OPTIONAL_ARRAYS if k in arrays)
+        image_dtype = "float16" if arrays["images"].dtype == np.float16 else "float32"
+        with self.run_writer(name, T, split=split, source=source, optional=optional,
+                             image_dtype=image_dtype, overwrite=overwrite,
+                             consolidate=consolidate, chunk_frames=chunk_frames) as w:
+            w.write(0, **arrays)
+            return w.commit()
+
+    def delete_run(self, name: str) -> None:
+        self._require_writable()
+        if name in self.group.group_keys():
+            del self.group[name]
+
+    def consolidate(self) -> None:
+        """Rewrite the root's consolidated metadata; call after runs were written elsewhere."""
+        self._require_writable()
+        zarr.consolidate_metadata(self.group.store)
+
+
+def read_store_attrs(group: zarr.Group, location: str) -> StoreAttrs:
+    raw = group.attrs.get(NAMESPACE)
+    if not isinstance(raw, dict):
+        raise FormatError(f"{location}: not a SonarSet store (root attribute {NAMESPACE!r} is missing)")
+    version = raw.get("format_version")
+    try:
+        major, _ = parse_version(version)
+    except ValueError as exc:
+        raise FormatError(f"{location}: {exc}") from None
+    if major != SUPPORTED_MAJOR:
+        raise FormatError(
+            f"{location}: SonarSet format version {version} is not supported "
+            f"(this sonarset {__version__} reads {SUPPORTED_MAJOR}.x); upgrade sonarset"
+        )
+    try:
+        return StoreAttrs.model_validate(raw)
+    except ValidationError as exc:
+        raise FormatError(f"{location}: {pydantic_problems(exc, 'sonarset.')[0]}") from None
+
+
+def _open_group(location: str, mode: str, storage_options: dict | None, consolidated: bool | None) -> zarr.Group:
+    kwargs: dict[str, Any] = {"mode": mode}
+    if storage_options:
+        kwargs["storage_options"] = storage_options
+    if mode == "r":
+        kwargs["use_consolidated"] = consolidated
+    else:
+        # A writer must see the store as it is, never a stale consolidated snapshot.
+        kwargs["use_consolidated"] = False
+    return zarr.open_group(location, **kwargs)
+
+
+def open_store(
+    location: str | os.PathLike,
+    mode: str = "r",
+    *,
+    storage_options: dict | None = None,
+    consolidated: bool | None = None,
+) -> SonarStore:
+    """Open a SonarSet store from a local path or any fsspec URL (``s3://``, ``memory://``...).
+
+    ``consolidated=None`` uses the root's consolidated metadata when present (one read for the
+    whole hierarchy, which matters on object storage); ``False`` lists the store itself.
+    """
+    if mode not in ("r", "r+"):
+        raise ValueError("mode must be 'r' or 'r+' (use create_store to make a new store)")
+    loc = os.fspath(location)
+    if not _is_url(loc):
+        path = Path(loc.removeprefix("file://"))
+        if not path.exists():
+            raise FormatError(f"{loc}: no such file or directory")
+        if not (path / "zarr.json").is_file():
+            if path.is_dir() and ((path / ".zgroup").exists() or (path / ".zarray").exists()):
+                raise FormatError(f"{loc}: a Zarr v2 store; SonarSet requires Zarr v3")
+            raise FormatError(f"{loc}: not a zarr store (no zarr.json at its root)")
+        loc = str(path)
+    try:
+        group = _open_group(loc, mode, storage_options, consolidated)
+    except SonarSetError:
+        raise
+    except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError) as exc:
+        raise FormatError(f"{loc}: not a zarr store ({type(exc).__name__})") from None
+    except (ValueError, TypeError) as exc:
+        raise FormatError(f"{loc}: cannot open as a zarr v3 group: {exc}") from None
+    return SonarStore(group, loc, mode)
+
+
+def create_store(
+    location: str | os.PathLike,
+    grid: SensorGrid | None = None,
+    *,
+    overwrite: bool = False,
+    frame_rate_hz: float = 5.0,
+    description: str = "",
+    storage_options: dict | None = None,
+) -> SonarStore:
+    """Create an empty store with a sensor grid (default: the eRTIS-like 200 x 90 grid)."""
+    loc = os.fspath(location)
+    if not _is_url(loc):
+        path = Path(loc)
+        if path.exists() and not overwrite and (path.is_file() or any(path.iterdir())):
+            raise SonarSetError(f"{loc}: already exists (pass overwrite to replace it)")
+    attrs = StoreAttrs(
+        format_version=FORMAT_VERSION, grid=grid or SensorGrid.default(),
+        frame_rate_hz=frame_rate_hz, created_by=f"sonarset {__version__}", description=description,
+    )
+    kwargs: dict[str, Any] = {"mode": "w" if overwrite else "w-", "zarr_format": 3,
+                              "attributes": {NAMESPACE: attrs.model_dump(mode="json")}}
+    if storage_options:
+        kwargs["storage_options"] = storage_options
+    try:
+        group = zarr.open_group(loc, **kwargs)
+    except (FileExistsError, zarr.errors.ContainsGroupError, zarr.errors.ContainsArrayError):
+        raise SonarSetError(f"{loc}: already exists (pass overwrite to replace it)") from None
+    zarr.consolidate_metadata(group.store)
+    return SonarStore(zarr.open_group(loc, mode="r+", use_consolidated=False,
+                                      **({"storage_options": storage_options} if storage_options else {})),
+                      loc, "r+")
+
+
+def open_or_create_store(location: str | os.PathLike, grid: SensorGrid, **kwargs: Any) -> SonarStore:
+    """Open an existing store for writing (its grid must equal ``grid``) or create a new one."""
+    loc = os.fspath(location)
+    exists = (Path(loc) / "zarr.json").exists() if not _is_url(loc) else _url_exists(loc, kwargs.get("storage_options"))
+    if exists:
+        store = open_store(loc, "r+", storage_options=kwargs.get("storage_options"))
+        if not store.grid.matches(grid):
+            raise GridMismatchError(
+                f"{loc}: store grid {store.grid.describe()} differs from the data's {grid.describe()}"
+            )
+        return store
+    return create_store(loc, grid, **kwargs)
+
+
+def _url_exists(url: str, storage_options: dict | None) -> bool:
+    import fsspec
+
+    fs, path = fsspec.core.url_to_fs(url, **(storage_options or {}))
+    return fs.exists(f"{path.rstrip('/')}/zarr.json")
+
+
+def check_run_arrays(grid: SensorGrid, arrays: Mapping[str, np.ndarray]) -> list[str]:
+    """Every problem with a run's arrays, one line each; empty when they can be written."""
+    problems: list[str] = []
+    for key in ("images", "velocity", "time"):
+        if key not in arrays:
+            problems.append(f"{key}: missing")
+    if problems:
+        return problems
+    images = arrays["images"]
+    T = images.shape[0] if images.ndim else -1
+    for key, arr in arrays.items():
+        spec = ARRAYS.get(key)
+        if spec is None or key in ("range", "azimuth"):
+            continue
+        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+            problems.append(f"{key}: dtype {arr.dtype} is not numeric")
+            continue
+        if arr.ndim != len(spec.dims):
+            problems.append(f"{key}: expected {len(spec.dims)}-D {spec.dims}, got shape {arr.shape}")
+            continue
+        if spec.last is not None and arr.shape[-1] != spec.last:
+            problems.append(f"{key}: last axis must have {spec.last} values, got shape {arr.shape}")
+        if arr.shape[0] != T:
+            problems.append(f"{key}: {arr.shape[0]} frames but images has {T}")
+        if arr.size and not np.all(np.isfinite(arr)):
+            problems.append(f"{key}: contains NaN or infinite values")
+    if images.ndim == 3:
+        if images.shape[1:] != grid.shape:
+            problems.append(f"images: frame shape {images.shape[1:]} does not match the grid {grid.shape}")
+        if T < 1:
+            problems.append("images: a run needs at least one frame")
+        if images.dtype not in (np.float16, np.float32, np.float64):
+            problems.append(f"images: dtype {images.dtype} must be float16 or float32")
+        elif images.size and np.all(np.isfinite(images)):
+            lo, hi = float(images.min()), float(images.max())
+            if lo < 0.0 or hi > 1.0:
+                problems.append(f"images: values must lie in [0, 1] (energyscape), found {lo:g}..{hi:g}")
+    t = arrays["time"]
+    if t.ndim == 1 and t.size > 1 and np.all(np.isfinite(t)):
+        bad = np.flatnonzero(np.diff(t.astype(np.float64)) <= 0)
+        if bad.size:
+            problems.append(f"time: not strictly increasing (first at frame {int(bad[0]) + 1})")
+    return problems
+
+
+class RunWriter:
+    """Writes one run group block by block; ``commit()`` makes it visible.
+
+    Use as a context manager: an exception inside deletes the half-written group. A killed
+    process leaves it with ``complete: false``, which readers ignore and the next writer of the
+    same name replaces.
+    """
+
+    def __init__(
+        self,
+        store: SonarStore,
+        name: str,
+        n_frames: int,
+        *,
+        split: str = "train",
+        source: Mapping[str, Any] | None = None,
+        optional: tuple[str, ...] = (),
+        image_dtype: str = "float16",
+        overwrite: bool = False,
+        consolidate: bool = True,
+        chunk_frames: int = DEFAULT_CHUNK_FRAMES,
+    ):
+        if not RUN_NAME_RE.match(name):
+            raise SonarSetError(f"invalid run name {name!r}: use letters, digits, '_', '.', '-'")
+        unknown = set(optional) - set(OPTIONAL_ARRAYS)
+        if unknown:
+            raise SonarSetError(f"unknown optional arrays: {', '.join(sorted(unknown))}")
+        if image_dtype not in ARRAYS["images"].dtypes:
+            raise SonarSetError(f"image dtype must be float16 or float32, got {image_dtype}")
+        if n_frames < 1:
+            raise SonarSetError(f"run {name!r}: needs at least one frame")
+        self.store, self.name, self.n_frames = store, name, int(n_frames)
+        self.consolidate = consolidate
+        self.attrs = RunAttrs(complete=False, n_frames=self.n_frames, split=split, source=dict(source or {}))
+        root = store.group
+        if name in root.group_keys() or name in root.array_keys():
+            existing = store._run_attrs(name)
+            if existing is not None and existing.complete and not overwrite:
+                raise SonarSetError(f"{store.location}: run {name!r} already exists (pass overwrite to replace it)")
+            del root[name]
+        self.group = root.create_group(name, attributes={NAMESPACE: self.attrs.model_dump(mode="json")})
+        T, (R, A) = self.n_frames, store.grid.shape
+        cf = max(1, min(chunk_frames, T))
+        self.arrays: dict[str, zarr.Array] = {}
+        shapes = {"images": (T, R, A), "velocity": (T, 2), "time": (T,), "pose": (T, 3),
+                  "snr_db": (T,), "slip": (T, 2)}
+        for key in ("images", "velocity", "time", *optional):
+            spec = ARRAYS[key]
+            dtype = image_dtype if key == "images" else spec.dtypes[-1] if key == "time" else spec.dtypes[0]
+            if key in ("pose",):
+                dtype = "float64"
+            shape = shapes[key]
+            chunks = (cf, R, A) if key == "images" else (T,) + shape[1:]
+            self.arrays[key] = self.group.create_array(
+                key, shape=shape, chunks=chunks, dtype=dtype, dimension_names=spec.dims,
+                compressors=_compressor(np.dtype(dtype)), fill_value=np.nan,
+                attributes={"units": spec.units, "description": spec.description},
+            )
+        for key, values in (("range", store.grid.range_centres()), ("azimuth", store.grid.azimuth_centres())):
+            spec = ARRAYS[key]
+            arr = self.group.create_array(
+                key, shape=values.shape, chunks=values.shape, dtype="float64", dimension_names=spec.dims,
+                compressors=None, fill_value=np.nan,
+                attributes={"units": spec.units, "description": spec.description},
+            )
+            arr[:] = values
+        self._written = np.zeros(T, dtype=bool)
+
+    def write(self, start: int, **blocks: np.ndarray | None) -> None:
+        """Write frames ``start .. start+len-1`` of the given arrays (images, velocity, time...)."""
+        blocks = {k: np.asarray(v) for k, v in blocks.items() if v is not None}
+        for key in blocks:
+            if key not in self.arrays:
+                raise SonarSetError(f"run {self.name!r}: array {key!r} was not declared when the writer was made")
+        n = blocks["images"].shape[0] if "images" in blocks else None
+        if n is None or any(v.shape[0] != n for v in blocks.values()) or set(blocks) != set(self.arrays):
+            raise SonarSetError(f"run {self.name!r}: each block must give every array ({', '.join(self.arrays)}) "
+                                "with the same number of frames")
+        if start < 0 or start + n > self.n_frames:
+            raise SonarSetError(f"run {self.name!r}: frames {start}..{start + n - 1} outside 0..{self.n_frames - 1}")
+        problems = check_run_arrays(self.store.grid, blocks)
+        if problems:
+            raise InputValidationError(f"run {self.name!r} frames {start}..{start + n - 1}", problems)
+        for key, values in blocks.items():
+            self.arrays[key][start:start + n] = values.astype(self.arrays[key].dtype, copy=False)
+        self._written[start:start + n] = True
+
+    def commit(self) -> "Run":
+        if not self._written.all():
+            missing = int(np.flatnonzero(~self._written)[0])
+            raise SonarSetError(f"run {self.name!r}: frame {missing} was never written")
+        t = self.arrays["time"][:]
+        if t.size > 1 and np.any(np.diff(t) <= 0):
+            raise SonarSetError(f"run {self.name!r}: time is not strictly increasing across blocks")
+        attrs = self.attrs.model_copy(update={"complete": True})
+        # The completion flag is the run's last write: everything before it is already durable.
+        self.group.attrs.update({NAMESPACE: attrs.model_dump(mode="json")})
+        if self.consolidate:
+            self.store.consolidate()
+        self._committed = True
+        return Run(self.store, self.name, attrs)
+
+    def abort(self) -> None:
+        self.store.delete_run(self.name)
+
+    def __enter__(self) -> "RunWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None and not getattr(self, "_committed", False):
+            self.abort()
+
+
+@dataclass
+class RunData:
+    """A run's arrays loaded into memory (NumPy)."""
+
+    name: str
+    split: str
+    images: np.ndarray
+    velocity: np.ndarray
+    time: np.ndarray
+    pose: np.ndarray | None = None
+    snr_db: np.ndarray | None = None
+    slip: np.ndarray | None = None
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.images.shape[0])
+
+
+class Run:
+    """A complete run group, read lazily: ``run['images'][100:200]`` reads only those chunks."""
+
+    def __init__(self, store: SonarStore, name: str, attrs: RunAttrs):
+        self.store, self.name, self.attrs = store, name, attrs
+        self.group = store.group[name]
+
+    @property
+    def n_frames(self) -> int:
+        return self.attrs.n_frames
+
+    @property
+    def split(self) -> str:
+        return self.attrs.split
+
+    def has(self, key: str) -> bool:
+        return key in self.group.array_keys()
+
+    def __getitem__(self, key: str) -> zarr.Array:
+        if key not in ARRAYS:
+            raise KeyError(key)
+        if not self.has(key):
+            raise SonarSetError(f"{self.store.location}/{self.name}: has no {key!r} array")
+        return self.group[key]
+
+    @property
+    def images(self) -> zarr.Array:
+        return self["images"]
+
+    @property
+    def velocity(self) -> zarr.Array:
+        return self["velocity"]
+
+    @property
+    def time(self) -> zarr.Array:
+        return self["time"]
+
+    def load(self, image_dtype: str | np.dtype | None = None) -> RunData:
+        """Read the whole run into memory (decoding each chunk once)."""
+        images = self.images[:]
+        if image_dtype is not None:
+            images = images.astype(image_dtype, copy=False)
+        opt = {k: (self.group[k][:] if self.has(k) else None) for k in OPTIONAL_ARRAYS}
+        return RunData(self.name, self.split, images, self.velocity[:], self.time[:], **opt)
+
+    def to_xarray(self):
+        """The run as a lazy ``xarray.Dataset`` with dims (time, range, azimuth)."""
+        try:
+            import xarray as xr
+        except ImportError:  # pragma: no cover - depends on the environment
+            raise SonarSetError("xarray is not installed: pip install 'sonarset[xarray]'") from None
+        return xr.open_zarr(self.store.group.store, group=self.name, consolidated=False)
+
+    def __repr__(self) -> str:
+        return f"Run({self.name!r}, split={self.split!r}, frames={self.n_frames})"
