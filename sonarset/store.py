@@ -253,6 +253,8 @@ def open_store(
         path = Path(loc.removeprefix("file://"))
         if not path.exists():
             raise FormatError(f"{loc}: no such file or directory")
+        if path.is_file():
+            raise FormatError(f"{loc}: not a zarr store (a file, not a directory)")
         if not (path / "zarr.json").is_file():
             if path.is_dir() and ((path / ".zgroup").exists() or (path / ".zarray").exists()):
                 raise FormatError(f"{loc}: a Zarr v2 store; SonarSet requires Zarr v3")

@@ -1,0 +1,198 @@
+"""The ``sonarset`` command line: a thin layer over the library API.
+
+User errors (bad files, bad stores, bad arguments) end with one line on stderr and a non-zero
+exit, never a traceback. Set SONARSET_DEBUG=1 to see the traceback of an unexpected error.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import os
+import sys
+from pathlib import Path
+from typing import Callable, Optional
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.table import Table
+
+from sonarset import __version__
+from sonarset.errors import InputValidationError, SonarSetError
+
+app = typer.Typer(
+    name="sonarset",
+    help="In-air sonar prediction: SonarSet stores, simulator, EchoPT and baselines.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+out = Console(soft_wrap=True)
+err = Console(stderr=True, soft_wrap=True)
+
+
+def fail(message: str, code: int = 1) -> None:
+    err.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+def user_errors(fn: Callable) -> Callable:
+    """Turn library errors into one-line messages with exit code 1."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except InputValidationError as exc:
+            for line in exc.problems:
+                err.print(f"[bold red]error:[/] {exc.source}: {line}", highlight=False, soft_wrap=True)
+            raise typer.Exit(1)
+        except SonarSetError as exc:
+            fail(str(exc))
+        except KeyboardInterrupt:
+            fail("interrupted", 130)
+        except (OSError, MemoryError) as exc:
+            fail(f"{getattr(exc, 'filename', None) or ''}{': ' if getattr(exc, 'filename', None) else ''}"
+                 f"{exc.strerror if isinstance(exc, OSError) and exc.strerror else exc}")
+
+    return wrapper
+
+
+def progress_bar() -> Progress:
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                    TimeRemainingColumn(), console=err, transient=True, disable=not err.is_terminal)
+
+
+def _version(value: bool) -> None:
+    if value:
+        out.print(f"sonarset {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                       help="Print the version and exit.")) -> None:
+    pass
+
+
+def _human(n: int | None) -> str:
+    if n is None:
+        return "n/a"
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if n < 1024 or unit == "TiB":
+            return f"{n:.1f} {unit}" if unit != "B" else f"{n} B"
+        n /= 1024
+    return str(n)
+
+
+@app.command()
+@user_errors
+def info(
+    store: str = typer.Argument(..., help="Store path or fsspec URL."),
+    as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
+) -> None:
+    """Summarise a store: format version, grid, runs, frames and size."""
+    from sonarset.store import open_store
+
+    s = open_store(store)
+    runs = [s.run(n) for n in s.runs()]
+    incomplete = [n for n in s.runs(include_incomplete=True) if n not in s.runs()]
+    g = s.grid
+    summary = {
+        "store": s.location, "format_version": s.format_version, "grid": g.model_dump(),
+        "frame_rate_hz": s.attrs.frame_rate_hz, "created_by": s.attrs.created_by,
+        "runs": [{"name": r.name, "split": r.split, "frames": r.n_frames,
+                  "duration_s": float(r.time[-1] - r.time[0]) if r.n_frames > 1 else 0.0,
+                  "image_dtype": str(r.images.dtype),
+                  "optional": [k for k in ("pose", "snr_db", "slip") if r.has(k)]} for r in runs],
+        "incomplete_runs": incomplete, "frames": sum(r.n_frames for r in runs), "bytes": s.nbytes_stored(),
+    }
+    if as_json:
+        print(json.dumps(summary, indent=2))
+        return
+    out.print(f"[bold]{s.location}[/]  SonarSet {s.format_version}  ({s.attrs.created_by or 'unknown writer'})")
+    out.print(f"grid: {g.describe()}, bins {g.range_step * 100:.3g} cm x {math.degrees(g.azimuth_step):.3g} deg")
+    table = Table("run", "split", "frames", "duration", "images", "optional")
+    for r in summary["runs"]:
+        table.add_row(r["name"], r["split"], str(r["frames"]), f"{r['duration_s']:.1f} s", r["image_dtype"],
+                      ", ".join(r["optional"]) or "-")
+    out.print(table)
+    out.print(f"{len(runs)} complete run(s), {summary['frames']} frames, {_human(summary['bytes'])} on disk")
+    if incomplete:
+        out.print(f"[yellow]{len(incomplete)} incomplete run(s) ignored: {', '.join(incomplete)}[/]")
+
+
+@app.command()
+@user_errors
+def validate(
+    store: str = typer.Argument(..., help="Store path or fsspec URL."),
+    quick: bool = typer.Option(False, "--quick", help="Check metadata only; do not read the data chunks."),
+    consolidate: bool = typer.Option(False, "--consolidate",
+                                     help="Rewrite stale consolidated metadata, then validate."),
+) -> None:
+    """Check a store against the SonarSet spec: exit 0 if valid, 1 with one line per problem."""
+    from sonarset.validate import validate_store
+
+    if consolidate:
+        from sonarset.store import open_store
+
+        open_store(store, "r+").consolidate()
+    with progress_bar() as bar:
+        task = bar.add_task("validating", total=None)
+
+        def progress(where: str, done: int, total: int) -> None:
+            bar.update(task, description=where.rsplit("/", 2)[-2], completed=done, total=total)
+
+        problems = validate_store(store, check_data=not quick, progress=progress)
+    if problems:
+        for p in problems:
+            err.print(f"[bold red]invalid:[/] {p}", highlight=False, soft_wrap=True)
+        raise typer.Exit(1)
+    out.print(f"{store}: valid SonarSet store")
+
+
+@app.command("import")
+@user_errors
+def import_(
+    src: Path = typer.Argument(..., help="A .npz file, or a directory of .npy files with recording.json."),
+    out_store: str = typer.Argument(..., metavar="OUT", help="Store to create or append to."),
+    meta: Optional[Path] = typer.Option(None, "--meta", help="Metadata JSON (default: SRC.json / SRC/recording.json)."),
+    name: Optional[str] = typer.Option(None, "--name", help="Run name (default: metadata name or file stem)."),
+    split: Optional[str] = typer.Option(None, "--split", help="Split of the run (default: metadata split)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a run of the same name."),
+) -> None:
+    """Validate an external recording completely, then write it as one run of a store."""
+    from sonarset.importer import import_recording
+
+    run = import_recording(src, out_store, meta_path=meta, name=name, split=split, overwrite=overwrite)
+    out.print(f"imported {src} -> {out_store}/{run.name} ({run.n_frames} frames, split {run.split})")
+
+
+@app.command()
+@user_errors
+def schema(
+    kind: str = typer.Argument("store", help="store | run | recording"),
+) -> None:
+    """Print the JSON Schema of a SonarSet document (root, run or import-sidecar attributes)."""
+    from sonarset.schema import SCHEMAS, json_schema_text
+
+    if kind not in SCHEMAS:
+        fail(f"unknown schema {kind!r}; choose from {', '.join(SCHEMAS)}", 2)
+    sys.stdout.write(json_schema_text(kind))
+
+
+def main() -> None:
+    try:
+        app()
+    except Exception as exc:  # an unexpected error is a bug: say so in one line
+        if os.environ.get("SONARSET_DEBUG"):
+            raise
+        err.print(f"[bold red]internal error:[/] {type(exc).__name__}: {exc} (set SONARSET_DEBUG=1 for details)",
+                  highlight=False, soft_wrap=True)
+        sys.exit(70)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,212 @@
+"""Sliding windows over runs: n_in frames + n_in+H commands -> the next H frames.
+
+Layout after Diffusion Policy's replay buffer: the frames of all runs are concatenated into one
+flat in-memory array (a :class:`FrameBank`), and a window is just the global index of its first
+frame (a :class:`WindowIndex`). Gathering a batch is then one vectorised NumPy take.
+
+Alignment (DESIGN.md §2): the window starting at frame i of a run uses frames i..i+n_in-1 and
+commands i..i+n_in-1+H, and targets frames i+n_in..i+n_in-1+H. ``velocity[k]`` moved the robot
+from frame k-1 to k, so command i+n_in is the one that leads to the first target. Windows never
+cross runs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Iterator, Sequence
+
+import numpy as np
+
+from .errors import SonarSetError
+from .schema import SensorGrid
+from .store import SonarStore
+
+N_IN = 3
+
+
+@dataclass
+class FrameBank:
+    """All frames and commands of some runs, concatenated (N frames in total)."""
+
+    images: np.ndarray  # (N, R, A) float16 or float32
+    velocity: np.ndarray  # (N, 2) float32: (v [m/s], omega [rad/s])
+    run_offsets: np.ndarray  # (n_runs + 1,) int64: run j is frames run_offsets[j]:run_offsets[j+1]
+    run_names: list[str]
+    grid: SensorGrid
+
+    @classmethod
+    def from_store(
+        cls,
+        store: SonarStore,
+        runs: Sequence[str] | None = None,
+        split: str | None = None,
+        image_dtype: str | np.dtype | None = None,
+        progress: Callable[[str, int, int], None] | None = None,
+    ) -> "FrameBank":
+        """Load runs (by name, or every complete run of ``split``) into memory, each chunk decoded once."""
+        names = list(runs) if runs is not None else store.runs(split)
+        if not names:
+            what = f"split {split!r}" if split else "the store"
+            raise SonarSetError(f"{store.location}: no complete runs in {what} (splits: "
+                                f"{', '.join(sorted(store.splits())) or 'none'})")
+        sizes = [store.run(n).n_frames for n in names]
+        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        first = store.run(names[0]).images
+        dtype = np.dtype(image_dtype) if image_dtype is not None else first.dtype
+        images = np.empty((int(offsets[-1]), *store.grid.shape), dtype=dtype)
+        velocity = np.empty((int(offsets[-1]), 2), dtype=np.float32)
+        for j, name in enumerate(names):
+            run = store.run(name)
+            lo, hi = int(offsets[j]), int(offsets[j + 1])
+            # Read chunk-aligned blocks straight into the bank: no second full-size copy.
+            step = run.images.chunks[0]
+            for s in range(0, hi - lo, step):
+                e = min(hi - lo, s + step)
+                images[lo + s:lo + e] = run.images[s:e]
+                if progress is not None:
+                    progress(name, e, hi - lo)
+            velocity[lo:hi] = run.velocity[:]
+        return cls(images, velocity, offsets, names, store.grid)
+
+    @classmethod
+    def from_arrays(cls, runs: Sequence[tuple[np.ndarray, np.ndarray]], grid: SensorGrid,
+                    names: Sequence[str] | None = None) -> "FrameBank":
+        """Build a bank from in-memory (images, velocity) pairs, one per run."""
+        sizes = [len(im) for im, _ in runs]
+        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        images = np.concatenate([np.asarray(im) for im, _ in runs])
+        velocity = np.concatenate([np.asarray(v, dtype=np.float32) for _, v in runs])
+        return cls(images, velocity, offsets, list(names or [f"run_{i:03d}" for i in range(len(runs))]), grid)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.run_offsets[-1])
+
+    @property
+    def n_runs(self) -> int:
+        return len(self.run_names)
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.images.nbytes + self.velocity.nbytes)
+
+
+@dataclass(frozen=True)
+class WindowIndex:
+    """Windows as global start frames into a :class:`FrameBank` (int64, any order)."""
+
+    starts: np.ndarray
+    run_offsets: np.ndarray
+    n_in: int = N_IN
+    horizon: int = 1
+
+    @classmethod
+    def build(cls, bank: FrameBank, n_in: int = N_IN, horizon: int = 1) -> "WindowIndex":
+        if n_in < 1 or horizon < 1:
+            raise SonarSetError(f"n_in and horizon must be >= 1 (got {n_in}, {horizon})")
+        span = n_in + horizon
+        starts = [np.arange(lo, hi - span + 1, dtype=np.int64)
+                  for lo, hi in zip(bank.run_offsets[:-1], bank.run_offsets[1:]) if hi - lo >= span]
+        s = np.concatenate(starts) if starts else np.zeros(0, dtype=np.int64)
+        return cls(s, bank.run_offsets, n_in, horizon)
+
+    @property
+    def span(self) -> int:
+        """Frames touched by one window: inputs plus targets."""
+        return self.n_in + self.horizon
+
+    def __len__(self) -> int:
+        return int(self.starts.shape[0])
+
+    def subset(self, which: np.ndarray | Sequence[int]) -> "WindowIndex":
+        return WindowIndex(self.starts[np.asarray(which, dtype=np.int64)], self.run_offsets, self.n_in, self.horizon)
+
+    def sample(self, n: int, seed: int = 0) -> "WindowIndex":
+        """``n`` windows drawn without replacement (all if fewer), in ascending order."""
+        if n >= len(self):
+            return self
+        pick = np.sort(np.random.default_rng(seed).choice(len(self), size=n, replace=False))
+        return self.subset(pick)
+
+    def locate(self, k: int) -> tuple[int, int]:
+        """(run position in the bank, frame index within that run) of window ``k``."""
+        g = int(self.starts[k])
+        j = int(np.searchsorted(self.run_offsets, g, side="right") - 1)
+        return j, g - int(self.run_offsets[j])
+
+    def split(self, n_val: int = 1600, seed: int = 0, purge: bool = True) -> tuple["WindowIndex", "WindowIndex"]:
+        """A seeded random validation subset of ``n_val`` windows, and the rest for training.
+
+        The paper draws 1600 random validation windows. Neighbouring windows share frames, so with
+        ``purge`` (default) training windows that touch any validation frame are dropped too: the
+        validation loss then measures frames the model never saw.
+        """
+        if not 0 < n_val < len(self):
+            raise SonarSetError(f"cannot hold out {n_val} validation windows from {len(self)}")
+        rng = np.random.default_rng(seed)
+        val_pos = np.sort(rng.choice(len(self), size=n_val, replace=False))
+        train_mask = np.ones(len(self), dtype=bool)
+        train_mask[val_pos] = False
+        if purge:
+            n = int(self.run_offsets[-1])
+            covered = np.zeros(n + 1, dtype=np.int64)
+            # Mark every frame used by a validation window (difference array, then cumsum).
+            np.add.at(covered, self.starts[val_pos], 1)
+            np.add.at(covered, self.starts[val_pos] + self.span, -1)
+            used = np.cumsum(covered)[:n] > 0
+            used_cum = np.concatenate([[0], np.cumsum(used)])
+            touches = used_cum[self.starts + self.span] - used_cum[self.starts] > 0
+            train_mask &= ~touches
+        return self.subset(np.flatnonzero(train_mask)), self.subset(val_pos)
+
+
+@dataclass
+class WindowBatch:
+    """A batch of windows as NumPy arrays (B windows)."""
+
+    frames: np.ndarray  # (B, n_in, R, A) measured input frames
+    commands: np.ndarray  # (B, n_in + H, 2) commands i .. i+n_in-1+H
+    targets: np.ndarray  # (B, H, R, A) frames i+n_in .. i+n_in-1+H
+    starts: np.ndarray  # (B,) global start frames
+
+    def __len__(self) -> int:
+        return int(self.frames.shape[0])
+
+
+def gather(bank: FrameBank, index: WindowIndex, which: np.ndarray | slice | None = None,
+           image_dtype: str | np.dtype | None = None) -> WindowBatch:
+    """The windows ``index[which]`` as one batch (a single vectorised gather per array)."""
+    starts = index.starts if which is None else index.starts[which]
+    starts = np.atleast_1d(starts)
+    rows = starts[:, None] + np.arange(index.span)
+    block = bank.images[rows]  # (B, n_in + H, R, A)
+    if image_dtype is not None:
+        block = block.astype(image_dtype, copy=False)
+    commands = bank.velocity[rows]
+    return WindowBatch(block[:, :index.n_in], commands, block[:, index.n_in:], starts)
+
+
+def iter_batches(
+    bank: FrameBank,
+    index: WindowIndex,
+    batch_size: int = 64,
+    *,
+    shuffle: bool = True,
+    seed: int = 0,
+    epoch: int = 0,
+    drop_last: bool = False,
+    image_dtype: str | np.dtype | None = None,
+) -> Iterator[WindowBatch]:
+    """Framework-free batches; the order depends only on (seed, epoch)."""
+    n = len(index)
+    order = np.random.default_rng([seed, epoch]).permutation(n) if shuffle else np.arange(n)
+    stop = n - n % batch_size if drop_last else n
+    for lo in range(0, stop, batch_size):
+        yield gather(bank, index, order[lo:lo + batch_size], image_dtype)
+
+
+def load_windows(store: SonarStore, split: str | None = "train", n_in: int = N_IN, horizon: int = 1,
+                 image_dtype: str | np.dtype | None = None) -> tuple[FrameBank, WindowIndex]:
+    """Load the runs of ``split`` into memory and index their windows."""
+    bank = FrameBank.from_store(store, split=split, image_dtype=image_dtype)
+    return bank, WindowIndex.build(bank, n_in, horizon)
