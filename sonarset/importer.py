@@ -108,6 +108,8 @@ def load_recording(src: str | os.PathLike, meta_path: str | os.PathLike | None =
     if not src.exists():
         raise InputValidationError(where, ["no such file or directory"])
     arrays, embedded, problems = _read_arrays(src)
+    if problems and not arrays:
+        raise InputValidationError(where, problems)  # nothing readable: further checks only echo it
 
     meta_doc: dict | None = None
     sidecar = Path(meta_path) if meta_path is not None else _sidecar_for(src)
@@ -168,7 +170,7 @@ def load_recording(src: str | os.PathLike, meta_path: str | os.PathLike | None =
             if np.abs(v[:, 1]).max() > MAX_TURN_RAD_S:
                 problems.append(f"velocity: turn rate up to {np.abs(v[:, 1]).max():.3g} rad/s is implausible "
                                 f"(declared units.angular_velocity={u.angular_velocity!r}; degrees?)")
-        out["velocity"] = v.astype(np.float32)
+        out["velocity"] = v
     if "time" in conv and conv["time"].ndim == 1:
         t = conv["time"].astype(np.float64) * _TIME[u.time]
         if t.size > 1:
@@ -180,7 +182,14 @@ def load_recording(src: str | os.PathLike, meta_path: str | os.PathLike | None =
         out["pose"] = conv["pose"].astype(np.float64) * np.array([_RANGE[u.range], _RANGE[u.range], _ANGLE[u.azimuth]])
     for key in ("snr_db", "slip"):
         if key in conv:
-            out[key] = conv[key].astype(np.float32)
+            out[key] = conv[key].astype(np.float64)
+    for key, arr in out.items():
+        if arr.size and np.abs(arr).max() > np.finfo(np.float32).max:
+            problems.append(f"{key}: values exceed the float32 range")
+            out[key] = np.zeros_like(arr)
+    for key in ("velocity", "snr_db", "slip"):
+        if key in out:
+            out[key] = out[key].astype(np.float32)
 
     grid = _resolve_grid(meta, conv, images, problems)
     if images is not None and images.ndim == 3:

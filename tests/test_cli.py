@@ -1,0 +1,60 @@
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+from typer.testing import CliRunner
+
+from sonarset.cli.app import app
+from tests.conftest import TINY, make_run
+
+runner = CliRunner()
+FIX = Path(__file__).resolve().parents[1] / "spec" / "fixtures"
+
+
+def test_info_and_json(store):
+    r = runner.invoke(app, ["info", store.location])
+    assert r.exit_code == 0 and "run_001" in r.output and "3 complete run(s), 75 frames" in r.output
+    r = runner.invoke(app, ["info", store.location, "--json"])
+    doc = json.loads(r.output)
+    assert doc["frames"] == 75 and doc["grid"]["n_range"] == 8 and doc["format_version"] == "1.0"
+
+
+def test_validate_exit_codes(store):
+    assert runner.invoke(app, ["validate", store.location]).exit_code == 0
+    r = runner.invoke(app, ["validate", str(FIX / "invalid" / "nan_images.zarr")])
+    assert r.exit_code == 1 and "NaN or infinite" in r.output
+
+
+def test_validate_consolidate_repairs_stale_metadata(store):
+    store.write_run("late", **make_run(6, 8), consolidate=False)
+    assert runner.invoke(app, ["validate", store.location]).exit_code == 1
+    assert runner.invoke(app, ["validate", store.location, "--consolidate"]).exit_code == 0
+
+
+def test_import_cli(tmp_path):
+    src = tmp_path / "r.npz"
+    np.savez(src, **make_run(8, 1), range=TINY.range_centres(), azimuth=TINY.azimuth_centres())
+    r = runner.invoke(app, ["import", str(src), str(tmp_path / "o.zarr"), "--split", "test"])
+    assert r.exit_code == 0, r.output
+    assert runner.invoke(app, ["validate", str(tmp_path / "o.zarr")]).exit_code == 0
+
+
+def test_schema_cli():
+    r = runner.invoke(app, ["schema", "recording"])
+    assert r.exit_code == 0 and json.loads(r.output)["title"] == "RecordingMeta"
+    assert runner.invoke(app, ["schema", "nope"]).exit_code == 2
+
+
+def test_bad_input_gives_one_line_and_no_traceback(tmp_path):
+    """The installed console script, as a user runs it."""
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"garbage")
+    for args in (["info", str(tmp_path / "missing.zarr")], ["validate", str(bad)],
+                 ["import", str(bad), str(tmp_path / "o.zarr")], ["info", str(FIX / "invalid" / "unknown_major_version.zarr")]):
+        res = subprocess.run([sys.executable, "-m", "sonarset.cli", *args], capture_output=True, text=True)
+        assert res.returncode == 1, (args, res.stderr)
+        assert "Traceback" not in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
+        assert str(Path(args[1]).name) in res.stderr
+    assert not (tmp_path / "o.zarr").exists()

@@ -1,0 +1,57 @@
+"""Packaging: sonarset stays torch-free, and a wheel installs only the sonarset namespace."""
+
+import os
+import subprocess
+import sys
+import sysconfig
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_import_sonarset_does_not_import_torch():
+    code = ("import sys, sonarset, sonarset.store, sonarset.windows, sonarset.validate, sonarset.importer; "
+            "assert 'torch' not in sys.modules, 'torch imported'")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd="/")
+
+
+def test_cli_help_does_not_import_torch():
+    code = ("import sys; sys.argv=['sonarset','--help']\nfrom sonarset.cli.app import app\n"
+            "try:\n    app()\nexcept SystemExit:\n    pass\nassert 'torch' not in sys.modules")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd="/", capture_output=True)
+
+
+@pytest.mark.slow
+def test_wheel_installs_in_fresh_venv(tmp_path):
+    wheels = tmp_path / "wheels"
+    subprocess.run([sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "--no-build-isolation",
+                    "-q", "-w", str(wheels)], check=True, cwd=tmp_path)
+    (wheel,) = wheels.glob("sonarset-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    tops = {n.split("/")[0] for n in names if not n.split("/")[0].endswith((".dist-info", ".data"))}
+    assert tops == {"sonarset"}, f"wheel installs top-level packages {tops}"
+    assert "sonarset/models/__init__.py" in names and "sonarset/cli/app.py" in names
+
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    py = venv / "bin" / "python"
+    subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-deps", "--no-index", str(wheel)], check=True)
+    # Dependencies come from this interpreter's site-packages, appended *after* the venv's own, so
+    # the sonarset that imports is the wheel's and never the checkout's.
+    deps = sysconfig.get_paths()["purelib"]
+    code = (f"import sys; sys.path.append({deps!r}); "
+            "import sonarset, sonarset.models, sonarset.cli.app, sonarset.store; "
+            f"assert sonarset.__file__.startswith({str(venv)!r}), sonarset.__file__; "
+            "import importlib.util as u; "
+            "assert u.find_spec('models') is None and u.find_spec('cli') is None, 'top-level models/cli'; "
+            "print('ok')")
+    res = subprocess.run([str(py), "-c", code], cwd=tmp_path, capture_output=True, text=True,
+                         env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"})
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "ok"
+    res = subprocess.run([str(venv / "bin" / "sonarset"), "--version"], capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": deps})
+    assert res.returncode == 0 and "sonarset" in res.stdout, res.stderr

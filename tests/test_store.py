@@ -1,0 +1,137 @@
+import json
+
+import numpy as np
+import pytest
+
+from sonarset import FormatError, SonarSetError, create_store, open_store
+from sonarset.errors import InputValidationError
+from sonarset.schema import SensorGrid
+from tests.conftest import TINY, make_run
+
+
+@pytest.mark.parametrize("dtype", ["float16", "float32"])
+def test_round_trip_is_bit_identical(tmp_path, dtype):
+    s = create_store(tmp_path / "s.zarr", TINY)
+    data = make_run(37, 3, dtype)
+    rng = np.random.default_rng(9)
+    extra = {"pose": rng.normal(size=(37, 3)), "snr_db": rng.normal(5, 1, 37).astype(np.float32),
+             "slip": rng.uniform(0.5, 1, (37, 2)).astype(np.float32)}
+    s.write_run("run_000", **data, **extra, chunk_frames=8)
+    run = open_store(tmp_path / "s.zarr").run("run_000")
+    got = run.load()
+    assert got.images.dtype == np.dtype(dtype)
+    assert got.images.tobytes() == data["images"].tobytes()
+    assert got.velocity.tobytes() == data["velocity"].tobytes()
+    assert got.time.tobytes() == data["time"].tobytes()
+    for k, v in extra.items():
+        assert getattr(got, k).tobytes() == v.tobytes()
+    # lazy partial read
+    assert np.array_equal(run.images[10:13], data["images"][10:13])
+
+
+def test_xarray_opens_a_run_with_named_dims(store):
+    xr = pytest.importorskip("xarray")
+    ds = store.run("run_000").to_xarray()
+    assert ds["images"].dims == ("time", "range", "azimuth")
+    assert ds["velocity"].dims == ("time", "velocity_component")
+    np.testing.assert_allclose(ds["range"].values, TINY.range_centres())
+    np.testing.assert_allclose(ds["azimuth"].values, TINY.azimuth_centres())
+    # and plain xarray, knowing nothing of sonarset
+    ds2 = xr.open_zarr(store.location, group="test_000", consolidated=False)
+    assert ds2.sizes == {"time": 20, "range": 8, "azimuth": 6, "velocity_component": 2}
+
+
+def test_runs_listing_splits_and_info(store):
+    s = open_store(store.location)
+    assert s.runs() == ["run_000", "run_001", "test_000"]
+    assert s.runs("test") == ["test_000"]
+    assert s.splits() == {"train": ["run_000", "run_001"], "test": ["test_000"]}
+    assert s.n_frames() == 75 and s.grid == TINY
+
+
+def test_incomplete_run_is_invisible_and_replaced(store):
+    w = store.run_writer("run_002", 10)
+    w.write(0, **make_run(10, 4, "float16"))
+    # writer "killed" before commit: readers do not see it
+    assert "run_002" not in open_store(store.location).runs()
+    assert "run_002" in store.runs(include_incomplete=True)
+    with pytest.raises(FormatError, match="incomplete"):
+        store.run("run_002")
+    # the next writer of that name replaces it without needing overwrite
+    store.write_run("run_002", **make_run(10, 5))
+    assert "run_002" in open_store(store.location).runs()
+
+
+def test_writer_exception_removes_half_written_group(store):
+    with pytest.raises(RuntimeError):
+        with store.run_writer("run_009", 10) as w:
+            w.write(0, **make_run(10, 4, "float16"))
+            raise RuntimeError("boom")
+    assert "run_009" not in store.runs(include_incomplete=True)
+
+
+def test_commit_refuses_unwritten_frames(store):
+    w = store.run_writer("run_010", 10)
+    blk = make_run(5, 1, "float16")
+    w.write(0, **blk)
+    with pytest.raises(SonarSetError, match="frame 5 was never written"):
+        w.commit()
+
+
+def test_existing_run_needs_overwrite(store):
+    with pytest.raises(SonarSetError, match="already exists"):
+        store.write_run("run_000", **make_run(5, 1))
+    store.write_run("run_000", **make_run(5, 1), overwrite=True)
+    assert store.run("run_000").n_frames == 5
+
+
+def test_write_run_validates_before_writing(store):
+    bad = make_run(10, 1)
+    bad["images"][3, 0, 0] = np.nan
+    bad["velocity"] = bad["velocity"][:9]
+    bad["time"][5] = 0.0
+    with pytest.raises(InputValidationError) as e:
+        store.write_run("run_bad", **bad)
+    text = "\n".join(e.value.problems)
+    assert "images: contains NaN" in text and "velocity: 9 frames but images has 10" in text
+    assert "not strictly increasing" in text
+    assert "run_bad" not in store.runs(include_incomplete=True)
+
+
+def test_grid_mismatch_refused(store):
+    with pytest.raises(InputValidationError, match="does not match the grid"):
+        store.write_run("x", **make_run(5, grid=SensorGrid.default()))
+
+
+def test_create_refuses_existing_and_readonly(store, tmp_path):
+    with pytest.raises(SonarSetError, match="already exists"):
+        create_store(store.location, TINY)
+    ro = open_store(store.location)
+    with pytest.raises(SonarSetError, match="read-only"):
+        ro.write_run("x", **make_run(5))
+
+
+def test_open_errors_are_specific(tmp_path):
+    with pytest.raises(FormatError, match="no such file"):
+        open_store(tmp_path / "nope.zarr")
+    (tmp_path / "f.txt").write_text("x")
+    with pytest.raises(FormatError, match="a file, not a directory"):
+        open_store(tmp_path / "f.txt")
+
+
+def test_unknown_major_version_is_refused_by_name(store):
+    meta = json.loads(open(f"{store.location}/zarr.json").read())
+    meta["attributes"]["sonarset"]["format_version"] = "3.1"
+    meta.pop("consolidated_metadata")
+    open(f"{store.location}/zarr.json", "w").write(json.dumps(meta))
+    with pytest.raises(FormatError, match=r"version 3\.1 is not supported"):
+        open_store(store.location)
+
+
+def test_fsspec_memory_url_round_trip():
+    url = "memory://sonarset-test/store.zarr"
+    s = create_store(url, TINY)
+    data = make_run(12, 7, "float16")
+    s.write_run("run_000", **data)
+    back = open_store(url).run("run_000").load()
+    assert back.images.tobytes() == data["images"].tobytes()

@@ -1,0 +1,87 @@
+import numpy as np
+import pytest
+
+from sonarset import SonarSetError
+from sonarset.windows import FrameBank, WindowIndex, gather, iter_batches, load_windows
+from tests.conftest import TINY
+
+
+def coded_bank(sizes=(20, 15, 9)):
+    # frame value = 1000 * run + frame index; velocity v = the same code: alignment is visible
+    runs = []
+    for j, T in enumerate(sizes):
+        code = 1000 * j + np.arange(T, dtype=np.float32)
+        runs.append((np.broadcast_to(code[:, None, None], (T, *TINY.shape)).copy(), np.c_[code, -code]))
+    return FrameBank.from_arrays(runs, TINY)
+
+
+@pytest.mark.parametrize("H", [1, 3, 5, 10])
+def test_window_alignment_and_counts(H):
+    bank = coded_bank()
+    idx = WindowIndex.build(bank, 3, H)
+    assert len(idx) == sum(max(0, T - 3 - H + 1) for T in (20, 15, 9))
+    b = gather(bank, idx)
+    f, c, t = b.frames[:, :, 0, 0], b.commands[:, :, 0], b.targets[:, :, 0, 0]
+    i = f[:, 0]
+    np.testing.assert_array_equal(f, i[:, None] + np.arange(3))  # frames i..i+2
+    np.testing.assert_array_equal(c, i[:, None] + np.arange(3 + H))  # commands i..i+2+H
+    np.testing.assert_array_equal(t, i[:, None] + 3 + np.arange(H))  # targets i+3..i+2+H
+    # never across runs: every window's values share one run code
+    codes = np.concatenate([f, t], axis=1) // 1000
+    assert np.all(codes == codes[:, :1])
+
+
+def test_locate():
+    idx = WindowIndex.build(coded_bank(), 3, 1)
+    assert idx.locate(0) == (0, 0) and idx.locate(17) == (1, 0) and idx.locate(len(idx) - 1) == (2, 5)
+
+
+def test_validation_split_is_seeded_disjoint_and_purged():
+    idx = WindowIndex.build(coded_bank((400, 300)), 3, 1)
+    tr, va = idx.split(50, seed=3)
+    tr2, va2 = idx.split(50, seed=3)
+    assert np.array_equal(va.starts, va2.starts) and np.array_equal(tr.starts, tr2.starts)
+    assert not np.array_equal(va.starts, idx.split(50, seed=4)[1].starts)
+    assert len(va) == 50 and not set(tr.starts) & set(va.starts)
+    val_frames = {int(s) + k for s in va.starts for k in range(4)}
+    assert all(not ({int(s) + k for k in range(4)} & val_frames) for s in tr.starts)
+    tr_np, _ = idx.split(50, seed=3, purge=False)
+    assert len(tr_np) == len(idx) - 50 > len(tr)
+
+
+def test_iter_batches_cover_each_window_once_and_are_seeded():
+    bank = coded_bank()
+    idx = WindowIndex.build(bank, 3, 2)
+    seen = np.concatenate([b.starts for b in iter_batches(bank, idx, 7, seed=1)])
+    assert sorted(seen) == sorted(idx.starts)
+    again = np.concatenate([b.starts for b in iter_batches(bank, idx, 7, seed=1)])
+    assert np.array_equal(seen, again)
+    other = np.concatenate([b.starts for b in iter_batches(bank, idx, 7, seed=1, epoch=1)])
+    assert not np.array_equal(seen, other)
+    assert all(len(b) == 7 for b in iter_batches(bank, idx, 7, drop_last=True))
+
+
+def test_load_windows_from_store(store):
+    bank, idx = load_windows(store, "train", horizon=3)
+    assert bank.run_names == ["run_000", "run_001"] and bank.n_frames == 55
+    assert len(idx) == (30 - 5) + (25 - 5)
+    np.testing.assert_array_equal(bank.images[30:55], store.run("run_001").images[:])
+    with pytest.raises(SonarSetError, match="no complete runs in split 'val'"):
+        load_windows(store, "val")
+
+
+def test_torch_dataset_and_loader(store):
+    torch = pytest.importorskip("torch")
+    from sonarset.torchdata import SonarWindowDataset, make_loader
+
+    bank, idx = load_windows(store, "train", horizon=2)
+    ds = SonarWindowDataset(bank, idx)
+    one = ds[4]
+    assert one["frames"].shape == (3, 8, 6) and one["commands"].shape == (5, 2) and one["targets"].shape == (2, 8, 6)
+    ref = gather(bank, idx, np.array([4]))
+    assert torch.equal(one["targets"], torch.from_numpy(ref.targets[0]))
+    batches = list(make_loader(ds, 8, seed=0))
+    assert sum(b["frames"].shape[0] for b in batches) == len(ds)
+    assert batches[0]["frames"].dtype == torch.float32
+    with pytest.raises(IndexError):
+        ds[len(ds)]
