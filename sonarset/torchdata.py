@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler, SequentialSampler
 
-from .windows import FrameBank, WindowIndex, gather
+from .windows import FrameBank, WindowIndex
 
 
 class SonarWindowDataset(Dataset):
@@ -30,11 +30,13 @@ class SonarWindowDataset(Dataset):
         which = np.atleast_1d(np.asarray(k, dtype=np.int64))
         if which.size and (which.min() < -len(self) or which.max() >= len(self)):
             raise IndexError(f"window index out of range for {len(self)} windows")
-        b = gather(self.bank, self.index, which)
+        rows = self.index.starts[which][:, None] + np.arange(self.index.span)
+        # One gather and one dtype conversion for inputs and targets together; both are views.
+        block = torch.from_numpy(self.bank.images[rows]).to(self.dtype)
         out = {
-            "frames": torch.from_numpy(np.ascontiguousarray(b.frames)).to(self.dtype),
-            "commands": torch.from_numpy(np.ascontiguousarray(b.commands)).to(self.dtype),
-            "targets": torch.from_numpy(np.ascontiguousarray(b.targets)).to(self.dtype),
+            "frames": block[:, :self.index.n_in],
+            "commands": torch.from_numpy(self.bank.velocity[rows]).to(self.dtype),
+            "targets": block[:, self.index.n_in:],
         }
         return {k2: v[0] for k2, v in out.items()} if single else out
 
