@@ -1,0 +1,10 @@
+"""The sonar simulator: worlds, a differential-drive robot, and an eRTIS-like imaging sonar."""
+
+from .generate import generate, plan_runs, simulate_blocks
+from .robot import ExplorationPolicy, apply_slip, integrate, sensor_pose
+from .sonar import SonarModel, visible_echoes
+from .world import World, WorldSpec, corridor_world, lab_world, load_world
+
+__all__ = ["ExplorationPolicy", "SonarModel", "World", "WorldSpec", "apply_slip", "corridor_world",
+           "generate", "integrate", "lab_world", "load_world", "plan_runs", "sensor_pose",
+           "simulate_blocks", "visible_echoes"]

@@ -1,0 +1,161 @@
+"""Generate SonarSet stores of simulated runs: parallel, deterministic, resumable.
+
+Each run has its own seed, spawned from the master seed with numpy's SeedSequence, and is
+simulated start to finish by one worker that writes only its own run group. The arrays therefore
+do not depend on the number of workers or on their scheduling. Re-running the same command keeps
+every complete run (the plan recorded in its ``source`` must match) and redoes the others.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import multiprocessing as mp
+import os
+from dataclasses import asdict, dataclass
+from typing import Callable, Iterator
+
+import numpy as np
+
+from .. import __version__
+from ..errors import SonarSetError
+from ..schema import SensorGrid
+from ..store import DEFAULT_CHUNK_FRAMES, open_or_create_store, open_store
+from .robot import ExplorationPolicy, apply_slip, integrate
+from .sonar import SonarModel
+from .world import load_world
+
+DT = 0.2  # s, 5 Hz frames
+
+
+@dataclass(frozen=True)
+class RunPlan:
+    name: str
+    split: str
+    seed: int  # the run's own seed (from SeedSequence.spawn of the master seed)
+    world: str
+    world_seed: int
+    n_frames: int
+    snr_db: float
+
+    def source(self) -> dict:
+        return {"kind": "simulator", "simulator": f"sonarset {__version__}", **asdict(self), "dt": DT}
+
+
+def plan_runs(runs: int = 10, test_runs: int = 1, minutes: float = 25.0, seed: int = 0,
+              world: str = "lab", snr_db: float = 5.0) -> list[RunPlan]:
+    n_frames = int(round(minutes * 60 / DT))
+    if n_frames < 1:
+        raise SonarSetError(f"--minutes {minutes} gives no frames at 5 Hz")
+    if runs < 0 or test_runs < 0 or runs + test_runs < 1:
+        raise SonarSetError("need at least one run")
+    children = np.random.SeedSequence(seed).spawn(runs + test_runs)
+    plans = []
+    for k, ss in enumerate(children):
+        s = int(ss.generate_state(1, np.uint64)[0] >> np.uint64(1))
+        name, split = (f"run_{k:03d}", "train") if k < runs else (f"test_{k - runs:03d}", "test")
+        # Every run gets its own variant of a procedural world; a fixed world is the same for all.
+        plans.append(RunPlan(name, split, s, world, s % 1_000_003, n_frames, float(snr_db)))
+    return plans
+
+
+def simulate_blocks(plan: RunPlan, grid: SensorGrid, block: int = DEFAULT_CHUNK_FRAMES) -> Iterator[tuple[int, dict]]:
+    """(start, arrays) blocks of a run; velocity[k] is the command that moved the robot into frame k."""
+    world = load_world(plan.world, plan.world_seed)
+    rng = np.random.default_rng(plan.seed)
+    motion_rng, noise_rng = rng.spawn(2)
+    policy = ExplorationPolicy(world, motion_rng, dt=DT)
+    model = SonarModel(grid, snr_db=plan.snr_db)
+    pose = world.sample_spawn(motion_rng)
+    R, A = grid.shape
+    for start in range(0, plan.n_frames, block):
+        n = min(block, plan.n_frames - start)
+        out = {"images": np.empty((n, R, A), np.float16), "velocity": np.empty((n, 2), np.float32),
+               "time": (start + np.arange(n)) * DT, "pose": np.empty((n, 3)),
+               "snr_db": np.full(n, plan.snr_db, np.float32), "slip": np.ones((n, 2), np.float32)}
+        for j in range(n):
+            v, w = policy(pose)
+            pose = integrate(pose, *apply_slip(v, w, (1.0, 1.0)), DT)
+            out["velocity"][j] = (v, w)
+            out["pose"][j] = pose
+            out["images"][j] = model.render(world, pose, noise_rng)
+        yield start, out
+
+
+def _write_run(location: str, plan: RunPlan, grid: SensorGrid, queue=None) -> str:
+    store = open_store(location, "r+")
+    with store.run_writer(plan.name, plan.n_frames, split=plan.split, source=plan.source(),
+                          optional=("pose", "snr_db", "slip"), consolidate=False) as w:
+        for start, arrays in simulate_blocks(plan, grid):
+            w.write(start, **arrays)
+            if queue is not None:
+                queue.put((plan.name, len(arrays["time"])))
+        w.commit()
+    return plan.name
+
+
+def generate(
+    out: str | os.PathLike,
+    *,
+    runs: int = 10,
+    test_runs: int = 1,
+    minutes: float = 25.0,
+    seed: int = 0,
+    world: str = "lab",
+    snr_db: float = 5.0,
+    workers: int | None = None,
+    grid: SensorGrid | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> list[str]:
+    """Simulate the runs into the store ``out``; returns the names of the runs written now."""
+    grid = grid or SensorGrid.default()
+    load_world(world, 0)  # fail fast on a bad world name or file, before any process starts
+    plans = plan_runs(runs, test_runs, minutes, seed, world, snr_db)
+    loc = os.fspath(out)
+    store = open_or_create_store(loc, grid, description=f"simulated by sonarset {__version__}")
+    todo = []
+    for plan in plans:
+        if plan.name in store.runs():
+            have = store.run(plan.name).attrs.source
+            if {k: have.get(k) for k in plan.source()} != plan.source():
+                raise SonarSetError(f"{loc}: run {plan.name} was generated with other settings; "
+                                    "use a new output or the same options")
+            continue
+        todo.append(plan)
+    workers = max(1, min(workers or os.cpu_count() or 1, len(todo) or 1))
+    total = {p.name: p.n_frames for p in todo}
+    if todo:
+        if workers == 1:
+            for plan in todo:
+                _write_run(loc, plan, grid, _Direct(progress, total))
+        else:
+            ctx = mp.get_context("spawn")  # no fork: zarr's event loop thread must not be copied
+            with ctx.Manager() as manager:
+                queue = manager.Queue()
+                with cf.ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+                    futures = [pool.submit(_write_run, loc, p, grid, queue) for p in todo]
+                    done = {p.name: 0 for p in todo}
+                    pending = set(futures)
+                    while pending:
+                        finished, pending = cf.wait(pending, timeout=0.2)
+                        while not queue.empty():
+                            name, n = queue.get()
+                            done[name] += n
+                            if progress:
+                                progress(name, done[name], total[name])
+                        for f in finished:
+                            f.result()  # re-raise a worker's error here
+    store.consolidate()
+    return [p.name for p in todo]
+
+
+class _Direct:
+    """Queue stand-in for the single-process path: reports progress straight away."""
+
+    def __init__(self, progress, total):
+        self.progress, self.total, self.done = progress, total, {}
+
+    def put(self, item) -> None:
+        name, n = item
+        self.done[name] = self.done.get(name, 0) + n
+        if self.progress:
+            self.progress(name, self.done[name], self.total[name])
