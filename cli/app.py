@@ -183,6 +183,79 @@ def schema(
     sys.stdout.write(json_schema_text(kind))
 
 
+@app.command()
+@user_errors
+def generate(
+    out_store: str = typer.Argument(..., metavar="OUT", help="Store to write (created, or resumed)."),
+    runs: int = typer.Option(10, "--runs", min=0, help="Training runs."),
+    minutes: float = typer.Option(25.0, "--minutes", min=0.0, help="Length of each run (5 Hz frames)."),
+    test_runs: int = typer.Option(1, "--test-runs", min=0, help="Test runs (split 'test'), never for training."),
+    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Parallel processes (default: all cores)."),
+    seed: int = typer.Option(0, "--seed", help="Master seed; same seed, same arrays, whatever the workers."),
+    world: str = typer.Option("lab", "--world", help="Built-in world (lab, corridor) or a JSON/TOML world file."),
+    snr_db: float = typer.Option(5.0, "--snr-db", help="SNR at the microphones, dB."),
+    n_range: int = typer.Option(200, "--n-range", min=2, help="Range bins over 0.5-5 m."),
+    n_azimuth: int = typer.Option(90, "--n-azimuth", min=2, help="Azimuth bins over -90..+90 deg."),
+) -> None:
+    """Simulate runs into a SonarSet store; re-run the same command to resume after an interruption."""
+    import time
+
+    from rich.progress import MofNCompleteColumn, TimeElapsedColumn
+
+    from sonarset.schema import SensorGrid
+    from sonarset.sim import generate as gen
+
+    grid = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=n_range,
+                      azimuth_min_rad=-math.pi / 2, azimuth_max_rad=math.pi / 2, n_azimuth=n_azimuth)
+    t0 = time.perf_counter()
+    columns = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+               TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), TimeRemainingColumn()]
+    with Progress(*columns, console=err, disable=not err.is_terminal) as bar:
+        tasks: dict[str, int] = {}
+        started: dict[str, float] = {}
+
+        def progress(name: str, done: int, total: int) -> None:
+            if name not in tasks:
+                tasks[name] = bar.add_task(name, total=total, rate="")
+                started[name] = time.perf_counter()
+            rate = done / max(time.perf_counter() - started[name], 1e-9)
+            bar.update(tasks[name], completed=done, rate=f"{rate:,.0f} frames/s")
+
+        written = gen(out_store, runs=runs, test_runs=test_runs, minutes=minutes, seed=seed, world=world,
+                      snr_db=snr_db, workers=workers, grid=grid, progress=progress)
+    dt = time.perf_counter() - t0
+    out.print(f"{out_store}: wrote {len(written)} run(s) in {dt:.1f} s"
+              + (f" ({runs + test_runs - len(written)} already complete)" if len(written) < runs + test_runs else ""))
+
+
+@app.command()
+@user_errors
+def show(
+    store: str = typer.Argument(..., help="Store path or fsspec URL."),
+    run: Optional[str] = typer.Option(None, "--run", help="Run name (default: the first)."),
+    frame: int = typer.Option(0, "--frame", min=0, help="Frame index."),
+    out_png: Path = typer.Option(Path("sonarset-show.png"), "--out", help="PNG to write."),
+) -> None:
+    """Plot the world and trajectory of a run and one energyscape (image and polar fan)."""
+    from sonarset.plots import show_run
+    from sonarset.sim.world import load_world
+    from sonarset.store import open_store
+
+    s = open_store(store)
+    name = run or (s.runs() or [None])[0]
+    if name is None:
+        fail(f"{store}: no complete runs")
+    src = s.run(name).attrs.source
+    world = None
+    if src.get("kind") == "simulator":
+        try:
+            world = load_world(src["world"], int(src["world_seed"]))
+        except (SonarSetError, KeyError, ValueError):
+            world = None  # a world file that moved: plot the trajectory alone
+    path = show_run(s, name, frame, out_png, world)
+    out.print(f"wrote {path}")
+
+
 def main() -> None:
     try:
         app()

@@ -11,7 +11,8 @@ Physics (DESIGN.md §3), with sources:
   (cylinder and sphere backscatter, Bowman et al., Electromagnetic and Acoustic Scattering by Simple
   Shapes).
 - Range PSF: envelope of the matched-filtered, Hann-windowed 25->50 kHz FM sweep of 2.5 ms, low-passed
-  at 6 kHz: FWHM 2.06 cm (eRTIS processing, Kerstens et al. 2019; public RTIS Dev defaults).
+  at 6 kHz: FWHM 2.06 cm (eRTIS processing, Kerstens et al. 2019; public RTIS Dev defaults). Each
+  range bin averages the energy over its width, so coarse grids do not alias the PSF.
 - Azimuth PSF: delay-and-sum beam pattern of the 32-microphone eRTIS array (sonarset/data/
   ertis32_microphones.csv), energy-averaged over the sweep band: -3 dB width 5.6° broadside, growing
   as 1/cos θ because a linear array's pattern is shift-invariant in u = sin θ.
@@ -214,7 +215,11 @@ class SonarModel:
         dr, env = range_psf_table()
         du, bp = beam_table()
         self._r_step = dr[1] - dr[0]
-        self._r0, self._renv2 = dr[0], env ** 2
+        # Each range bin holds the energy averaged over its width (decimation of the finely sampled
+        # envelope with a box filter): a 2 cm PSF point-sampled on 2.25 cm bins would alias, making
+        # echo levels depend on where a reflector falls within a bin.
+        box = max(1, int(round(self.grid.range_step / self._r_step)))
+        self._r0, self._renv2 = dr[0], np.convolve(env ** 2, np.ones(box) / box, mode="same")
         self._u_step = du[1] - du[0]
         self._beam2 = bp ** 2
         self.r_c = self.grid.range_centres()
@@ -263,6 +268,8 @@ class SonarModel:
         ech = visible_echoes(world, sensor_pose(robot_pose), self.grid.range_max_m + 0.1)
         e = self.energy(ech)
         if rng is not None:
-            peak = float(ech.amp.max()) if len(ech) else 1e-3
+            # The PSFs peak at 1, so the image peak is the strongest echo's amplitude at a
+            # microphone (for a wall: the whole specular return, not one wall element).
+            peak = float(np.sqrt(e.max())) if e.max() > 0 else np.sqrt(self.e_full) * 1e-3
             e = e + self.noise_energy(peak, self.snr_db if snr_db is None else snr_db, rng)
         return self.encode(e)

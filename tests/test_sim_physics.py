@@ -1,0 +1,163 @@
+"""Physics of the simulator against DESIGN.md §3 and the acoustic-flow geometry."""
+
+import math
+
+import numpy as np
+import pytest
+
+from sonarset.schema import SensorGrid
+from sonarset.sim.robot import SENSOR_OFFSET, apply_slip, integrate, sensor_pose
+from sonarset.sim.sonar import (ABSORPTION_DB_PER_M, SPECULAR_N, Echoes, SonarModel, absorption,
+                                emitter_directivity, visible_echoes)
+from sonarset.sim.world import CircleSpec, SpawnBox, WallSpec, World, WorldSpec
+
+GRID = SensorGrid.default()
+
+
+def world(walls=(), circles=()):
+    return World.from_spec(WorldSpec(walls=list(walls), circles=list(circles), spawn=[SpawnBox(x=(0, 1), y=(0, 1))]))
+
+
+def peak(img: np.ndarray, grid: SensorGrid) -> tuple[float, float]:
+    i, j = np.unravel_index(np.argmax(img), img.shape)
+    return grid.range_centres()[i], grid.azimuth_centres()[j]
+
+
+def test_static_reflector_follows_its_flow_line_under_translation():
+    model = SonarModel(GRID)
+    w = world(circles=[CircleSpec(centre=(3.5, 1.2), radius=0.03)])
+    pose = np.array([0.0, 0.0, 0.0])
+    r0, th0 = peak(model.render(w, pose, None), GRID)
+    y0 = r0 * math.sin(th0)
+    for _ in range(8):
+        pose = integrate(pose, 0.3, 0.0, 0.2)
+        r, th = peak(model.render(w, pose, None), GRID)
+        # r sin(theta) = const: the azimuth expected from the measured range, within one bin
+        th_flow = math.asin(y0 / r)
+        assert abs(th - th_flow) <= GRID.azimuth_step + 1e-9, (r, math.degrees(th), math.degrees(th_flow))
+    assert r < r0 - 0.4  # it did move closer
+
+
+def test_pure_rotation_shifts_azimuth_by_omega_dt():
+    model = SonarModel(GRID)
+    w = world(circles=[CircleSpec(centre=(4.0, 0.5), radius=0.05)])
+    pose = np.array([0.0, 0.0, 0.0])
+    _, th0 = peak(model.render(w, pose, None), GRID)
+    for omega in (0.5, -1.0):
+        p = integrate(pose, 0.0, omega, 0.2)
+        assert np.allclose(p[:2], pose[:2])  # in place
+        _, th = peak(model.render(w, p, None), GRID)
+        # the sensor sits SENSOR_OFFSET ahead of the rotation axis, so allow one bin
+        assert abs((th0 - th) - omega * 0.2) <= GRID.azimuth_step, (math.degrees(th0 - th), omega * 0.2)
+
+
+def _fine(centre_deg: float) -> SensorGrid:
+    c = math.radians(centre_deg)
+    return SensorGrid(range_min_m=1.9, range_max_m=2.1, n_range=200, azimuth_min_rad=c - 0.4,
+                      azimuth_max_rad=c + 0.4, n_azimuth=800)
+
+
+def _width(profile: np.ndarray, axis_values: np.ndarray, level: float) -> float:
+    above = np.flatnonzero(profile >= level * profile.max())
+    return float(axis_values[above[-1]] - axis_values[above[0]])
+
+
+@pytest.mark.parametrize("az_deg,expected_deg", [(0.0, 5.0), (60.0, 10.0)])
+def test_point_spread_function_widths_match_design(az_deg, expected_deg):
+    grid = _fine(az_deg)
+    e = SonarModel(grid).energy(Echoes(np.array([2.0]), np.array([math.radians(az_deg)]), np.array([1.0])))
+    i, j = np.unravel_index(np.argmax(e), e.shape)
+    fwhm_range = _width(np.sqrt(e[:, j]), grid.range_centres(), 0.5)  # amplitude envelope FWHM
+    width_az = math.degrees(_width(e[i], grid.azimuth_centres(), 0.5))  # -3 dB of energy
+    assert fwhm_range == pytest.approx(0.02, rel=0.2)
+    assert width_az == pytest.approx(expected_deg, rel=0.2)
+    # side lobes exist (a 32-element sparse array), well below the main lobe
+    d = SonarModel(GRID).energy(Echoes(np.array([2.0]), np.array([math.radians(az_deg)]), np.array([1.0])))
+    row = d[np.argmax(d.max(1))]
+    side = row[np.abs(GRID.azimuth_centres() - math.radians(az_deg)) > math.radians(2 * expected_deg)]
+    assert 1e-3 < side.max() / row.max() < 0.2
+
+
+def test_echo_level_falls_with_spreading_and_absorption():
+    model = SonarModel(GRID)
+    levels = []
+    ranges = tuple(GRID.range_centres()[[22, 67, 156]])  # on bin centres: the sampled peak is the echo
+    for r in ranges:
+        w = world(circles=[CircleSpec(centre=(r + SENSOR_OFFSET + 0.05, 0.0), radius=0.05)])
+        levels.append(model.energy(visible_echoes(w, sensor_pose(np.zeros(3)), 5.1)).max())
+    for r, e in zip(ranges[1:], levels[1:]):
+        expected_db = -30 * math.log10(r / ranges[0]) - ABSORPTION_DB_PER_M * 2 * (r - ranges[0])  # pole: 1/r^1.5
+        got_db = 10 * math.log10(e / levels[0])
+        assert got_db == pytest.approx(expected_db, abs=0.5)
+
+
+def test_wall_is_strongest_at_normal_incidence():
+    model = SonarModel(GRID)
+    az = GRID.azimuth_centres()
+    for heading in (0.0, 0.5, -0.7):
+        # the wall's normal range on a bin centre: 2 cm PSF on 2.25 cm bins otherwise adds ~1 dB ripple
+        d = GRID.range_centres()[60]
+        wx = d + SENSOR_OFFSET * math.cos(heading)
+        w = world(walls=[WallSpec(start=(wx, -6.0), end=(wx, 6.0))])
+        img = model.render(w, np.array([0.0, 0.0, heading]), None)
+        arc = img.max(0)  # the wall's arc, strongest pixel per azimuth
+        normal = -heading  # the normal from the sensor to the wall points along world +x
+        # Expected bearing of the strongest echo: specular lobe x emitter directivity x spreading x
+        # absorption along the wall. At heading 0 that is normal incidence; tilted, the emitter
+        # pulls it towards the sensor axis.
+        inc = az - normal
+        r = d / np.cos(inc)
+        expect = np.cos(inc) ** SPECULAR_N * emitter_directivity(az) / r * absorption(r)
+        expected_az = az[np.argmax(np.where(np.abs(inc) < 1.4, expect, 0))]
+        if heading == 0.0:
+            assert expected_az == pytest.approx(normal, abs=GRID.azimuth_step)
+        # the analytic curve ignores smoothing by the 5.6 deg beam: allow under one beamwidth
+        assert abs(az[np.argmax(arc)] - expected_az) <= 2.5 * GRID.azimuth_step
+        off = np.abs(az - normal) > math.radians(40)
+        assert 60 * (arc.max() - arc[off & (np.abs(az) < math.radians(80))].max()) > 10  # dB below
+        r_arc = GRID.range_centres()[np.argmax(img[:, np.argmin(np.abs(az - normal))])]
+        assert r_arc == pytest.approx(d, abs=GRID.range_step / 2)
+
+
+def test_occluded_reflector_returns_nothing():
+    pole = CircleSpec(centre=(3.0, 0.0), radius=0.1)
+    screen = WallSpec(start=(1.5, -0.3), end=(1.5, 0.3))
+    sp = sensor_pose(np.zeros(3))
+    open_echoes = visible_echoes(world(circles=[pole]), sp, 5.1)
+    hidden = visible_echoes(world(walls=[screen], circles=[pole]), sp, 5.1)
+    assert np.any(np.abs(open_echoes.r - 2.75) < 0.01)
+    assert not np.any(hidden.r > 2.0), "an echo from behind the wall got through"
+    # a pole beside the screen is still seen
+    side = visible_echoes(world(walls=[screen], circles=[CircleSpec(centre=(3.0, 2.0), radius=0.1)]), sp, 5.1)
+    assert np.any(side.r > 2.5)
+
+
+def test_exact_se2_integration():
+    p = integrate(np.array([1.0, 2.0, 0.3]), 0.3, 1.0, 0.2)
+    # the arc of radius v/w about the instantaneous centre
+    c = np.array([1.0, 2.0]) + 0.3 * np.array([-math.sin(0.3), math.cos(0.3)])
+    assert np.linalg.norm(p[:2] - c) == pytest.approx(0.3, abs=1e-12)
+    assert p[2] == pytest.approx(0.5)
+    q = integrate(np.zeros(3), 0.2, 0.0, 0.2)
+    assert np.allclose(q, [0.04, 0, 0])
+
+
+def test_slip_changes_motion_not_the_command():
+    v, w = 0.3, 0.0
+    assert apply_slip(v, w, (1.0, 1.0)) == pytest.approx((0.3, 0.0))
+    stall = apply_slip(v, w, (0.0, 0.0))
+    assert stall == pytest.approx((0.0, 0.0))
+    vs, ws = apply_slip(v, w, (0.2, 1.0))  # left wheel slips: the robot turns left unexpectedly
+    assert ws > 0.5 and vs < v
+
+
+def test_noise_sets_the_floor_and_bursts_bury_the_scene():
+    model = SonarModel(GRID, snr_db=5.0)
+    w = world(walls=[WallSpec(start=(2.0, -6.0), end=(2.0, 6.0))])
+    rng = np.random.default_rng(0)
+    clean = model.render(w, np.zeros(3), rng)
+    floor_db = 60 * (np.median(clean) - clean.max())  # dB below the peak
+    assert -48 < floor_db < -28  # 5 dB SNR + 33 dB processing gain
+    burst = model.render(w, np.zeros(3), rng, snr_db=-80.0)
+    corr = np.corrcoef(burst.ravel(), model.render(w, np.zeros(3), None).ravel())[0, 1]
+    assert abs(corr) < 0.2 and burst.mean() > 0.9
