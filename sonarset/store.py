@@ -243,8 +243,9 @@ def open_store(
 ) -> SonarStore:
     """Open a SonarSet store from a local path or any fsspec URL (``s3://``, ``memory://``...).
 
-    ``consolidated=None`` uses the root's consolidated metadata when present (one read for the
-    whole hierarchy, which matters on object storage); ``False`` lists the store itself.
+    ``consolidated=None`` uses the root's consolidated metadata for URLs, where it saves a request
+    per node, and lists local stores directly, where listing is cheap and never stale (a writer
+    killed before re-consolidating leaves the snapshot behind). ``True``/``False`` force either.
     """
     if mode not in ("r", "r+"):
         raise ValueError("mode must be 'r' or 'r+' (use create_store to make a new store)")
@@ -260,6 +261,8 @@ def open_store(
                 raise FormatError(f"{loc}: a Zarr v2 store; SonarSet requires Zarr v3")
             raise FormatError(f"{loc}: not a zarr store (no zarr.json at its root)")
         loc = str(path)
+        if consolidated is None:
+            consolidated = False
     try:
         group = _open_group(loc, mode, storage_options, consolidated)
     except SonarSetError:

@@ -7,8 +7,7 @@ import pytest
 
 from sonarset.schema import SensorGrid
 from sonarset.sim.robot import SENSOR_OFFSET, apply_slip, integrate, sensor_pose
-from sonarset.sim.sonar import (ABSORPTION_DB_PER_M, SPECULAR_N, Echoes, SonarModel, absorption,
-                                emitter_directivity, visible_echoes)
+from sonarset.sim.sonar import ABSORPTION_DB_PER_M, Echoes, SonarModel, visible_echoes
 from sonarset.sim.world import CircleSpec, SpawnBox, WallSpec, World, WorldSpec
 
 GRID = SensorGrid.default()
@@ -102,17 +101,13 @@ def test_wall_is_strongest_at_normal_incidence():
         img = model.render(w, np.array([0.0, 0.0, heading]), None)
         arc = img.max(0)  # the wall's arc, strongest pixel per azimuth
         normal = -heading  # the normal from the sensor to the wall points along world +x
-        # Expected bearing of the strongest echo: specular lobe x emitter directivity x spreading x
-        # absorption along the wall. At heading 0 that is normal incidence; tilted, the emitter
-        # pulls it towards the sensor axis.
-        inc = az - normal
-        r = d / np.cos(inc)
-        expect = np.cos(inc) ** SPECULAR_N * emitter_directivity(az) / r * absorption(r)
-        expected_az = az[np.argmax(np.where(np.abs(inc) < 1.4, expect, 0))]
+        peak_az = az[np.argmax(arc)]
         if heading == 0.0:
-            assert expected_az == pytest.approx(normal, abs=GRID.azimuth_step)
-        # the analytic curve ignores smoothing by the 5.6 deg beam: allow under one beamwidth
-        assert abs(az[np.argmax(arc)] - expected_az) <= 2.5 * GRID.azimuth_step
+            assert abs(peak_az - normal) <= GRID.azimuth_step / 2 + 1e-9
+        else:
+            # tilted, the emitter's directivity pulls the peak from the normal towards the axis
+            assert min(0.0, normal) - 1e-9 <= peak_az <= max(0.0, normal) + 1e-9
+            assert abs(peak_az - normal) <= math.radians(12)
         off = np.abs(az - normal) > math.radians(40)
         assert 60 * (arc.max() - arc[off & (np.abs(az) < math.radians(80))].max()) > 10  # dB below
         r_arc = GRID.range_centres()[np.argmax(img[:, np.argmin(np.abs(az - normal))])]

@@ -127,6 +127,7 @@ def generate(
         if workers == 1:
             for plan in todo:
                 _write_run(loc, plan, grid, _Direct(progress, total))
+                store.consolidate()
         else:
             ctx = mp.get_context("spawn")  # no fork: zarr's event loop thread must not be copied
             with ctx.Manager() as manager:
@@ -144,6 +145,9 @@ def generate(
                                 progress(name, done[name], total[name])
                         for f in finished:
                             f.result()  # re-raise a worker's error here
+                        if finished:
+                            # Only this process writes root metadata; zarr writes it atomically.
+                            store.consolidate()
     store.consolidate()
     return [p.name for p in todo]
 

@@ -1,0 +1,169 @@
+"""Generation: determinism across worker counts, resume after a kill, alignment, worlds, CLI."""
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from sonarset import SonarSetError, open_store
+from sonarset.cli.app import app
+from sonarset.schema import SensorGrid
+from sonarset.sim import ExplorationPolicy, generate, integrate, lab_world, load_world, visible_echoes, sensor_pose
+from sonarset.sim.reference import reference_energy
+from sonarset.sim.robot import ROBOT_RADIUS, V_MAX, W_MAX
+from sonarset.sim.sonar import Echoes, SonarModel
+from sonarset.validate import validate_store
+
+SMALL = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=40, azimuth_min_rad=-math.pi / 2,
+                   azimuth_max_rad=math.pi / 2, n_azimuth=30)
+
+
+def arrays(store):
+    s = open_store(store)
+    return {(n, k): s.run(n)[k][:] for n in s.runs() for k in ("images", "velocity", "time", "pose")}
+
+
+def assert_identical(a, b):
+    assert a.keys() == b.keys()
+    for k in a:
+        assert a[k].tobytes() == b[k].tobytes(), k
+
+
+@pytest.mark.slow
+def test_same_seed_bit_identical_with_1_and_2_workers(tmp_path):
+    kw = dict(runs=2, test_runs=1, minutes=0.2, seed=7, grid=SMALL)
+    generate(tmp_path / "a.zarr", workers=1, **kw)
+    generate(tmp_path / "b.zarr", workers=2, **kw)
+    assert_identical(arrays(tmp_path / "a.zarr"), arrays(tmp_path / "b.zarr"))
+    assert validate_store(tmp_path / "b.zarr") == []
+    s = open_store(tmp_path / "a.zarr")
+    assert s.runs("train") == ["run_000", "run_001"] and s.runs("test") == ["test_000"]
+    # other seed, other data
+    generate(tmp_path / "c.zarr", workers=1, **{**kw, "seed": 8})
+    assert not np.array_equal(s.run("run_000").images[:], open_store(tmp_path / "c.zarr").run("run_000").images[:])
+
+
+@pytest.mark.slow
+def test_killed_generation_resumes_to_the_same_store(tmp_path):
+    args = ["--runs", "3", "--test-runs", "0", "--minutes", "1.0", "--seed", "3", "--workers", "1",
+            "--n-range", "40", "--n-azimuth", "30"]
+    ref = tmp_path / "ref.zarr"
+    subprocess.run([sys.executable, "-m", "sonarset.cli", "generate", str(ref), *args], check=True, capture_output=True)
+    out = tmp_path / "out.zarr"
+    proc = subprocess.Popen([sys.executable, "-m", "sonarset.cli", "generate", str(out), *args],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    # kill once the second run is under way: run_000 complete, run_001 half-written
+    while time.time() < deadline and not (out / "run_001" / "images").exists():
+        time.sleep(0.02)
+    time.sleep(0.3)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    partial = open_store(out)
+    assert "run_001" not in partial.runs(), "a killed run must not look complete"
+    assert "run_000" in partial.runs()
+    res = subprocess.run([sys.executable, "-m", "sonarset.cli", "generate", str(out), *args], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert "already complete" in res.stdout
+    assert_identical(arrays(ref), arrays(out))
+    assert validate_store(out) == []
+
+
+def test_resume_refuses_other_settings(tmp_path):
+    generate(tmp_path / "s.zarr", runs=1, test_runs=0, minutes=0.05, seed=1, workers=1, grid=SMALL)
+    with pytest.raises(SonarSetError, match="other settings"):
+        generate(tmp_path / "s.zarr", runs=1, test_runs=0, minutes=0.05, seed=2, workers=1, grid=SMALL)
+
+
+def test_generated_commands_and_poses_are_aligned(tmp_path):
+    generate(tmp_path / "s.zarr", runs=1, test_runs=0, minutes=0.3, seed=4, workers=1, grid=SMALL)
+    run = open_store(tmp_path / "s.zarr").run("run_000")
+    v, pose, t = run.velocity[:], run["pose"][:], run.time[:]
+    assert np.allclose(np.diff(t), 0.2)
+    for k in range(1, len(v)):  # velocity[k] moved the robot from frame k-1 to frame k
+        assert np.allclose(integrate(pose[k - 1], *v[k], 0.2), pose[k], atol=1e-9)
+    assert np.all(np.abs(v[:, 0]) <= V_MAX + 1e-6) and np.all(np.abs(v[:, 1]) <= W_MAX + 1e-6)
+
+
+def test_exploration_covers_commands_and_never_collides():
+    world = lab_world(5)
+    rng = np.random.default_rng(0)
+    policy = ExplorationPolicy(world, rng)
+    pose = world.sample_spawn(rng)
+    cmds, clear = [], []
+    for _ in range(3000):
+        v, w = policy(pose)
+        pose = integrate(pose, v, w, 0.2)
+        cmds.append((v, w))
+        clear.append(world.clearance(pose[None, :2])[0])
+    cmds = np.array(cmds)
+    assert min(clear) > ROBOT_RADIUS
+    lo, hi = np.percentile(cmds, [1, 99], axis=0)
+    assert lo[0] < -0.7 * V_MAX and hi[0] > 0.7 * V_MAX and lo[1] < -0.7 * W_MAX and hi[1] > 0.7 * W_MAX
+
+
+def test_lab_world_varies_with_seed_and_has_the_experiment_scene_kinds():
+    a, b = lab_world(1), lab_world(2)
+    assert not np.allclose(a.seg_a[:10], b.seg_a[:10])
+    assert len(a.seg_a) > 10 and (a.circ_r < 0.06).sum() >= 6 and (a.circ_r > 0.1).sum() >= 2
+
+
+def test_world_files_json_and_toml(tmp_path):
+    doc = {"name": "box", "walls": [{"start": [0, 0], "end": [4, 0]}, {"start": [4, 0], "end": [4, 4]}],
+           "circles": [{"centre": [2, 2], "radius": 0.1}], "spawn": [{"x": [1, 2], "y": [1, 2]}]}
+    (tmp_path / "w.json").write_text(json.dumps(doc))
+    (tmp_path / "w.toml").write_text(
+        'name = "box"\nspawn = [{x = [1, 2], y = [1, 2]}]\n'
+        'walls = [{start = [0, 0], end = [4, 0]}, {start = [4, 0], end = [4, 4]}]\n'
+        'circles = [{centre = [2, 2], radius = 0.1}]\n')
+    wj, wt = load_world(str(tmp_path / "w.json")), load_world(str(tmp_path / "w.toml"))
+    assert np.array_equal(wj.seg_a, wt.seg_a) and np.array_equal(wj.circ_r, wt.circ_r)
+    (tmp_path / "bad.json").write_text(json.dumps({**doc, "circles": [{"centre": [2, 2], "radius": -1}]}))
+    with pytest.raises(SonarSetError, match="bad.json: circles.0.radius"):
+        load_world(str(tmp_path / "bad.json"))
+    with pytest.raises(SonarSetError, match="not a built-in world"):
+        load_world("nowhere")
+
+
+def _cc(a, b):
+    a, b = a - a.mean(), b - b.mean()
+    return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
+
+
+def test_fast_model_agrees_with_signal_level_reference(capsys):
+    grid = SensorGrid(range_min_m=0.5, range_max_m=4.0, n_range=120, azimuth_min_rad=-math.pi / 2,
+                      azimuth_max_rad=math.pi / 2, n_azimuth=60)
+    model = SonarModel(grid)
+    points = Echoes(np.array([1.0, 2.2, 3.1]), np.radians([0.0, 35.0, -55.0]), np.array([0.3, 0.15, 0.1]))
+    results = {"points (coherent)": _cc(model.encode(model.energy(points)),
+                                        model.encode(reference_energy(points, grid, coherent=True)))}
+    world = lab_world(2)
+    pose = world.sample_spawn(np.random.default_rng(2))
+    ech = visible_echoes(world, sensor_pose(pose), grid.range_max_m)
+    results["lab scene"] = _cc(model.encode(model.energy(ech)), model.encode(reference_energy(ech, grid, realizations=4)))
+    with capsys.disabled():
+        print("\nfast vs signal-level reference, 2D correlation of energyscapes:",
+              ", ".join(f"{k} {v:.3f}" for k, v in results.items()))
+    assert all(v >= 0.9 for v in results.values()), results
+
+
+def test_generate_and_show_cli(tmp_path):
+    r = CliRunner().invoke(app, ["generate", str(tmp_path / "g.zarr"), "--runs", "1", "--test-runs", "1",
+                                 "--minutes", "0.1", "--n-range", "40", "--n-azimuth", "30", "--workers", "1"])
+    assert r.exit_code == 0, r.output
+    png = tmp_path / "f.png"
+    r = CliRunner().invoke(app, ["show", str(tmp_path / "g.zarr"), "--run", "test_000", "--frame", "5", "--out", str(png)])
+    assert r.exit_code == 0, r.output
+    assert png.stat().st_size > 10_000
+    r = CliRunner().invoke(app, ["show", str(tmp_path / "g.zarr"), "--frame", "999", "--out", str(png)])
+    assert r.exit_code == 1 and "outside" in r.output
+    r = CliRunner().invoke(app, ["generate", str(tmp_path / "h.zarr"), "--world", "atlantis"])
+    assert r.exit_code == 1 and "not a built-in world" in r.output
+    assert not (tmp_path / "h.zarr").exists()
