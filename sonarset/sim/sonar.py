@@ -31,7 +31,8 @@ from dataclasses import dataclass, field
 from importlib import resources
 
 import numpy as np
-from scipy import ndimage, signal, special
+from scipy import fft as sfft
+from scipy import signal, sparse, special
 
 from ..schema import SensorGrid
 from .robot import sensor_pose
@@ -153,29 +154,31 @@ def visible_echoes(world: World, sensor: np.ndarray, r_max: float, wall_step: fl
     """Every reflector the sensor at pose (x, y, heading) hears, occlusion respected."""
     s, heading = sensor[:2], sensor[2]
     pts, amps, segs, circs = [], [], [], []
-    # Walls: dense samples within r_max, each an element of length wall_step.
+    # Walls: dense samples within r_max, each an element of length wall_step (all walls at once).
     if len(world.seg_a):
         a, b = world.seg_a, world.seg_b
         e = b - a
         L = np.linalg.norm(e, axis=1)
         unit = e / L[:, None]
-        foot = ((s - a) * unit).sum(1)
-        dperp = np.abs((s - a)[:, 0] * unit[:, 1] - (s - a)[:, 1] * unit[:, 0])
-        for i in np.flatnonzero(dperp < r_max):
-            h = np.sqrt(r_max ** 2 - dperp[i] ** 2)
-            lo, hi = max(0.0, foot[i] - h), min(L[i], foot[i] + h)
-            if hi <= lo:
-                continue
-            ts = np.arange(lo + wall_step / 2, hi, wall_step)
-            if not len(ts):
-                continue
-            q = a[i] + ts[:, None] * unit[i]
-            normal = np.array([-unit[i, 1], unit[i, 0]])
+        rel = s - a
+        foot = (rel * unit).sum(1)
+        dperp = np.abs(rel[:, 0] * unit[:, 1] - rel[:, 1] * unit[:, 0])
+        near = dperp < r_max
+        h = np.sqrt(np.maximum(r_max ** 2 - dperp ** 2, 0))
+        lo = np.where(near, np.maximum(0.0, foot - h), 0.0)
+        hi = np.where(near, np.minimum(L, foot + h), 0.0)
+        count = np.maximum(np.floor((hi - lo) / wall_step + 0.5).astype(np.int64), 0) * near
+        if count.sum():
+            seg_id = np.repeat(np.arange(len(L)), count)
+            k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+            ts = lo[seg_id] + (k + 0.5) * wall_step
+            q = a[seg_id] + ts[:, None] * unit[seg_id]
+            normal = np.stack([-unit[seg_id, 1], unit[seg_id, 0]], axis=1)
             to_s = s - q
             dist = np.linalg.norm(to_s, axis=1)
-            cos_inc = np.abs(to_s @ normal) / np.maximum(dist, 1e-9)
-            amp = world.seg_refl[i] * cos_inc ** SPECULAR_N / (2 * np.maximum(dist, 1e-3)) * np.sqrt(wall_step / WALL_STEP)
-            pts.append(q), amps.append(amp), segs.append(np.full(len(q), i)), circs.append(np.full(len(q), -1))
+            cos_inc = np.abs((to_s * normal).sum(1)) / np.maximum(dist, 1e-9)
+            amp = world.seg_refl[seg_id] * cos_inc ** SPECULAR_N / (2 * np.maximum(dist, 1e-3)) * np.sqrt(wall_step / WALL_STEP)
+            pts.append(q), amps.append(amp), segs.append(seg_id), circs.append(np.full(len(q), -1))
     # Circles: the specular point faces the sensor.
     if len(world.circ_c):
         oc = world.circ_c - s
@@ -224,9 +227,13 @@ class SonarModel:
         self._beam2 = bp ** 2
         self.r_c = self.grid.range_centres()
         self.u_c = np.sin(self.grid.azimuth_centres())
-        # noise correlation lengths in bins: the PSF widths at broadside
-        self._noise_sigma = (max(0.0085 / self.grid.range_step, 0.3),
-                             max(np.radians(2.4) / self.grid.azimuth_step, 0.3))
+        # noise correlation lengths in bins: the PSF widths at broadside (Gaussian sigma)
+        sig = (max(0.0085 / self.grid.range_step, 0.3), max(np.radians(2.4) / self.grid.azimuth_step, 0.3))
+        fr, fa = np.fft.fftfreq(self.grid.n_range), np.fft.fftfreq(self.grid.n_azimuth)
+        self._noise_tf = np.exp(-2 * np.pi ** 2 * ((fr[:, None] * sig[0]) ** 2 + (fa[None, :] * sig[1]) ** 2)).astype(np.float32)
+        support = np.abs(dr[self._renv2 > 1e-8]).max() + self.grid.range_step
+        k = int(np.ceil(support / self.grid.range_step)) + 1
+        self._offsets = np.arange(-k, k + 1)
         self.e_full = self._full_scale()
 
     def _full_scale(self) -> float:
@@ -242,21 +249,27 @@ class SonarModel:
         R, A = self.grid.shape
         if not len(echoes):
             return np.zeros((R, A))
-        ir = np.rint((self.r_c[None, :] - echoes.r[:, None] - self._r0) / self._r_step).astype(np.int64)
-        inside = (ir >= 0) & (ir < len(self._renv2))
-        Hm = np.where(inside, self._renv2[np.clip(ir, 0, len(self._renv2) - 1)], 0.0)  # (N, R)
+        # The range PSF spans a few bins: evaluate it only there (a sparse R x N matrix).
+        i0 = np.floor((echoes.r - self.r_c[0]) / self.grid.range_step).astype(np.int64)
+        bins = i0[:, None] + self._offsets[None, :]  # (N, K)
+        ir = np.rint((self.r_c[np.clip(bins, 0, R - 1)] - echoes.r[:, None] - self._r0) / self._r_step).astype(np.int64)
+        ok = (bins >= 0) & (bins < R) & (ir >= 0) & (ir < len(self._renv2))
+        w = self._renv2[np.where(ok, ir, 0)] * ok
+        cols = np.broadcast_to(np.arange(len(echoes))[:, None], bins.shape)
+        Hs = sparse.csr_matrix((w[ok], (bins[ok], cols[ok])), shape=(R, len(echoes)))
         iu = np.rint((self.u_c[None, :] - np.sin(echoes.theta)[:, None] + 2.0) / self._u_step).astype(np.int64)
-        Bm = self._beam2[iu]  # (N, A)
-        return (Hm * (echoes.amp ** 2)[:, None]).T @ Bm
+        return np.asarray(Hs @ (self._beam2[iu] * (echoes.amp ** 2)[:, None]))
 
     def noise_energy(self, peak_amp: float, snr_db: float, rng: np.random.Generator) -> np.ndarray:
         """Noise energy per pixel: complex Gaussian noise shaped like the PSF, at the image-domain level."""
         sigma = peak_amp * 10 ** (-(snr_db + PROCESSING_GAIN_DB) / 20)
         shape = self.grid.shape
-        n = rng.standard_normal(shape) + 1j * rng.standard_normal(shape)
-        n = ndimage.gaussian_filter(n.real, self._noise_sigma) + 1j * ndimage.gaussian_filter(n.imag, self._noise_sigma)
-        n *= sigma / np.sqrt(np.mean(np.abs(n) ** 2))
-        return np.abs(n) ** 2
+        parts = rng.standard_normal((2, *shape), dtype=np.float32)
+        # Matched filter and beamformer correlate the noise over one PSF: shape it in one FFT pass
+        # (single precision: a noise field needs no more).
+        n = sfft.ifft2(sfft.fft2(parts[0] + 1j * parts[1]) * self._noise_tf)
+        e = n.real ** 2 + n.imag ** 2
+        return e * (sigma ** 2 / e.mean())
 
     def encode(self, energy: np.ndarray) -> np.ndarray:
         db = 10 * np.log10(np.maximum(energy, 1e-30) / self.e_full)
