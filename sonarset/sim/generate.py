@@ -130,26 +130,42 @@ def generate(
                 store.consolidate()
         else:
             ctx = mp.get_context("spawn")  # no fork: zarr's event loop thread must not be copied
-            with ctx.Manager() as manager:
-                queue = manager.Queue()
-                with cf.ProcessPoolExecutor(workers, mp_context=ctx) as pool:
-                    futures = [pool.submit(_write_run, loc, p, grid, queue) for p in todo]
-                    done = {p.name: 0 for p in todo}
-                    pending = set(futures)
-                    while pending:
-                        finished, pending = cf.wait(pending, timeout=0.2)
-                        while not queue.empty():
-                            name, n = queue.get()
-                            done[name] += n
-                            if progress:
-                                progress(name, done[name], total[name])
-                        for f in finished:
-                            f.result()  # re-raise a worker's error here
-                        if finished:
-                            # Only this process writes root metadata; zarr writes it atomically.
-                            store.consolidate()
+            # One BLAS/OpenMP thread per worker: the workers already fill the cores.
+            saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+            os.environ.update({k: "1" for k in _THREAD_VARS if k not in os.environ})
+            try:
+                _run_pool(ctx, loc, todo, grid, workers, total, progress, store)
+            finally:
+                for k, v in saved.items():
+                    if v is None:
+                        os.environ.pop(k, None)
     store.consolidate()
     return [p.name for p in todo]
+
+
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _run_pool(ctx, loc: str, todo: list[RunPlan], grid: SensorGrid, workers: int, total: dict,
+              progress, store) -> None:
+    """One task per run in a process pool; progress arrives through a managed queue."""
+    with ctx.Manager() as manager:
+        queue = manager.Queue()
+        with cf.ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+            pending = {pool.submit(_write_run, loc, p, grid, queue) for p in todo}
+            done = {p.name: 0 for p in todo}
+            while pending:
+                finished, pending = cf.wait(pending, timeout=0.2)
+                while not queue.empty():
+                    name, n = queue.get()
+                    done[name] += n
+                    if progress:
+                        progress(name, done[name], total[name])
+                for f in finished:
+                    f.result()  # re-raise a worker's error here
+                if finished:
+                    # Only this process writes root metadata; zarr writes it atomically.
+                    store.consolidate()
 
 
 class _Direct:
