@@ -41,7 +41,8 @@ def draw_world(ax, world, trajectory: np.ndarray | None = None, marker: np.ndarr
 def draw_energyscape(ax, image: np.ndarray, grid: SensorGrid, title: str = "") -> None:
     az = np.degrees([grid.azimuth_min_rad, grid.azimuth_max_rad])
     im = ax.imshow(image, origin="lower", aspect="auto", cmap="viridis", vmin=0, vmax=1,
-                   extent=[az[1], az[0], grid.range_min_m, grid.range_max_m])  # left (+θ) on the left
+                   extent=[az[0], az[1], grid.range_min_m, grid.range_max_m])
+    ax.invert_xaxis()  # positive azimuth is to the robot's left: draw it on the left
     ax.set_xlabel("azimuth [deg] (left +)")
     ax.set_ylabel("range [m]")
     ax.set_title(title)

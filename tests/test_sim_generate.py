@@ -167,3 +167,23 @@ def test_generate_and_show_cli(tmp_path):
     r = CliRunner().invoke(app, ["generate", str(tmp_path / "h.zarr"), "--world", "atlantis"])
     assert r.exit_code == 1 and "not a built-in world" in r.output
     assert not (tmp_path / "h.zarr").exists()
+
+
+def test_energyscape_plot_puts_left_azimuths_on_the_left():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sonarset.plots import draw_energyscape
+
+    img = np.zeros(SMALL.shape, np.float32)
+    img[:, -1] = 1.0  # the last column is the most positive azimuth: the robot's far left
+    fig, ax = plt.subplots()
+    draw_energyscape(ax, img, SMALL)
+    im = ax.images[0]
+    x0, x1 = ax.get_xlim()
+    assert x0 > x1  # +90 deg drawn on the left
+    left_edge_value = im.get_extent()[1]  # extent x of the last column
+    assert left_edge_value == pytest.approx(90.0)
+    plt.close(fig)
