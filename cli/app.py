@@ -194,6 +194,7 @@ def generate(
     seed: int = typer.Option(0, "--seed", help="Master seed; same seed, same arrays, whatever the workers."),
     world: str = typer.Option("lab", "--world", help="Built-in world (lab, corridor) or a JSON/TOML world file."),
     snr_db: float = typer.Option(5.0, "--snr-db", help="SNR at the microphones, dB."),
+    psf: str = typer.Option("array", "--psf", help="Azimuth PSF: array (eRTIS delay-and-sum, with side lobes) or mainlobe."),
     n_range: int = typer.Option(200, "--n-range", min=2, help="Range bins over 0.5-5 m."),
     n_azimuth: int = typer.Option(90, "--n-azimuth", min=2, help="Azimuth bins over -90..+90 deg."),
 ) -> None:
@@ -222,7 +223,7 @@ def generate(
             bar.update(tasks[name], completed=done, rate=f"{rate:,.0f} frames/s")
 
         written = gen(out_store, runs=runs, test_runs=test_runs, minutes=minutes, seed=seed, world=world,
-                      snr_db=snr_db, workers=workers, grid=grid, progress=progress)
+                      snr_db=snr_db, psf=psf, workers=workers, grid=grid, progress=progress)
     dt = time.perf_counter() - t0
     out.print(f"{out_store}: wrote {len(written)} run(s) in {dt:.1f} s"
               + (f" ({runs + test_runs - len(written)} already complete)" if len(written) < runs + test_runs else ""))
@@ -254,6 +255,51 @@ def show(
             world = None  # a world file that moved: plot the trajectory alone
     path = show_run(s, name, frame, out_png, world)
     out.print(f"wrote {path}")
+
+
+def _int_list(text: str, what: str) -> list[int]:
+    try:
+        values = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        fail(f"{what} must be comma-separated integers, got {text!r}", 2)
+    if not values or min(values) < 1:
+        fail(f"{what} must be positive integers, got {text!r}", 2)
+    return values
+
+
+@app.command("eval")
+@user_errors
+def eval_(
+    store: str = typer.Argument(..., help="Store path or fsspec URL."),
+    models: str = typer.Option("persistence,naive,flow", "--models",
+                               help="Comma-separated: persistence, naive, flow, echopt:PATH (or echopt:pretrained)."),
+    horizons: str = typer.Option("1,3,5,10", "--horizons", help="Prediction horizons (1 = one-shot)."),
+    samples: int = typer.Option(1000, "--samples", min=1, help="Windows drawn (seeded), shared by all methods."),
+    out_dir: Path = typer.Option(Path("eval-out"), "--out", help="Directory for metrics.json, per_window.csv, report.md, figures."),
+    split: str = typer.Option("test", "--split", help="Split to evaluate on."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the window draw and the bootstrap."),
+    device: str = typer.Option("cpu", "--device", help="Device for learned models: cpu, cuda, auto."),
+    figures: bool = typer.Option(True, "--figures/--no-figures", help="Write the PNG figures."),
+) -> None:
+    """Evaluate predictors on the same windows: the paper's table, statistics and figures."""
+    from sonarset.store import open_store
+    from sonarset.models.evaluate import evaluate, results_table, write_report
+
+    specs = [m.strip() for m in models.split(",") if m.strip()]
+    s = open_store(store)
+    with progress_bar() as bar:
+        tasks: dict[str, int] = {}
+
+        def progress(name: str, done: int, total: int) -> None:
+            if name not in tasks:
+                tasks[name] = bar.add_task(name, total=total)
+            bar.update(tasks[name], completed=done)
+
+        res = evaluate(s, specs, horizons=tuple(_int_list(horizons, "--horizons")), samples=samples,
+                       split=split, seed=seed, device=device, progress=progress)
+    write_report(res, out_dir, figures=figures)
+    out.print(results_table(res, with_paper=False))
+    out.print(f"{len(res.window_ids)} windows of split {split!r}; report: {out_dir / 'report.md'}")
 
 
 def main() -> None:

@@ -20,7 +20,7 @@ from .. import __version__
 from ..errors import SonarSetError
 from ..schema import SensorGrid
 from ..store import DEFAULT_CHUNK_FRAMES, open_or_create_store, open_store
-from .robot import ExplorationPolicy, apply_slip, integrate
+from .robot import SENSOR_OFFSET, WHEEL_BASE, ExplorationPolicy, apply_slip, integrate
 from .sonar import SonarModel
 from .world import load_world
 
@@ -36,13 +36,15 @@ class RunPlan:
     world_seed: int
     n_frames: int
     snr_db: float
+    psf: str = "array"
 
     def source(self) -> dict:
-        return {"kind": "simulator", "simulator": f"sonarset {__version__}", **asdict(self), "dt": DT}
+        return {"kind": "simulator", "simulator": f"sonarset {__version__}", **asdict(self), "dt": DT,
+                "sensor_offset_m": SENSOR_OFFSET, "wheel_base_m": WHEEL_BASE}
 
 
 def plan_runs(runs: int = 10, test_runs: int = 1, minutes: float = 25.0, seed: int = 0,
-              world: str = "lab", snr_db: float = 5.0) -> list[RunPlan]:
+              world: str = "lab", snr_db: float = 5.0, psf: str = "array") -> list[RunPlan]:
     n_frames = int(round(minutes * 60 / DT))
     if n_frames < 1:
         raise SonarSetError(f"--minutes {minutes} gives no frames at 5 Hz")
@@ -54,7 +56,7 @@ def plan_runs(runs: int = 10, test_runs: int = 1, minutes: float = 25.0, seed: i
         s = int(ss.generate_state(1, np.uint64)[0] >> np.uint64(1))
         name, split = (f"run_{k:03d}", "train") if k < runs else (f"test_{k - runs:03d}", "test")
         # Every run gets its own variant of a procedural world; a fixed world is the same for all.
-        plans.append(RunPlan(name, split, s, world, s % 1_000_003, n_frames, float(snr_db)))
+        plans.append(RunPlan(name, split, s, world, s % 1_000_003, n_frames, float(snr_db), psf))
     return plans
 
 
@@ -64,7 +66,7 @@ def simulate_blocks(plan: RunPlan, grid: SensorGrid, block: int = DEFAULT_CHUNK_
     rng = np.random.default_rng(plan.seed)
     motion_rng, noise_rng = rng.spawn(2)
     policy = ExplorationPolicy(world, motion_rng, dt=DT)
-    model = SonarModel(grid, snr_db=plan.snr_db)
+    model = SonarModel(grid, snr_db=plan.snr_db, psf=plan.psf)
     pose = world.sample_spawn(motion_rng)
     R, A = grid.shape
     for start in range(0, plan.n_frames, block):
@@ -77,7 +79,7 @@ def simulate_blocks(plan: RunPlan, grid: SensorGrid, block: int = DEFAULT_CHUNK_
             pose = integrate(pose, *apply_slip(v, w, (1.0, 1.0)), DT)
             out["velocity"][j] = (v, w)
             out["pose"][j] = pose
-            out["images"][j] = model.render(world, pose, noise_rng)
+            out["images"][j], out["snr_db"][j] = model.render(world, pose, noise_rng, return_snr=True)
         yield start, out
 
 
@@ -102,6 +104,7 @@ def generate(
     seed: int = 0,
     world: str = "lab",
     snr_db: float = 5.0,
+    psf: str = "array",
     workers: int | None = None,
     grid: SensorGrid | None = None,
     progress: Callable[[str, int, int], None] | None = None,
@@ -109,7 +112,11 @@ def generate(
     """Simulate the runs into the store ``out``; returns the names of the runs written now."""
     grid = grid or SensorGrid.default()
     load_world(world, 0)  # fail fast on a bad world name or file, before any process starts
-    plans = plan_runs(runs, test_runs, minutes, seed, world, snr_db)
+    from .sonar import BEAMS
+
+    if psf not in BEAMS:
+        raise SonarSetError(f"--psf must be one of {', '.join(BEAMS)}, got {psf!r}")
+    plans = plan_runs(runs, test_runs, minutes, seed, world, snr_db, psf)
     loc = os.fspath(out)
     store = open_or_create_store(loc, grid, description=f"simulated by sonarset {__version__}")
     todo = []

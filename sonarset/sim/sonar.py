@@ -45,6 +45,10 @@ ENVELOPE_LP_HZ = 6e3
 EMITTER_RADIUS = 0.004
 SPECULAR_N = 6
 PROCESSING_GAIN_DB = 33.0
+# Electronic noise floor of the sensor after processing, dB re full scale. The per-frame SNR sets
+# the noise relative to the frame's strongest echo; without a floor, a robot facing open space
+# would see its noise shrink with its echoes to a black image, which no real sensor shows.
+NOISE_FLOOR_DB = -55.0
 DYNAMIC_RANGE_DB = 60.0
 FS = 500e3  # sampling rate for tabulating the range PSF
 WALL_STEP = 0.02  # m between wall samples; energies are weighted by it, so images do not depend on it
@@ -92,6 +96,23 @@ def beam_table(n: int = 4001) -> tuple[np.ndarray, np.ndarray]:
         k = 2 * np.pi * f / C_SOUND
         energy += np.abs(np.exp(1j * k * np.outer(du, y)).sum(1) / len(y)) ** 2
     return du, np.sqrt(energy / len(freqs))
+
+
+@functools.lru_cache(maxsize=4)
+def mainlobe_table(n: int = 4001) -> tuple[np.ndarray, np.ndarray]:
+    """A side-lobe-free beam: a Gaussian in u with the array pattern's -3 dB width.
+
+    Not a physical array; it isolates the effect of side lobes (with it, acoustic flow beats the
+    naive shift as in the paper; with the real array's side-lobe plateau it does not, BENCHMARKS.md).
+    """
+    du, bp = beam_table(n)
+    e = bp ** 2
+    half = np.flatnonzero(e >= 0.5 * e.max())
+    sigma = (du[half[-1]] - du[half[0]]) / (2 * np.sqrt(2 * np.log(2)))
+    return du, np.exp(-du ** 2 / (4 * sigma ** 2))
+
+
+BEAMS = {"array": beam_table, "mainlobe": mainlobe_table}
 
 
 def emitter_directivity(theta: np.ndarray, f: float = 40e3) -> np.ndarray:
@@ -212,11 +233,14 @@ class SonarModel:
     grid: SensorGrid
     snr_db: float = 5.0
     dynamic_range_db: float = DYNAMIC_RANGE_DB
+    psf: str = "array"  # azimuth PSF: "array" (the eRTIS delay-and-sum pattern) or "mainlobe"
     _tables: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
+        if self.psf not in BEAMS:
+            raise ValueError(f"psf must be one of {', '.join(BEAMS)}, got {self.psf!r}")
         dr, env = range_psf_table()
-        du, bp = beam_table()
+        du, bp = BEAMS[self.psf]()
         self._r_step = dr[1] - dr[0]
         # Each range bin holds the energy averaged over its width (decimation of the finely sampled
         # envelope with a box filter): a 2 cm PSF point-sampled on 2.25 cm bins would alias, making
@@ -260,9 +284,24 @@ class SonarModel:
         iu = np.rint((self.u_c[None, :] - np.sin(echoes.theta)[:, None] + 2.0) / self._u_step).astype(np.int64)
         return np.asarray(Hs @ (self._beam2[iu] * (echoes.amp ** 2)[:, None]))
 
-    def noise_energy(self, peak_amp: float, snr_db: float, rng: np.random.Generator) -> np.ndarray:
-        """Noise energy per pixel: complex Gaussian noise shaped like the PSF, at the image-domain level."""
-        sigma = peak_amp * 10 ** (-(snr_db + PROCESSING_GAIN_DB) / 20)
+    def noise_sigma(self, energy: np.ndarray, snr_db: float) -> float:
+        """Image-domain noise std for a frame: SNR below its strongest echo, never under the floor.
+
+        The PSFs peak at 1, so the image peak is the strongest echo's amplitude at a microphone
+        (for a wall, the whole specular return); matched filter and beamformer then lower the
+        noise by the processing gain.
+        """
+        peak = float(np.sqrt(energy.max())) if energy.size else 0.0
+        sigma = peak * 10 ** (-(snr_db + PROCESSING_GAIN_DB) / 20)
+        return max(sigma, float(np.sqrt(self.e_full)) * 10 ** (NOISE_FLOOR_DB / 20))
+
+    def effective_snr_db(self, energy: np.ndarray, sigma: float) -> float:
+        """The SNR at the microphones that a frame really has (below the nominal one near the floor)."""
+        peak = float(np.sqrt(energy.max())) if energy.size else 0.0
+        return 20 * np.log10(max(peak, 1e-30) / sigma) - PROCESSING_GAIN_DB
+
+    def noise_energy(self, sigma: float, rng: np.random.Generator) -> np.ndarray:
+        """Noise energy per pixel: complex Gaussian noise of std ``sigma``, shaped like the PSF."""
         shape = self.grid.shape
         parts = rng.standard_normal((2, *shape), dtype=np.float32)
         # Matched filter and beamformer correlate the noise over one PSF: shape it in one FFT pass
@@ -276,13 +315,17 @@ class SonarModel:
         return np.clip((db + self.dynamic_range_db) / self.dynamic_range_db, 0, 1).astype(np.float32)
 
     def render(self, world: World, robot_pose: np.ndarray, rng: np.random.Generator | None,
-               snr_db: float | None = None) -> np.ndarray:
-        """The energyscape seen from ``robot_pose``; no noise when ``rng`` is None."""
+               snr_db: float | None = None, return_snr: bool = False):
+        """The energyscape seen from ``robot_pose``; no noise when ``rng`` is None.
+
+        With ``return_snr`` also returns the frame's effective SNR at the microphones (dB).
+        """
         ech = visible_echoes(world, sensor_pose(robot_pose), self.grid.range_max_m + 0.1)
         e = self.energy(ech)
+        eff = float("inf")
         if rng is not None:
-            # The PSFs peak at 1, so the image peak is the strongest echo's amplitude at a
-            # microphone (for a wall: the whole specular return, not one wall element).
-            peak = float(np.sqrt(e.max())) if e.max() > 0 else np.sqrt(self.e_full) * 1e-3
-            e = e + self.noise_energy(peak, self.snr_db if snr_db is None else snr_db, rng)
-        return self.encode(e)
+            sigma = self.noise_sigma(e, self.snr_db if snr_db is None else snr_db)
+            eff = self.effective_snr_db(e, sigma)
+            e = e + self.noise_energy(sigma, rng)
+        img = self.encode(e)
+        return (img, eff) if return_snr else img

@@ -1,0 +1,151 @@
+"""The predictor interface, the non-learned baselines, and the auto-regressive rollout.
+
+A predictor maps a batch of windows, ``frames`` (B, n_in, R, A) and ``commands`` (B, n_in + 1, 2),
+to the next frame (B, R, A). ``commands[:, -1]`` is the command that moves the robot from the last
+input frame to the predicted one (DESIGN.md §2). These baselines use only the last frame and that
+command; EchoPT uses them all. No torch here: the baselines run wherever NumPy and SciPy do.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from scipy import ndimage
+
+from sonarset.schema import SensorGrid
+
+
+class Predictor(Protocol):
+    name: str
+    grid: SensorGrid
+
+    def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray: ...
+
+
+def rollout(predictor: Predictor, frames: np.ndarray, commands: np.ndarray, horizon: int) -> np.ndarray:
+    """Predict ``horizon`` frames ahead, feeding each prediction back as the newest input frame.
+
+    ``commands`` holds n_in + horizon commands (window alignment, DESIGN.md §2); step h uses
+    commands h .. h + n_in. Returns (B, horizon, R, A): predictions for targets 1..horizon.
+    """
+    n_in = frames.shape[1]
+    if commands.shape[1] < n_in + horizon:
+        raise ValueError(f"need {n_in + horizon} commands for horizon {horizon}, got {commands.shape[1]}")
+    # One buffer holds the measured inputs followed by the predictions; step h reads the view
+    # buf[:, h:h + n_in], so after the first step the model's own predictions replace measured
+    # frames, with no copying of windows.
+    buf = np.empty((frames.shape[0], n_in + horizon, *frames.shape[2:]), dtype=np.float32)
+    buf[:, :n_in] = frames
+    for h in range(horizon):
+        buf[:, n_in + h] = predictor.predict(buf[:, h:h + n_in], commands[:, h:h + n_in + 1])
+    return buf[:, n_in:]
+
+
+def _sample(images: np.ndarray, grid: SensorGrid, r_src, th_src, backend: str = "torch") -> np.ndarray:
+    """Bilinear resampling of images (B, R, A) at source positions in metres / radians.
+
+    ``r_src`` and ``th_src`` broadcast to (B, R, A); they are torch tensors for the torch backend
+    (``torch.nn.functional.grid_sample``, multi-threaded) and NumPy arrays for the SciPy one
+    (``scipy.ndimage.map_coordinates``); both compute the same bilinear interpolation. Pixels whose
+    source lies outside the field of view take the nearest edge value: at the far range edge that
+    is the noise floor, which is what new territory looks like on average.
+    """
+    B, (R, A) = images.shape[0], grid.shape
+    if backend == "torch":
+        import torch
+        import torch.nn.functional as F
+
+        ir = (r_src - grid.range_centres()[0]) / grid.range_step
+        ia = (th_src - grid.azimuth_centres()[0]) / grid.azimuth_step
+        # align_corners=True: -1 and +1 are the centres of the first and last bins
+        x = (2 * ia / max(A - 1, 1) - 1).expand(B, R, A)
+        y = (2 * ir / max(R - 1, 1) - 1).expand(B, R, A)
+        img = torch.from_numpy(np.asarray(images, dtype=np.float32))[:, None]
+        out = F.grid_sample(img, torch.stack([x, y], dim=-1), mode="bilinear", padding_mode="border", align_corners=True)
+        return out[:, 0].numpy()
+    ir = np.broadcast_to((r_src - grid.range_centres()[0]) / grid.range_step, (B, R, A))
+    ia = np.broadcast_to((th_src - grid.azimuth_centres()[0]) / grid.azimuth_step, (B, R, A))
+    ib = np.broadcast_to(np.arange(B, dtype=np.float64)[:, None, None], (B, R, A))
+    return ndimage.map_coordinates(images, [ib, ir, ia], order=1, mode="nearest").astype(np.float32)
+
+
+def _xp(backend: str):
+    if backend == "torch":
+        import torch
+
+        return torch, (lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32))
+    return np, (lambda a: np.asarray(a, dtype=np.float64))
+
+
+@dataclass
+class Persistence:
+    """The last frame, unchanged: the floor every predictor must beat."""
+
+    grid: SensorGrid
+    name: str = "persistence"
+
+    def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:
+        return np.array(frames[:, -1], dtype=np.float32)
+
+
+@dataclass
+class NaiveShift:
+    """Shift the last frame by -v dt in range and -omega dt in azimuth (sub-bin, bilinear).
+
+    Exact for a rotation about the sensor, wrong for translation (objects off-axis move along flow
+    lines r sin(theta) = const, not straight down in range), as the paper notes.
+    """
+
+    grid: SensorGrid
+    dt: float = 0.2
+    name: str = "naive"
+
+    backend: str = "torch"
+
+    def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:
+        xp, arr = _xp(self.backend)
+        v = arr(commands[:, -1, 0])[:, None, None]
+        w = arr(commands[:, -1, 1])[:, None, None]
+        r = arr(self.grid.range_centres())[None, :, None]
+        th = arr(self.grid.azimuth_centres())[None, None, :]
+        return _sample(frames[:, -1], self.grid, r + v * self.dt, th + w * self.dt, self.backend)
+
+
+@dataclass
+class AcousticFlow:
+    """Exact SE(2) warp of the last frame's pixels under the commanded motion (acoustic flow).
+
+    Each pixel of the predicted frame is a point in the new sensor frame; moving it back through
+    the robot's arc (and the sensor's mount ``sensor_offset`` ahead of the axle) gives where it was
+    in the last frame, which is sampled bilinearly. Under pure translation this moves reflectors
+    along r sin(theta) = const. It keeps each pixel's value, so it deforms the sensor's
+    point-spread function, which is the weakness the paper points out.
+    """
+
+    grid: SensorGrid
+    dt: float = 0.2
+    sensor_offset: float = 0.0
+    name: str = "flow"
+
+    backend: str = "torch"
+
+    def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:
+        xp, arr = _xp(self.backend)
+        cmd = np.asarray(commands[:, -1], dtype=np.float64)
+        v, w = cmd[:, 0], cmd[:, 1]
+        phi = w * self.dt
+        # robot displacement over dt along the arc (exact unicycle integration from the origin)
+        small = np.abs(w) < 1e-9
+        w_safe = np.where(small, 1.0, w)
+        dx = np.where(small, v * self.dt, v / w_safe * np.sin(phi))
+        dy = np.where(small, 0.0, v / w_safe * (1 - np.cos(phi)))
+        c, s_, dx, dy = (arr(a)[:, None, None] for a in (np.cos(phi), np.sin(phi), dx, dy))
+        r = arr(self.grid.range_centres())[None, :, None]
+        th = arr(self.grid.azimuth_centres())[None, None, :]
+        # point in the new sensor frame -> new robot frame -> old robot frame -> old sensor frame
+        xn, yn = r * xp.cos(th) + self.sensor_offset, r * xp.sin(th)
+        xo = c * xn - s_ * yn + dx - self.sensor_offset
+        yo = s_ * xn + c * yn + dy
+        return _sample(frames[:, -1], self.grid, xp.hypot(xo, yo), xp.arctan2(yo, xo), self.backend)

@@ -1,0 +1,97 @@
+"""Evaluation figures: the paper's Fig. 3 per method, auto-regressive strips, metrics vs horizon."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from scipy import signal
+
+from sonarset.plots import _plt, draw_energyscape
+
+
+def correlogram(pred: np.ndarray, target: np.ndarray, max_lag: tuple[int, int] = (20, 15)) -> np.ndarray:
+    """Normalised 2D cross-correlation of two images for lags up to ``max_lag`` (range, azimuth)."""
+    p = (pred - pred.mean()) / (pred.std() + 1e-12)
+    t = (target - target.mean()) / (target.std() + 1e-12)
+    full = signal.fftconvolve(t, p[::-1, ::-1], mode="full") / p.size
+    cr, ca = np.array(full.shape) // 2
+    return full[cr - max_lag[0]:cr + max_lag[0] + 1, ca - max_lag[1]:ca + max_lag[1] + 1]
+
+
+def write_figures(res, out: Path) -> list[str]:
+    plt = _plt()
+    from sonarset.schema import SensorGrid  # noqa: F401 - grid comes from the store below
+    from sonarset.store import open_store
+
+    grid = open_store(res.store).grid
+    ex = res.examples
+    target, frames = ex["targets"], ex["frames"]
+    paths = []
+
+    # Fig. 3 of the paper, one row per method: target, prediction, difference, correlogram.
+    methods = list(ex["methods"])
+    fig, axes = plt.subplots(len(methods), 4, figsize=(16, 3.6 * len(methods)), constrained_layout=True, squeeze=False)
+    for row, m in zip(axes, methods):
+        pred = ex["methods"][m][0]
+        draw_energyscape(row[0], target[0], grid, "target (measured)")
+        draw_energyscape(row[1], pred, grid, f"{m}: one-shot prediction")
+        im = row[2].imshow(pred - target[0], origin="lower", aspect="auto", cmap="RdBu_r", vmin=-0.5, vmax=0.5)
+        row[2].set_title("prediction - target")
+        fig.colorbar(im, ax=row[2])
+        c = correlogram(pred, target[0])
+        row[3].imshow(c, origin="lower", aspect="auto", cmap="magma",
+                      extent=[-(c.shape[1] // 2), c.shape[1] // 2, -(c.shape[0] // 2), c.shape[0] // 2])
+        i, j = np.unravel_index(np.argmax(c), c.shape)
+        row[3].plot(j - c.shape[1] // 2, i - c.shape[0] // 2, "c+", ms=12)
+        row[3].set_title(f"2D correlogram (peak {c.max():.2f})")
+        row[3].set_xlabel("azimuth lag [bins]")
+        row[3].set_ylabel("range lag [bins]")
+    p = out / "fig_prediction.png"
+    fig.savefig(p, dpi=90)
+    plt.close(fig)
+    paths.append(str(p))
+
+    # Auto-regressive strip: measured frames, then each method's predictions and differences.
+    H = target.shape[0]
+    steps = list(range(H))
+    rows = 1 + 2 * len(methods)
+    fig, axes = plt.subplots(rows, len(steps), figsize=(1.6 * len(steps), 1.7 * rows), constrained_layout=True, squeeze=False)
+    for j, h in enumerate(steps):
+        axes[0, j].imshow(target[h], origin="lower", aspect="auto", vmin=0, vmax=1)
+        axes[0, j].set_title(f"t+{h + 1}", fontsize=8)
+        for k, m in enumerate(methods):
+            pred = ex["methods"][m][h]
+            axes[1 + 2 * k, j].imshow(pred, origin="lower", aspect="auto", vmin=0, vmax=1)
+            axes[2 + 2 * k, j].imshow(pred - target[h], origin="lower", aspect="auto", cmap="RdBu_r", vmin=-0.5, vmax=0.5)
+    axes[0, 0].set_ylabel("measured", fontsize=8)
+    for k, m in enumerate(methods):
+        axes[1 + 2 * k, 0].set_ylabel(m, fontsize=8)
+        axes[2 + 2 * k, 0].set_ylabel(f"{m} - meas.", fontsize=8)
+    for a in axes.ravel():
+        a.set_xticks([])
+        a.set_yticks([])
+    p = out / "fig_autoregressive.png"
+    fig.savefig(p, dpi=90)
+    plt.close(fig)
+    paths.append(str(p))
+
+    # Metrics against horizon.
+    s = res.summary()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), constrained_layout=True)
+    for k, ax in zip(("cc", "nrmsd"), axes):
+        for m in res.methods:
+            mean = [s[m][str(h)][k]["mean"] for h in res.horizons]
+            n = [s[m][str(h)]["n"] for h in res.horizons]
+            sem = [s[m][str(h)][k]["std"] / np.sqrt(max(1, nn)) for h, nn in zip(res.horizons, n)]
+            ax.errorbar(res.horizons, mean, yerr=1.96 * np.array(sem), marker="o", capsize=3, label=m)
+        ax.set_xlabel("horizon H (frames ahead)")
+        ax.set_ylabel(k.upper())
+        ax.set_xticks(res.horizons)
+        ax.grid(alpha=0.3)
+    axes[0].legend()
+    p = out / "fig_horizon.png"
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    paths.append(str(p))
+    return paths

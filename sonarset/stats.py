@@ -1,0 +1,63 @@
+"""Statistics for comparing predictors on the same windows (scipy.stats)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy import stats
+
+
+@dataclass
+class Comparison:
+    """Method ``a`` against ``b`` on one metric and horizon, over the same windows."""
+
+    metric: str
+    horizon: int
+    a: str
+    b: str
+    n: int
+    mean_diff: float  # mean of a - b
+    ci_low: float  # bootstrap 95% CI of the mean difference
+    ci_high: float
+    t_two_sample_p: float  # the paper's test: two-sample (Welch) t-test, ignores the pairing
+    t_paired_p: float
+    wilcoxon_p: float
+    p_holm: float = float("nan")  # paired t-test p, Holm-corrected over all comparisons made
+
+    def to_dict(self) -> dict:
+        return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in asdict(self).items()}
+
+
+def compare(a: np.ndarray, b: np.ndarray, *, metric: str, horizon: int, names: tuple[str, str],
+            n_resamples: int = 2000, seed: int = 0) -> Comparison:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    ok = np.isfinite(a) & np.isfinite(b)
+    a, b = a[ok], b[ok]
+    d = a - b
+    n = len(d)
+    if n < 3 or np.all(d == d[0]):
+        nan = float("nan")
+        return Comparison(metric, horizon, *names, n, float(d.mean()) if n else nan, nan, nan, nan, nan, nan)
+    ci = stats.bootstrap((d,), np.mean, n_resamples=n_resamples, confidence_level=0.95,
+                         random_state=np.random.default_rng(seed), method="BCa").confidence_interval
+    return Comparison(
+        metric, horizon, *names, n, float(d.mean()), float(ci.low), float(ci.high),
+        float(stats.ttest_ind(a, b, equal_var=False).pvalue),
+        float(stats.ttest_rel(a, b).pvalue),
+        float(stats.wilcoxon(d).pvalue),
+    )
+
+
+def holm(pvalues: list[float]) -> list[float]:
+    """Holm-Bonferroni adjusted p-values (family-wise error), NaNs passed through."""
+    p = np.asarray(pvalues, float)
+    out = np.full_like(p, np.nan)
+    idx = np.flatnonzero(np.isfinite(p))
+    if not len(idx):
+        return out.tolist()
+    order = idx[np.argsort(p[idx])]
+    m = len(order)
+    adj = np.maximum.accumulate((m - np.arange(m)) * p[order])
+    out[order] = np.minimum(adj, 1.0)
+    return out.tolist()
