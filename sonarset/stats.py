@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -39,14 +40,29 @@ def compare(a: np.ndarray, b: np.ndarray, *, metric: str, horizon: int, names: t
     if n < 3 or np.all(d == d[0]):
         nan = float("nan")
         return Comparison(metric, horizon, *names, n, float(d.mean()) if n else nan, nan, nan, nan, nan, nan)
-    ci = stats.bootstrap((d,), np.mean, n_resamples=n_resamples, confidence_level=0.95,
-                         random_state=np.random.default_rng(seed), method="BCa").confidence_interval
+    if np.ptp(d) <= 1e-12 * max(1.0, abs(float(d.mean()))):
+        lo = hi = float(d.mean())  # every window differs by the same amount: no spread to resample
+    else:
+        lo, hi = np.nan, np.nan
+        for method in ("BCa", "percentile"):  # BCa is better; it degenerates on near-constant data
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                ci = stats.bootstrap((d,), np.mean, n_resamples=n_resamples, confidence_level=0.95,
+                                     random_state=np.random.default_rng(seed), method=method).confidence_interval
+            lo, hi = float(ci.low), float(ci.high)
+            if np.isfinite(lo) and np.isfinite(hi):
+                break
     return Comparison(
-        metric, horizon, *names, n, float(d.mean()), float(ci.low), float(ci.high),
-        float(stats.ttest_ind(a, b, equal_var=False).pvalue),
-        float(stats.ttest_rel(a, b).pvalue),
-        float(stats.wilcoxon(d).pvalue),
+        metric, horizon, *names, n, float(d.mean()), lo, hi,
+        *_pvalues(a, b, d),
     )
+
+
+def _pvalues(a: np.ndarray, b: np.ndarray, d: np.ndarray) -> tuple[float, float, float]:
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # scipy warns on near-constant input; the p-values stand
+        return (float(stats.ttest_ind(a, b, equal_var=False).pvalue), float(stats.ttest_rel(a, b).pvalue),
+                float(stats.wilcoxon(d).pvalue))
 
 
 def holm(pvalues: list[float]) -> list[float]:

@@ -1,0 +1,121 @@
+"""Metrics, baselines and the rollout against known answers."""
+
+import math
+
+import numpy as np
+import pytest
+
+from sonarset.metrics import cc, nrmsd, slip_error
+from sonarset.schema import SensorGrid
+from sonarset.stats import compare, holm
+from sonarset.models.baselines import AcousticFlow, NaiveShift, Persistence, rollout
+
+GRID = SensorGrid.default()
+
+
+def test_cc_nrmsd_slip_by_hand():
+    m = np.array([[1.0, 2.0], [3.0, 4.0]])
+    p = np.array([[2.0, 2.0], [3.0, 5.0]])
+    # corr2 by hand: means 2.5 and 3; deviations (-1.5,-.5,.5,1.5), (-1,-1,0,2)
+    num = 1.5 + 0.5 + 0 + 3.0
+    den = math.sqrt((2.25 + 0.25 + 0.25 + 2.25) * (1 + 1 + 0 + 4))
+    assert cc(p, m) == pytest.approx(num / den)
+    assert nrmsd(p, m) == pytest.approx(math.sqrt(2) / math.sqrt(30))
+    assert slip_error(p, m) == pytest.approx(math.sqrt(2) / math.sqrt(num / den))
+    # vectorised over leading axes, and exact for identical images
+    batch = np.random.default_rng(0).random((3, 4, 10, 6))
+    assert cc(batch, batch).shape == (3, 4) and np.allclose(cc(batch, batch), 1)
+    assert np.allclose(nrmsd(batch, batch), 0)
+    assert cc(-batch, batch) == pytest.approx(-np.ones((3, 4)))
+
+
+def test_holm_and_paired_comparison():
+    assert holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
+    rng = np.random.default_rng(1)
+    a = rng.normal(0, 1, 300)
+    c = compare(a + 0.2, a, metric="cc", horizon=1, names=("x", "y"))
+    assert c.mean_diff == pytest.approx(0.2) and c.t_paired_p < 1e-10 and c.ci_low <= 0.2 <= c.ci_high
+    # the paired test sees a small shift that the two-sample test (the paper's) cannot
+    noisy = compare(a + 0.02 + rng.normal(0, 0.01, 300), a, metric="cc", horizon=1, names=("x", "y"))
+    assert noisy.t_paired_p < 1e-6 < noisy.t_two_sample_p
+
+
+def test_persistence_copies_the_last_frame():
+    frames = np.random.default_rng(0).random((2, 3, *GRID.shape)).astype(np.float32)
+    out = Persistence(GRID).predict(frames, np.zeros((2, 4, 2)))
+    assert np.array_equal(out, frames[:, -1])
+
+
+@pytest.mark.parametrize("predictor", [NaiveShift(GRID), AcousticFlow(GRID, sensor_offset=0.0),
+                                       NaiveShift(GRID, backend="scipy")])
+def test_pure_rotation_shifts_azimuth_exactly(predictor):
+    rng = np.random.default_rng(2)
+    frames = rng.random((1, 3, *GRID.shape)).astype(np.float32)
+    k = 3  # bins
+    omega = k * GRID.azimuth_step / 0.2
+    out = predictor.predict(frames, np.array([[[0, 0]] * 3 + [[0.0, omega]]]))
+    # turning left by k bins: what was at azimuth theta + k bins is now at theta
+    np.testing.assert_allclose(out[0, :, :-k], frames[0, -1, :, k:], atol=1e-4)  # float32 grids
+
+
+def test_flow_moves_a_reflector_along_its_flow_line():
+    r0, th0 = 3.0, math.radians(35)
+    rr, tt = np.meshgrid(GRID.range_centres(), GRID.azimuth_centres(), indexing="ij")
+    blob = np.exp(-(((rr - r0) / 0.02) ** 2 + ((tt - th0) / math.radians(2)) ** 2) / 2)
+    frames = np.repeat(blob[None, None].astype(np.float32), 3, axis=1)
+    v = 0.3
+    flow = AcousticFlow(GRID, dt=1.0).predict(frames, np.array([[[0, 0]] * 3 + [[v, 0.0]]]))[0]
+    naive = NaiveShift(GRID, dt=1.0).predict(frames, np.array([[[0, 0]] * 3 + [[v, 0.0]]]))[0]
+    # where the reflector really is after moving 0.3 m forward
+    x, y = r0 * math.cos(th0) - v, r0 * math.sin(th0)
+    r1, th1 = math.hypot(x, y), math.atan2(y, x)
+    assert r1 * math.sin(th1) == pytest.approx(r0 * math.sin(th0))  # the flow line
+    i, j = np.unravel_index(np.argmax(flow), flow.shape)
+    assert abs(GRID.range_centres()[i] - r1) <= GRID.range_step
+    assert abs(GRID.azimuth_centres()[j] - th1) <= GRID.azimuth_step
+    i, j = np.unravel_index(np.argmax(naive), naive.shape)
+    assert abs(GRID.azimuth_centres()[j] - th0) <= GRID.azimuth_step / 2  # naive keeps the azimuth: wrong
+
+
+def test_torch_and_scipy_warps_agree():
+    rng = np.random.default_rng(3)
+    frames = rng.random((4, 3, *GRID.shape)).astype(np.float32)
+    cmds = np.c_[rng.uniform(-0.3, 0.3, 16), rng.uniform(-1, 1, 16)].reshape(4, 4, 2)
+    for cls in (NaiveShift, AcousticFlow):
+        a = cls(GRID, backend="torch").predict(frames, cmds)
+        b = cls(GRID, backend="scipy").predict(frames, cmds)
+        np.testing.assert_allclose(a, b, atol=1e-4)
+
+
+class AddOne:
+    """Predicts the last input frame plus one: the rollout's input history becomes visible."""
+
+    name, grid = "add-one", GRID
+
+    def predict(self, frames, commands):
+        assert frames.shape[1] == 3 and commands.shape[1] == 4
+        return frames[:, -1] + 1.0
+
+
+def test_rollout_feeds_predictions_back():
+    frames = np.zeros((2, 3, 4, 5), np.float32)
+    frames[:, -1] = 10.0
+    out = rollout(AddOne(), frames, np.zeros((2, 3 + 5, 2)), 5)
+    # if measured frames were used after step 1, every step would give 11
+    assert [float(out[0, h, 0, 0]) for h in range(5)] == [11, 12, 13, 14, 15]
+    with pytest.raises(ValueError, match="need 8 commands"):
+        rollout(AddOne(), frames, np.zeros((2, 7, 2)), 5)
+
+
+def test_rollout_passes_each_step_its_own_commands():
+    seen = []
+
+    class Spy(AddOne):
+        def predict(self, frames, commands):
+            seen.append(commands[0, :, 0].tolist())
+            return frames[:, -1]
+
+    cmds = np.zeros((1, 6, 2))
+    cmds[0, :, 0] = np.arange(6)
+    rollout(Spy(), np.zeros((1, 3, 4, 5), np.float32), cmds, 3)
+    assert seen == [[0, 1, 2, 3], [1, 2, 3, 4], [2, 3, 4, 5]]
