@@ -1,0 +1,203 @@
+"""EchoPT: a pretrained transformer that predicts the next 2D sonar image (the paper's Fig. 2).
+
+Three parallel branches over n_in = 3 input frames and n_in + 1 = 4 velocity commands:
+
+1. transformer: 25 x 5 patches of the frame stack are embedded to ``d_embed`` (376) dims, a learned
+   positional embedding is added, the 8 command values are appended to every token (-> 384), and
+   ``n_layers`` blocks of self-attention (6 heads) and a 500-wide feed-forward follow. Each token is
+   un-embedded to its 25 x 5 pixels, and 20 x 5 convolutions refine the image;
+2. convolutions straight over the frame stack;
+3. an MLP on the commands (8 -> 10 -> 10 -> 200), its 200 outputs laid out as a 20 x 10 image and
+   resized to the grid.
+
+The branches are depth-concatenated and a convolution stack makes the output image. Layer sizes
+follow the paper's appendix table; where the table is ambiguous the choice is noted inline. The
+paper's stride-1 "transposed" convolutions are plain convolutions here (identical function).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from sonarset.errors import GridMismatchError
+
+V_SCALE, W_SCALE = 0.3, 1.0  # command ranges (m/s, rad/s): inputs are scaled to [-1, 1]
+
+
+@dataclass(frozen=True)
+class EchoPTConfig:
+    n_range: int = 200
+    n_azimuth: int = 90
+    n_in: int = 3
+    patch: tuple[int, int] = (25, 5)
+    d_embed: int = 376  # image part of a token; + 2 (n_in + 1) command values = d_model
+    n_layers: int = 8
+    n_heads: int = 6
+    d_ff: int = 500
+    max_tokens: int = 2000  # the paper's positional table (376 x 2000); the grid uses the first ones
+    kernel: tuple[int, int] = (20, 5)
+    tf_channels: tuple[int, int] = (16, 32)  # convolutions after un-embedding
+    frame_channels: int = 16  # convolutional branch over the frame stack
+    head_channels: tuple[int, int] = (16, 4)  # output stack: (65 -> 16 -> 4 -> 1 for the paper)
+    mlp_hidden: int = 10
+    mlp_out: int = 200  # laid out as a 20 x 10 image
+    residual: bool = False  # predict a correction to the last frame (not in the paper)
+    dropout: float = 0.0
+
+    @property
+    def n_cmd(self) -> int:
+        return 2 * (self.n_in + 1)
+
+    @property
+    def d_model(self) -> int:
+        return self.d_embed + self.n_cmd
+
+    @property
+    def grid_tokens(self) -> tuple[int, int]:
+        return self.n_range // self.patch[0], self.n_azimuth // self.patch[1]
+
+    def check(self) -> None:
+        if self.n_range % self.patch[0] or self.n_azimuth % self.patch[1]:
+            raise GridMismatchError(f"grid {self.n_range}x{self.n_azimuth} is not divisible by the "
+                                    f"{self.patch[0]}x{self.patch[1]} patch")
+        if self.grid_tokens[0] * self.grid_tokens[1] > self.max_tokens:
+            raise GridMismatchError(f"grid {self.n_range}x{self.n_azimuth} needs more than {self.max_tokens} tokens")
+        if self.d_model % self.n_heads:
+            raise ValueError(f"d_model {self.d_model} is not divisible by {self.n_heads} heads")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "EchoPTConfig":
+        names = {f.name for f in fields(cls)}
+        kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in names}
+        return cls(**kw)
+
+
+PRESETS: dict[str, dict] = {
+    # The paper's model: ~9 M parameters, ~7.8 M of them in the 8 transformer blocks.
+    "paper": {},
+    # Sized by measurement to train on a 2-core CPU (BENCHMARKS.md): 0.62 M parameters, ~50
+    # samples/s. Full-resolution 20 x 5 convolutions cost most of the paper model's time on a CPU,
+    # so the small preset uses 5 x 3 kernels and 8 channels, and predicts a correction to the
+    # last frame (``residual``), which starts training from persistence instead of from zero.
+    "small": dict(d_embed=120, n_layers=4, n_heads=4, d_ff=256, max_tokens=144, kernel=(5, 3),
+                  tf_channels=(4, 8), frame_channels=8, head_channels=(8, 4), residual=True),
+    # For tests and smoke runs on tiny grids: seconds per hundred steps.
+    "tiny": dict(d_embed=24, n_layers=2, n_heads=2, d_ff=32, max_tokens=64, kernel=(3, 3),
+                 tf_channels=(2, 4), frame_channels=4, head_channels=(4, 2), mlp_hidden=8, mlp_out=50,
+                 residual=True),
+}
+
+
+def make_config(preset: str, n_range: int = 200, n_azimuth: int = 90, **overrides) -> EchoPTConfig:
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
+    cfg = EchoPTConfig(n_range=n_range, n_azimuth=n_azimuth, **{**PRESETS[preset], **overrides})
+    cfg.check()
+    return cfg
+
+
+class Block(nn.Module):
+    """Pre-norm transformer block: self-attention, then a feed-forward of width d_ff."""
+
+    def __init__(self, cfg: EchoPTConfig):
+        super().__init__()
+        d = cfg.d_model
+        self.n_heads = cfg.n_heads
+        self.ln1 = nn.LayerNorm(d)
+        self.qkv = nn.Linear(d, 3 * d)
+        self.proj = nn.Linear(d, d)
+        self.ln2 = nn.LayerNorm(d)
+        self.ff = nn.Sequential(nn.Linear(d, cfg.d_ff), nn.GELU(), nn.Linear(cfg.d_ff, d))
+        self.dropout = cfg.dropout
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        B, T, D = x.shape
+        q, k, v = self.qkv(self.ln1(x)).split(D, dim=-1)
+        q, k, v = (t.view(B, T, self.n_heads, D // self.n_heads).transpose(1, 2) for t in (q, k, v))
+        # every patch attends to every other one: an image, not a causal sequence
+        y = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
+        x = x + self.proj(y.transpose(1, 2).reshape(B, T, D))
+        return x + self.ff(self.ln2(x))
+
+
+def conv(cin: int, cout: int, kernel: tuple[int, int]) -> nn.Conv2d:
+    return nn.Conv2d(cin, cout, kernel, padding="same")
+
+
+class EchoPT(nn.Module):
+    def __init__(self, cfg: EchoPTConfig):
+        super().__init__()
+        cfg.check()
+        self.cfg = cfg
+        pr, pa = cfg.patch
+        k = cfg.kernel
+        # transformer branch
+        self.embed = nn.Conv2d(cfg.n_in, cfg.d_embed, kernel_size=cfg.patch, stride=cfg.patch)
+        self.pos = nn.Parameter(torch.zeros(cfg.max_tokens, cfg.d_embed))
+        self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.n_layers))
+        self.ln_f = nn.LayerNorm(cfg.d_model)
+        self.unembed = nn.Linear(cfg.d_model, pr * pa, bias=False)
+        c1, c2 = cfg.tf_channels
+        self.tf_convs = nn.Sequential(conv(1, c1, k), nn.GELU(), conv(c1, c2, k), nn.GELU())
+        # convolutional branch over the frame stack (two layers; both feed the head: 16 + 16)
+        fc = cfg.frame_channels
+        self.frame_conv1 = conv(cfg.n_in, fc, k)
+        self.frame_conv2 = conv(fc, fc, k)
+        # command MLP
+        self.mlp = nn.Sequential(nn.Linear(cfg.n_cmd, cfg.mlp_hidden), nn.GELU(),
+                                 nn.Linear(cfg.mlp_hidden, cfg.mlp_hidden), nn.GELU(),
+                                 nn.Linear(cfg.mlp_hidden, cfg.mlp_out))
+        # head over the depth-concatenation: c2 + 2 fc + 1 channels (32 + 32 + 1 = 65 in the paper)
+        h1, h2 = cfg.head_channels
+        self.head = nn.Sequential(conv(c2 + 2 * fc + 1, h1, k), nn.GELU(), conv(h1, h2, k), nn.GELU(), conv(h2, 1, k))
+        self.register_buffer("cmd_scale", torch.tensor([1 / V_SCALE, 1 / W_SCALE] * (cfg.n_in + 1)), persistent=False)
+        self.apply(self._init)
+        nn.init.normal_(self.pos, std=0.02)
+
+    @staticmethod
+    def _init(m: nn.Module) -> None:
+        if isinstance(m, nn.Linear):
+            nn.init.normal_(m.weight, std=0.02)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+
+    def n_params(self, part: str | None = None) -> int:
+        mod = self.blocks if part == "blocks" else self
+        return sum(p.numel() for p in mod.parameters())
+
+    def forward(self, frames: torch.Tensor, commands: torch.Tensor) -> torch.Tensor:
+        """frames (B, n_in, R, A) in [0, 1]; commands (B, n_in + 1, 2) in m/s, rad/s -> (B, R, A)."""
+        cfg = self.cfg
+        B, n_in, R, A = frames.shape
+        if (R, A) != (cfg.n_range, cfg.n_azimuth) or n_in != cfg.n_in:
+            raise GridMismatchError(f"EchoPT was built for {cfg.n_in} frames of {cfg.n_range}x{cfg.n_azimuth}, "
+                                    f"got {n_in} of {R}x{A}")
+        c = commands.reshape(B, -1) * self.cmd_scale
+        # transformer branch
+        tok = self.embed(frames)  # (B, d_embed, R/pr, A/pa)
+        gr, ga = tok.shape[-2:]
+        tok = tok.flatten(2).transpose(1, 2) + self.pos[: gr * ga]
+        tok = torch.cat([tok, c[:, None, :].expand(B, gr * ga, cfg.n_cmd)], dim=-1)
+        for block in self.blocks:
+            tok = block(tok)
+        pix = self.unembed(self.ln_f(tok))  # (B, tokens, pr * pa)
+        pr, pa = cfg.patch
+        img = pix.view(B, gr, ga, pr, pa).permute(0, 1, 3, 2, 4).reshape(B, 1, R, A)
+        t = self.tf_convs(img)
+        # convolutional branch
+        f1 = F.gelu(self.frame_conv1(frames))
+        f2 = F.gelu(self.frame_conv2(f1))
+        # command branch, resized to the grid
+        side = int(math.sqrt(cfg.mlp_out / 2))
+        m = self.mlp(c).view(B, 1, 2 * side, side) if 2 * side * side == cfg.mlp_out else self.mlp(c).view(B, 1, cfg.mlp_out, 1)
+        m = F.interpolate(m, size=(R, A), mode="bilinear", align_corners=False)
+        out = self.head(torch.cat([t, f1, f2, m], dim=1))[:, 0]
+        return out + frames[:, -1] if cfg.residual else out

@@ -1,0 +1,248 @@
+"""Training EchoPT on a SonarSet store (``sonarset train``).
+
+Paper defaults: Adam, lr 5e-5, batch 64, L2 1e-4, 1600 random validation windows, best validation
+loss kept. All frames of the training runs are held in memory (on the GPU when there is one), and
+each batch is one gather from them, so the loader never starves the model.
+
+Resumable: ``last.safetensors`` (weights and Adam moments) and ``last.json`` (step, epoch, best
+loss) are written atomically every ``eval_every`` steps. The batch order is a pure function of
+(seed, epoch), so a resumed run replays exactly the steps an uninterrupted one would have taken.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shlex
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from safetensors.torch import load_file, save_file
+
+from sonarset import __version__
+from sonarset.errors import SonarSetError
+from sonarset.store import SonarStore
+from sonarset.windows import FrameBank, WindowIndex
+
+from .checkpoint import _atomic, resolve_device, save_checkpoint
+from .echopt import EchoPT, make_config
+
+
+@dataclass
+class TrainConfig:
+    preset: str = "small"
+    epochs: int = 1000
+    batch_size: int = 64
+    lr: float = 5e-5
+    weight_decay: float = 1e-4  # L2, as Adam's weight_decay (MATLAB's L2Regularization)
+    schedule: str = "none"  # none (paper) | cosine (decays to 1% of lr over the run, 2% warm-up)
+    seed: int = 0
+    device: str = "auto"
+    n_val: int = 1600
+    eval_every: int = 0  # steps between validations and checkpoints; 0 = once per epoch
+    max_steps: int = 0  # stop after this many optimizer steps in total (0 = no limit)
+    max_minutes: float = 0.0  # stop after this much wall time in this process (0 = no limit)
+    compile: bool = False  # torch.compile (GPU)
+    bf16: bool = True  # bf16 autocast on CUDA; ignored on CPU
+    test_samples: int = 1000  # one-shot + AR test metrics in the card (0 = skip)
+    command: str = field(default_factory=lambda: " ".join(shlex.quote(a) for a in sys.argv))
+
+
+@dataclass
+class TrainResult:
+    out_dir: Path
+    steps: int
+    epochs_done: float
+    best_val_loss: float
+    history: list[dict]
+
+
+def _lr_at(cfg: TrainConfig, step: int, total: int) -> float:
+    if cfg.schedule == "none" or total <= 0:
+        return cfg.lr
+    warm = max(1, int(0.02 * total))
+    if step < warm:
+        return cfg.lr * (step + 1) / warm
+    t = min(1.0, (step - warm) / max(1, total - warm))
+    return cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+class _Batches:
+    """Windows gathered from the in-memory bank, on the training device."""
+
+    def __init__(self, bank: FrameBank, device: str):
+        self.device = device
+        self.span = 4
+        if device == "cuda":
+            self.images = torch.from_numpy(bank.images).to(device)  # float16 stays float16 on the GPU
+            self.velocity = torch.from_numpy(bank.velocity).to(device)
+        else:
+            self.images, self.velocity = bank.images, bank.velocity
+
+    def get(self, starts: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        if self.device == "cuda":
+            rows = torch.as_tensor(starts, device=self.device)[:, None] + torch.arange(self.span, device=self.device)
+            block, cmds = self.images[rows].float(), self.velocity[rows]
+        else:
+            rows = starts[:, None] + np.arange(self.span)
+            block = torch.from_numpy(self.images[rows]).float()
+            cmds = torch.from_numpy(self.velocity[rows])
+        frames = block[:, :3].contiguous(memory_format=torch.channels_last)
+        return frames, cmds, block[:, 3]
+
+
+def _save_state(out: Path, model: EchoPT, opt: torch.optim.Optimizer, meta: dict) -> None:
+    tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    sd = opt.state_dict()
+    for idx, st in sd["state"].items():
+        for k, v in st.items():
+            tensors[f"opt.{idx}.{k}"] = (v if torch.is_tensor(v) else torch.tensor(v)).detach().cpu().contiguous()
+    _atomic(out / "last.safetensors", lambda p: save_file(tensors, str(p)))
+    meta = {**meta, "param_groups": [{k: v for k, v in g.items() if k != "params"} for g in sd["param_groups"]]}
+    _atomic(out / "last.json", lambda p: p.write_text(json.dumps(meta, indent=2) + "\n"))
+
+
+def _load_state(out: Path, model: EchoPT, opt: torch.optim.Optimizer) -> dict:
+    meta = json.loads((out / "last.json").read_text())
+    tensors = load_file(str(out / "last.safetensors"))
+    model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+    sd = opt.state_dict()
+    state: dict = {}
+    for k, v in tensors.items():
+        if k.startswith("opt."):
+            _, idx, name = k.split(".", 2)
+            state.setdefault(int(idx), {})[name] = v
+    sd["state"] = state
+    for g, saved in zip(sd["param_groups"], meta["param_groups"]):
+        g.update(saved)
+    opt.load_state_dict(sd)
+    return meta
+
+
+@torch.no_grad()
+def validation_loss(model: EchoPT, batches: _Batches, starts: np.ndarray, batch_size: int = 128) -> float:
+    model.eval()
+    total, n = 0.0, 0
+    for lo in range(0, len(starts), batch_size):
+        f, c, t = batches.get(starts[lo:lo + batch_size])
+        total += float(F.mse_loss(model(f, c).float(), t, reduction="sum"))
+        n += t.numel()
+    model.train()
+    return total / n
+
+
+def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, resume: bool = False,
+          progress: Callable[[dict], None] | None = None) -> TrainResult:
+    out = Path(out_dir)
+    if out.exists() and any(out.iterdir()) and not resume:
+        raise SonarSetError(f"{out}: exists and is not empty (use --resume to continue, or another --out)")
+    if resume and not (out / "last.json").is_file():
+        raise SonarSetError(f"{out}: nothing to resume (no last.json)")
+    device = resolve_device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    model_cfg = make_config(cfg.preset, *store.grid.shape)
+    model = EchoPT(model_cfg).to(device).to(memory_format=torch.channels_last)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=cfg.weight_decay)
+
+    bank = FrameBank.from_store(store, split="train")
+    index = WindowIndex.build(bank, 3, 1)
+    train_idx, val_idx = index.split(cfg.n_val, seed=cfg.seed)
+    out.mkdir(parents=True, exist_ok=True)
+    batches = _Batches(bank, device)
+    steps_per_epoch = len(train_idx) // cfg.batch_size  # drop the last partial batch
+    if steps_per_epoch == 0:
+        raise SonarSetError(f"{store.location}: {len(train_idx)} training windows, fewer than one batch")
+    total_steps = cfg.epochs * steps_per_epoch
+    if cfg.max_steps:
+        total_steps = min(total_steps, cfg.max_steps)
+    eval_every = cfg.eval_every or steps_per_epoch
+
+    step, best, history = 0, float("inf"), []
+    if resume:
+        meta = _load_state(out, model, opt)
+        step, best = int(meta["step"]), float(meta["best_val_loss"])
+        saved = meta["train_config"]
+        for key in ("preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps"):
+            if saved[key] != getattr(cfg, key):
+                raise SonarSetError(f"{out}: --resume with {key}={getattr(cfg, key)!r}, but the run used {saved[key]!r}")
+        if (out / "metrics.jsonl").exists():
+            history = [json.loads(l) for l in (out / "metrics.jsonl").read_text().splitlines() if l.strip()]
+            history = [h for h in history if h["step"] <= step]
+
+    amp = device == "cuda" and cfg.bf16
+    fwd = torch.compile(model) if (cfg.compile and device == "cuda") else model
+    card_base = {
+        "format": "echopt-card/1", "preset": cfg.preset, "grid": store.grid.model_dump(),
+        "training": {"store": store.location, "runs": bank.run_names, "command": cfg.command,
+                     "sonarset": __version__, "config": asdict(cfg), "windows_train": len(train_idx),
+                     "windows_val": len(val_idx), "steps_per_epoch": steps_per_epoch},
+    }
+    t_start = time.perf_counter()
+    model.train()
+    run_loss, run_n, t_window, samples_window = 0.0, 0, time.perf_counter(), 0
+    stop = False
+    while step < total_steps and not stop:
+        epoch, pos = divmod(step, steps_per_epoch)
+        order = np.random.default_rng([cfg.seed, epoch]).permutation(len(train_idx))
+        for b in range(pos, steps_per_epoch):
+            starts = train_idx.starts[order[b * cfg.batch_size:(b + 1) * cfg.batch_size]]
+            frames, cmds, target = batches.get(starts)
+            for g in opt.param_groups:
+                g["lr"] = _lr_at(cfg, step, total_steps)
+            with torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp):
+                pred = fwd(frames, cmds)
+            loss = F.mse_loss(pred.float(), target)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            step += 1
+            run_loss += loss.item() * len(starts)
+            run_n += len(starts)
+            samples_window += len(starts)
+            out_of_time = cfg.max_minutes and (time.perf_counter() - t_start) > 60 * cfg.max_minutes
+            if step % eval_every == 0 or step == total_steps or out_of_time:
+                val = validation_loss(model, batches, val_idx.starts)
+                rate = samples_window / (time.perf_counter() - t_window)
+                rec = {"step": step, "epoch": step / steps_per_epoch, "train_loss": run_loss / max(run_n, 1),
+                       "val_loss": val, "lr": opt.param_groups[0]["lr"], "samples_per_s": rate,
+                       "elapsed_s": time.perf_counter() - t_start}
+                history.append(rec)
+                with open(out / "metrics.jsonl", "a") as f:
+                    f.write(json.dumps(rec) + "\n")
+                if val < best:
+                    best = val
+                    save_checkpoint(out / "model.safetensors", model, {
+                        **card_base, "epochs": step / steps_per_epoch, "steps": step, "val_loss": val})
+                _save_state(out, model, opt, {"step": step, "best_val_loss": best, "train_config": asdict(cfg)})
+                if progress:
+                    progress({**rec, "total_steps": total_steps, "best_val_loss": best})
+                run_loss, run_n, t_window, samples_window = 0.0, 0, time.perf_counter(), 0
+            elif progress and step % 10 == 0:
+                progress({"step": step, "total_steps": total_steps, "train_loss": loss.item()})
+            if step >= total_steps or out_of_time:
+                stop = True
+                break
+    return TrainResult(out, step, step / steps_per_epoch, best, history)
+
+
+def add_test_metrics(out_dir: str | os.PathLike, store: SonarStore, samples: int = 1000, seed: int = 0,
+                     device: str = "cpu") -> dict:
+    """Evaluate the best model against the baselines on the store's test split; record in the card."""
+    from .evaluate import evaluate
+
+    path = Path(out_dir) / "model.safetensors"
+    res = evaluate(store, ["persistence", "naive", "flow", f"echopt:{path}"], samples=samples, seed=seed, device=device)
+    card_path = path.with_suffix(".json")
+    card = json.loads(card_path.read_text())
+    card["test"] = {"store": store.location, "split": "test", "windows": len(res.window_ids), "seed": seed,
+                    "results": res.summary(),
+                    "echopt_vs_flow": [c.to_dict() for c in res.comparisons if {c.a, c.b} == {"echopt", "flow"}]}
+    _atomic(card_path, lambda p: p.write_text(json.dumps(card, indent=2) + "\n"))
+    return card["test"]

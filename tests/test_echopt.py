@@ -1,0 +1,135 @@
+"""EchoPT: architecture, training, resume, checkpoints."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from sonarset import GridMismatchError, SonarSetError, open_store
+from sonarset.cli.app import app
+from sonarset.models.checkpoint import load_checkpoint, save_checkpoint
+from sonarset.models.echopt import EchoPT, make_config
+from sonarset.models.train import TrainConfig, train
+from sonarset.schema import SensorGrid
+from sonarset.sim import generate
+
+TINY_GRID = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=50, azimuth_min_rad=-math.pi / 2,
+                       azimuth_max_rad=math.pi / 2, n_azimuth=30)
+
+
+@pytest.fixture(scope="module")
+def tiny_store(tmp_path_factory):
+    path = tmp_path_factory.mktemp("echopt") / "tiny.zarr"
+    generate(path, runs=2, test_runs=1, minutes=0.5, seed=3, workers=1, grid=TINY_GRID)
+    return open_store(path)
+
+
+def test_paper_preset_matches_the_paper():
+    m = EchoPT(make_config("paper"))
+    assert m.n_params() == pytest.approx(9.0e6, rel=0.10)
+    assert m.n_params("blocks") == pytest.approx(7.8e6, rel=0.10)
+    cfg = m.cfg
+    assert (cfg.d_embed, cfg.d_model, cfg.n_heads, cfg.d_ff, cfg.n_layers) == (376, 384, 6, 500, 8)
+    assert cfg.grid_tokens == (8, 18)
+    with torch.no_grad():
+        y = m(torch.rand(2, 3, 200, 90), torch.rand(2, 4, 2))
+    assert y.shape == (2, 200, 90)
+
+
+def test_small_preset_shapes():
+    m = EchoPT(make_config("small"))
+    assert 0.3e6 < m.n_params() < 2e6
+    with torch.no_grad():
+        assert m(torch.rand(3, 3, 200, 90), torch.rand(3, 4, 2)).shape == (3, 200, 90)
+
+
+def test_grid_must_divide_into_patches():
+    with pytest.raises(GridMismatchError, match="not divisible by the 25x5 patch"):
+        make_config("small", n_range=210, n_azimuth=90)
+    make_config("small", n_range=100, n_azimuth=45)  # any multiple works
+
+
+def test_tiny_model_overfits_a_handful_of_windows(tiny_store):
+    from sonarset.windows import FrameBank, WindowIndex, gather
+
+    torch.manual_seed(0)
+    bank = FrameBank.from_store(tiny_store, split="train", image_dtype=np.float32)
+    b = gather(bank, WindowIndex.build(bank, 3, 1), np.arange(0, 80, 10))
+    f, c, t = (torch.from_numpy(np.ascontiguousarray(x)) for x in (b.frames, b.commands, b.targets[:, 0]))
+    model = EchoPT(make_config("tiny", *TINY_GRID.shape))
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(600):
+        loss = torch.nn.functional.mse_loss(model(f, c), t)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss))
+    assert losses[-1] < losses[0] / 10, (losses[0], losses[-1])
+
+
+def _cfg(**kw):
+    return TrainConfig(preset="tiny", epochs=3, batch_size=16, lr=1e-3, n_val=20, eval_every=3, device="cpu",
+                       test_samples=0, command="test", **kw)
+
+
+def test_resume_equals_uninterrupted(tiny_store, tmp_path):
+    full = train(tiny_store, tmp_path / "full", _cfg(max_steps=9))
+    part = train(tiny_store, tmp_path / "part", _cfg(max_steps=9, max_minutes=1e-9))  # stops at once
+    assert part.steps == 1
+    resumed = train(tiny_store, tmp_path / "part", _cfg(max_steps=9), resume=True)
+    assert resumed.steps == 9
+    a = [(r["step"], r["val_loss"]) for r in full.history if r["step"] % 3 == 0]
+    b = [(r["step"], r["val_loss"]) for r in resumed.history if r["step"] % 3 == 0]
+    assert a == b  # same losses, bit for bit, on CPU
+    wa, _ = load_checkpoint(tmp_path / "full", TINY_GRID)
+    wb, _ = load_checkpoint(tmp_path / "part", TINY_GRID)
+    for (ka, va), (kb, vb) in zip(wa.state_dict().items(), wb.state_dict().items()):
+        assert ka == kb and torch.equal(va, vb)
+    with pytest.raises(SonarSetError, match="exists and is not empty"):
+        train(tiny_store, tmp_path / "full", _cfg(max_steps=9))
+    with pytest.raises(SonarSetError, match="--resume with lr"):
+        train(tiny_store, tmp_path / "full", _cfg(max_steps=9, lr=5e-4) if False else TrainConfig(
+            preset="tiny", epochs=3, batch_size=16, lr=5e-4, n_val=20, eval_every=3, device="cpu",
+            test_samples=0, max_steps=9), resume=True)
+
+
+def test_checkpoint_is_safetensors_with_a_card(tmp_path):
+    from safetensors import safe_open
+
+    model = EchoPT(make_config("tiny", *TINY_GRID.shape))
+    path = save_checkpoint(tmp_path / "m", model, {"grid": TINY_GRID.model_dump(), "preset": "tiny"})
+    assert path.suffix == ".safetensors" and sorted(p.name for p in tmp_path.iterdir()) == ["m.json", "m.safetensors"]
+    with safe_open(str(path), framework="pt") as f:  # a plain safetensors file: no pickle inside
+        assert "pos" in f.keys()
+    card = json.loads((tmp_path / "m.json").read_text())
+    assert card["config"]["d_embed"] == 24 and card["n_params"] == model.n_params()
+    loaded, _ = load_checkpoint(path, TINY_GRID)
+    for a, b in zip(model.state_dict().values(), loaded.state_dict().values()):
+        assert torch.equal(a, b)
+    with pytest.raises(GridMismatchError, match="trained on grid 50x30"):
+        load_checkpoint(path, SensorGrid.default())
+    (tmp_path / "bad.safetensors").write_bytes(b"\x80\x04not safetensors")
+    (tmp_path / "bad.json").write_text((tmp_path / "m.json").read_text())
+    with pytest.raises(SonarSetError, match="cannot load weights"):
+        load_checkpoint(tmp_path / "bad", TINY_GRID)
+
+
+def test_train_and_eval_cli(tiny_store, tmp_path):
+    r = CliRunner().invoke(app, ["train", tiny_store.location, "--preset", "tiny", "--out", str(tmp_path / "run"),
+                                 "--max-steps", "4", "--eval-every", "2", "--n-val", "20", "--batch-size", "8",
+                                 "--device", "cpu", "--test-samples", "30"])
+    assert r.exit_code == 0, r.output
+    card = json.loads((tmp_path / "run" / "model.json").read_text())
+    assert card["test"]["results"]["echopt"]["1"]["n"] == 30 and card["training"]["runs"] == ["run_000", "run_001"]
+    r = CliRunner().invoke(app, ["eval", tiny_store.location, "--models", f"flow,echopt:{tmp_path / 'run'}",
+                                 "--samples", "20", "--horizons", "1,3", "--out", str(tmp_path / "ev"), "--no-figures"])
+    assert r.exit_code == 0, r.output
+    assert "echopt" in json.loads((tmp_path / "ev" / "metrics.json").read_text())["results"]
+    # a model trained on another grid is refused, in one line
+    r = CliRunner().invoke(app, ["eval", tiny_store.location, "--models", "echopt:pretrained", "--samples", "5",
+                                 "--out", str(tmp_path / "ev2")])
+    assert r.exit_code == 1 and ("trained on grid" in r.output or "no EchoPT checkpoint" in r.output)
