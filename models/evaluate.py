@@ -194,7 +194,7 @@ def _atomic_text(path: Path, text: str) -> None:
 def _fmt_p(p: float | None) -> str:
     if p is None or not np.isfinite(p):
         return "n/a"
-    return "< 1e-300" if p == 0 else f"{p:.1e}" if p < 1e-3 else f"{p:.3f}"
+    return "< 1e-300" if p < 1e-300 else f"{p:.1e}" if p < 1e-3 else f"{p:.3f}"
 
 
 def results_table(res: EvalResult, with_paper: bool = True) -> str:
