@@ -65,6 +65,18 @@ def progress_bar() -> Progress:
                     TimeRemainingColumn(), console=err, transient=True, disable=not err.is_terminal)
 
 
+def per_name_progress(bar: Progress) -> Callable[[str, int, int], None]:
+    """A progress callback that keeps one bar per name (a run, a method)."""
+    tasks: dict[str, int] = {}
+
+    def progress(name: str, done: int, total: int) -> None:
+        if name not in tasks:
+            tasks[name] = bar.add_task(name, total=total)
+        bar.update(tasks[name], completed=done)
+
+    return progress
+
+
 def _version(value: bool) -> None:
     if value:
         out.print(f"sonarset {__version__}")
@@ -288,13 +300,7 @@ def eval_(
     specs = [m.strip() for m in models.split(",") if m.strip()]
     s = open_store(store)
     with progress_bar() as bar:
-        tasks: dict[str, int] = {}
-
-        def progress(name: str, done: int, total: int) -> None:
-            if name not in tasks:
-                tasks[name] = bar.add_task(name, total=total)
-            bar.update(tasks[name], completed=done)
-
+        progress = per_name_progress(bar)
         res = evaluate(s, specs, horizons=tuple(_int_list(horizons, "--horizons")), samples=samples,
                        split=split, seed=seed, device=device, progress=progress)
     write_report(res, out_dir, figures=figures)
@@ -390,13 +396,7 @@ def demo(
     s = open_store(store_path)
     out.print(f"evaluating persistence, naive, flow and EchoPT ({model}) on {samples} windows, horizons 1, 3, 5, 10")
     with progress_bar() as bar:
-        tasks: dict[str, int] = {}
-
-        def progress(name: str, done: int, total: int) -> None:
-            if name not in tasks:
-                tasks[name] = bar.add_task(name, total=total)
-            bar.update(tasks[name], completed=done)
-
+        progress = per_name_progress(bar)
         res = evaluate(s, ["persistence", "naive", "flow", f"echopt:{model}"], samples=samples,
                        device=device, progress=progress)
     write_report(res, out_dir)
