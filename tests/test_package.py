@@ -34,6 +34,9 @@ def test_wheel_installs_in_fresh_venv(tmp_path):
     tops = {n.split("/")[0] for n in names if not n.split("/")[0].endswith((".dist-info", ".data"))}
     assert tops == {"sonarset"}, f"wheel installs top-level packages {tops}"
     assert "sonarset/models/__init__.py" in names and "sonarset/cli/app.py" in names
+    # package data the simulator and the demo load at run time
+    assert "sonarset/data/ertis32_microphones.csv" in names
+    assert {"sonarset/models/pretrained/echopt-small.safetensors", "sonarset/models/pretrained/echopt-small.json"} <= set(names)
 
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
