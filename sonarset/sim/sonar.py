@@ -141,32 +141,47 @@ class Echoes:
 
 def _ray_blocked(s: np.ndarray, p: np.ndarray, world: World, skip_seg: np.ndarray | None,
                  skip_circ: np.ndarray | None) -> np.ndarray:
-    """For rays sensor s -> points p (N, 2): is something closer than p in the way?"""
+    """For rays sensor s -> points p (N, 2): is something closer than p in the way?
+
+    Only walls and circles that come closer to the sensor than the farthest point can block; the
+    others are left out of the (N x S) intersection test, which changes no result.
+    """
     n = len(p)
     blocked = np.zeros(n, bool)
+    if n == 0:
+        return blocked
     d = p - s  # (N, 2)
+    reach = float(np.sqrt((d ** 2).sum(1).max()))
     if len(world.seg_a):
-        e = world.seg_b - world.seg_a  # (S, 2)
-        w = world.seg_a - s  # (S, 2)
+        ab = world.seg_b - world.seg_a
+        t0 = np.clip(((s - world.seg_a) * ab).sum(1) / np.maximum((ab ** 2).sum(1), 1e-12), 0, 1)
+        near = np.flatnonzero(np.linalg.norm(world.seg_a + t0[:, None] * ab - s, axis=1) <= reach)
+    else:
+        near = np.zeros(0, np.int64)
+    if len(near):
+        e = world.seg_b[near] - world.seg_a[near]  # (S', 2)
+        w = world.seg_a[near] - s  # (S', 2)
         den = d[:, None, 0] * e[None, :, 1] - d[:, None, 1] * e[None, :, 0]  # (N, S)
         with np.errstate(divide="ignore", invalid="ignore"):
             t = (w[None, :, 0] * e[None, :, 1] - w[None, :, 1] * e[None, :, 0]) / den  # along the ray
             u = (w[None, :, 0] * d[:, None, 1] - w[None, :, 1] * d[:, None, 0]) / den  # along the wall
         hit = (np.abs(den) > 1e-12) & (t > 1e-6) & (t < 1 - 1e-4) & (u >= 0) & (u <= 1)
         if skip_seg is not None:
-            hit[np.arange(n), skip_seg] &= skip_seg < 0
+            hit &= skip_seg[:, None] != near[None, :]  # a wall sample is not blocked by its own wall
         blocked |= hit.any(1)
-    if len(world.circ_c):
+    cnear = np.flatnonzero(np.linalg.norm(world.circ_c - s, axis=1) - world.circ_r <= reach) if len(world.circ_c) else []
+    if len(cnear):
         L = np.linalg.norm(d, axis=1)  # (N,)
         dirn = d / np.maximum(L, 1e-12)[:, None]
-        oc = world.circ_c - s  # (C, 2)
-        proj = dirn @ oc.T  # (N, C)
+        oc = world.circ_c[cnear] - s  # (C', 2)
+        r = world.circ_r[cnear]
+        proj = dirn @ oc.T  # (N, C')
         perp2 = (oc ** 2).sum(1)[None] - proj ** 2
-        half = np.sqrt(np.maximum(world.circ_r[None] ** 2 - perp2, 0))
+        half = np.sqrt(np.maximum(r[None] ** 2 - perp2, 0))
         entry = proj - half
-        hit = (perp2 < world.circ_r[None] ** 2) & (entry > 1e-6) & (entry < L[:, None] - 1e-4)
+        hit = (perp2 < r[None] ** 2) & (entry > 1e-6) & (entry < L[:, None] - 1e-4)
         if skip_circ is not None:
-            hit[np.arange(n), skip_circ] &= skip_circ < 0
+            hit &= skip_circ[:, None] != cnear[None, :]  # nor a pole by itself
         blocked |= hit.any(1)
     return blocked
 
