@@ -105,7 +105,7 @@ class NaiveShift:
     backend: str = "torch"
 
     def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:
-        xp, arr = _xp(self.backend)
+        _, arr = _xp(self.backend)
         v = arr(commands[:, -1, 0])[:, None, None]
         w = arr(commands[:, -1, 1])[:, None, None]
         r = arr(self.grid.range_centres())[None, :, None]

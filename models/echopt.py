@@ -18,7 +18,7 @@ paper's stride-1 "transposed" convolutions are plain convolutions here (identica
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 
 import torch
 import torch.nn as nn

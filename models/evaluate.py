@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -103,7 +102,7 @@ def evaluate(
     preds: dict[str, Predictor] = dict(predictors or {})
     for spec in model_specs:
         p = make_predictor(spec, store.grid, dt=dt, sensor_offset=offset, device=device)
-        preds[p.name if spec in ("persistence", "naive", "flow") else spec.split(":")[0]] = p
+        preds[p.name] = p
     if not preds:
         raise SonarSetError("no models to evaluate")
     H = horizons[-1]
@@ -114,24 +113,24 @@ def evaluate(
     index = index.sample(samples, seed)
     ids = [(bank.run_names[j], k) for j, k in (index.locate(i) for i in range(len(index)))]
     per_window = {m: {h: {k: np.empty(len(index)) for k in METRICS} for h in horizons} for m in preds}
-    seconds = {}
-    example_pos = 0
-    examples: dict = {"window": ids[example_pos], "methods": {}}
-    for name, predictor in preds.items():
-        t0 = time.perf_counter()
-        for lo in range(0, len(index), batch_size):
-            sl = slice(lo, min(len(index), lo + batch_size))
-            batch = gather(bank, index, np.arange(sl.start, sl.stop))
+    seconds = dict.fromkeys(preds, 0.0)
+    examples: dict = {"window": ids[0], "methods": {}}
+    for lo in range(0, len(index), batch_size):
+        sl = slice(lo, min(len(index), lo + batch_size))
+        batch = gather(bank, index, np.arange(sl.start, sl.stop))  # once for every method
+        if lo == 0:
+            examples["frames"], examples["targets"] = batch.frames[0], batch.targets[0]
+        for name, predictor in preds.items():
+            t0 = time.perf_counter()
             pred = rollout(predictor, batch.frames, batch.commands, H)
             for h in horizons:
                 per_window[name][h]["cc"][sl] = cc(pred[:, h - 1], batch.targets[:, h - 1])
                 per_window[name][h]["nrmsd"][sl] = nrmsd(pred[:, h - 1], batch.targets[:, h - 1])
+            seconds[name] += time.perf_counter() - t0
             if lo == 0:
-                examples["methods"][name] = pred[example_pos]
-                examples["frames"], examples["targets"] = batch.frames[example_pos], batch.targets[example_pos]
+                examples["methods"][name] = pred[0]
             if progress:
                 progress(name, sl.stop, len(index))
-        seconds[name] = time.perf_counter() - t0
     result = EvalResult(store.location, split, bank.run_names, list(horizons), list(preds),
                         index.starts, ids, per_window, seconds=seconds, examples=examples)
     result.comparisons = _compare_all(result, seed)

@@ -21,12 +21,11 @@ def correlogram(pred: np.ndarray, target: np.ndarray, max_lag: tuple[int, int] =
 
 def write_figures(res, out: Path) -> list[str]:
     plt = _plt()
-    from sonarset.schema import SensorGrid  # noqa: F401 - grid comes from the store below
     from sonarset.store import open_store
 
     grid = open_store(res.store).grid
     ex = res.examples
-    target, frames = ex["targets"], ex["frames"]
+    target = ex["targets"]
     paths = []
 
     # Fig. 3 of the paper, one row per method: target, prediction, difference, correlogram.

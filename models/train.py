@@ -79,23 +79,23 @@ class _Batches:
 
     def __init__(self, bank: FrameBank, device: str):
         self.device = device
-        self.span = 4
         if device == "cuda":
             self.images = torch.from_numpy(bank.images).to(device)  # float16 stays float16 on the GPU
             self.velocity = torch.from_numpy(bank.velocity).to(device)
         else:
             self.images, self.velocity = bank.images, bank.velocity
 
-    def get(self, starts: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def get(self, index: WindowIndex, which: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Input frames, commands and the target frame of the windows ``index[which]``."""
+        rows = index.rows(which)
         if self.device == "cuda":
-            rows = torch.as_tensor(starts, device=self.device)[:, None] + torch.arange(self.span, device=self.device)
-            block, cmds = self.images[rows].float(), self.velocity[rows]
+            rows_t = torch.as_tensor(rows, device=self.device)
+            block, cmds = self.images[rows_t].float(), self.velocity[rows_t]
         else:
-            rows = starts[:, None] + np.arange(self.span)
             block = torch.from_numpy(self.images[rows]).float()
             cmds = torch.from_numpy(self.velocity[rows])
-        frames = block[:, :3].contiguous(memory_format=torch.channels_last)
-        return frames, cmds, block[:, 3]
+        n_in = index.n_in
+        return block[:, :n_in].contiguous(memory_format=torch.channels_last), cmds, block[:, n_in]
 
 
 def _save_state(out: Path, model: EchoPT, opt: torch.optim.Optimizer, meta: dict) -> None:
@@ -127,11 +127,11 @@ def _load_state(out: Path, model: EchoPT, opt: torch.optim.Optimizer) -> dict:
 
 
 @torch.no_grad()
-def validation_loss(model: EchoPT, batches: _Batches, starts: np.ndarray, batch_size: int = 128) -> float:
+def validation_loss(model: EchoPT, batches: _Batches, index: WindowIndex, batch_size: int = 128) -> float:
     model.eval()
     total, n = 0.0, 0
-    for lo in range(0, len(starts), batch_size):
-        f, c, t = batches.get(starts[lo:lo + batch_size])
+    for lo in range(0, len(index), batch_size):
+        f, c, t = batches.get(index, np.arange(lo, min(len(index), lo + batch_size)))
         total += float(F.mse_loss(model(f, c).float(), t, reduction="sum"))
         n += t.numel()
     model.train()
@@ -192,8 +192,8 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
         epoch, pos = divmod(step, steps_per_epoch)
         order = np.random.default_rng([cfg.seed, epoch]).permutation(len(train_idx))
         for b in range(pos, steps_per_epoch):
-            starts = train_idx.starts[order[b * cfg.batch_size:(b + 1) * cfg.batch_size]]
-            frames, cmds, target = batches.get(starts)
+            which = order[b * cfg.batch_size:(b + 1) * cfg.batch_size]
+            frames, cmds, target = batches.get(train_idx, which)
             for g in opt.param_groups:
                 g["lr"] = _lr_at(cfg, step, total_steps)
             with torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp):
@@ -203,12 +203,12 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
             loss.backward()
             opt.step()
             step += 1
-            run_loss += loss.item() * len(starts)
-            run_n += len(starts)
-            samples_window += len(starts)
+            run_loss += loss.item() * len(which)
+            run_n += len(which)
+            samples_window += len(which)
             out_of_time = cfg.max_minutes and (time.perf_counter() - t_start) > 60 * cfg.max_minutes
             if step % eval_every == 0 or step == total_steps or out_of_time:
-                val = validation_loss(model, batches, val_idx.starts)
+                val = validation_loss(model, batches, val_idx)
                 rate = samples_window / (time.perf_counter() - t_window)
                 rec = {"step": step, "epoch": step / steps_per_epoch, "train_loss": run_loss / max(run_n, 1),
                        "val_loss": val, "lr": opt.param_groups[0]["lr"], "samples_per_s": rate,

@@ -22,7 +22,7 @@ from pydantic import ValidationError
 
 from .errors import InputValidationError, SonarSetError
 from .schema import RecordingMeta, SensorGrid, pydantic_problems
-from .store import Run, SonarStore, _is_url, create_store, open_or_create_store
+from .store import Run, _is_url, create_store, open_or_create_store, open_store
 
 ARRAY_KEYS = ("images", "velocity", "time", "range", "azimuth", "pose", "snr_db", "slip")
 REQUIRED_KEYS = ("images", "velocity", "time")
@@ -70,7 +70,7 @@ def _read_arrays(src: Path) -> tuple[dict[str, Any], dict | None, list[str]]:
             problems.append("directory holds no .npy files")
         return arrays, embedded, problems
     if src.suffix != ".npz":
-        return arrays, embedded, [f"unsupported input (expected a .npz file or a directory of .npy files)"]
+        return arrays, embedded, ["unsupported input (expected a .npz file or a directory of .npy files)"]
     try:
         with np.load(src, allow_pickle=False) as npz:
             for key in npz.files:
@@ -354,6 +354,4 @@ def import_recording(
         os.replace(tmp / "store.zarr", dest)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    from .store import open_store
-
     return open_store(dest).run(run_name)

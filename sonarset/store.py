@@ -21,6 +21,7 @@ from zarr.codecs import BloscCodec
 
 from . import __version__
 from .errors import FormatError, GridMismatchError, InputValidationError, SonarSetError
+from .arrays import ARRAYS, OPTIONAL_ARRAYS, check_run_arrays, expected_shape
 from .schema import (
     FORMAT_VERSION, NAMESPACE, RUN_NAME_RE, SUPPORTED_MAJOR, RunAttrs, SensorGrid, StoreAttrs,
     parse_version, pydantic_problems,
@@ -30,36 +31,6 @@ from .schema import (
 # the spec (FORMAT.md §6) makes it optional and advisory, so the warning is noise to our users.
 warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part")
 
-
-@dataclass(frozen=True)
-class ArraySpec:
-    dims: tuple[str, ...]
-    dtypes: tuple[str, ...]
-    required: bool
-    last: int | None = None  # fixed size of the last axis, if any
-    units: str | None = None
-    description: str = ""
-
-
-#: Every array a run group may hold. Time-indexed arrays all have length n_frames.
-ARRAYS: dict[str, ArraySpec] = {
-    "images": ArraySpec(("time", "range", "azimuth"), ("float16", "float32"), True,
-                        units="1", description="energyscape, log energy in [0, 1]"),
-    "velocity": ArraySpec(("time", "velocity_component"), ("float32", "float64"), True, last=2,
-                          units="m/s, rad/s", description="command (v, omega) that moved the robot from frame k-1 to k"),
-    "time": ArraySpec(("time",), ("float64",), True, units="s", description="frame time stamps"),
-    "range": ArraySpec(("range",), ("float64", "float32"), True, units="m", description="range bin centres"),
-    "azimuth": ArraySpec(("azimuth",), ("float64", "float32"), True, units="rad",
-                         description="azimuth bin centres, positive to the left"),
-    "pose": ArraySpec(("time", "pose_component"), ("float64", "float32"), False, last=3,
-                      units="m, m, rad", description="ground-truth robot pose (x, y, heading) in the world frame"),
-    "snr_db": ArraySpec(("time",), ("float32", "float64"), False, units="dB",
-                        description="per-frame SNR at the microphones"),
-    "slip": ArraySpec(("time", "wheel"), ("float32", "float64"), False, last=2, units="1",
-                      description="wheel speed factors (left, right); 1 = no slip"),
-}
-TIME_ARRAYS = [k for k, s in ARRAYS.items() if s.dims[0] == "time"]
-OPTIONAL_ARRAYS = [k for k, s in ARRAYS.items() if not s.required]
 
 DEFAULT_CHUNK_FRAMES = 64  # 64 x 200 x 90 float16 = 2.3 MB: large enough to stream, small to cache
 
@@ -72,10 +43,6 @@ def _compressor(dtype: np.dtype) -> BloscCodec:
 
 def _is_url(location: str) -> bool:
     return "://" in location and not location.startswith("file://")
-
-
-def _display(location: Any) -> str:
-    return str(location)
 
 
 class SonarStore:
@@ -267,8 +234,6 @@ def open_store(
             consolidated = False
     try:
         group = _open_group(loc, mode, storage_options, consolidated)
-    except SonarSetError:
-        raise
     except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError) as exc:
         raise FormatError(f"{loc}: not a zarr store ({type(exc).__name__})") from None
     except (ValueError, TypeError) as exc:
@@ -330,73 +295,6 @@ def _url_exists(url: str, storage_options: dict | None) -> bool:
     return fs.exists(f"{path.rstrip('/')}/zarr.json")
 
 
-_ONE_BITS = {np.dtype(np.float16): (np.uint16, 0x3C00, 0x8000), np.dtype(np.float32): (np.uint32, 0x3F800000, 0x80000000)}
-
-
-def _in_unit_interval(images: np.ndarray) -> bool:
-    """All values finite and in [0, 1], in one integer pass over the bit patterns.
-
-    Non-negative IEEE floats order like their bit patterns; negatives set the sign bit and NaN/inf
-    lie above 1.0, so ``bits <= bits(1.0)`` (or -0.0) is exactly the test. Float16 min/max in
-    NumPy are several times slower than this.
-    """
-    spec = _ONE_BITS.get(images.dtype)
-    if spec is None:
-        return bool(np.all(np.isfinite(images)) and images.min() >= 0 and images.max() <= 1)
-    utype, one, negzero = spec
-    bits = np.ascontiguousarray(images).view(utype)
-    if bits.max() <= one:
-        return True
-    return not bool(np.any((bits > one) & (bits != negzero)))
-
-
-def check_run_arrays(grid: SensorGrid, arrays: Mapping[str, np.ndarray]) -> list[str]:
-    """Every problem with a run's arrays, one line each; empty when they can be written."""
-    problems: list[str] = []
-    for key in ("images", "velocity", "time"):
-        if key not in arrays:
-            problems.append(f"{key}: missing")
-    if problems:
-        return problems
-    images = arrays["images"]
-    T = images.shape[0] if images.ndim else -1
-    for key, arr in arrays.items():
-        spec = ARRAYS.get(key)
-        if spec is None or key in ("range", "azimuth"):
-            continue
-        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
-            problems.append(f"{key}: dtype {arr.dtype} is not numeric")
-            continue
-        if arr.ndim != len(spec.dims):
-            problems.append(f"{key}: expected {len(spec.dims)}-D {spec.dims}, got shape {arr.shape}")
-            continue
-        if spec.last is not None and arr.shape[-1] != spec.last:
-            problems.append(f"{key}: last axis must have {spec.last} values, got shape {arr.shape}")
-        if arr.shape[0] != T:
-            problems.append(f"{key}: {arr.shape[0]} frames but images has {T}")
-        if key == "images" and arr.ndim == 3 and arr.size and _in_unit_interval(arr):
-            continue  # finite and in range: the common case, checked in one fast pass
-        if arr.size and not np.all(np.isfinite(arr)):
-            problems.append(f"{key}: contains NaN or infinite values")
-    if images.ndim == 3:
-        if images.shape[1:] != grid.shape:
-            problems.append(f"images: frame shape {images.shape[1:]} does not match the grid {grid.shape}")
-        if T < 1:
-            problems.append("images: a run needs at least one frame")
-        if images.dtype not in (np.float16, np.float32, np.float64):
-            problems.append(f"images: dtype {images.dtype} must be float16 or float32")
-        elif images.size and not _in_unit_interval(images) and np.all(np.isfinite(images)):
-            lo, hi = float(images.min()), float(images.max())
-            if lo < 0.0 or hi > 1.0:
-                problems.append(f"images: values must lie in [0, 1] (energyscape), found {lo:g}..{hi:g}")
-    t = arrays["time"]
-    if t.ndim == 1 and t.size > 1 and np.all(np.isfinite(t)):
-        bad = np.flatnonzero(np.diff(t.astype(np.float64)) <= 0)
-        if bad.size:
-            problems.append(f"time: not strictly increasing (first at frame {int(bad[0]) + 1})")
-    return problems
-
-
 class RunWriter:
     """Writes one run group block by block; ``commit()`` makes it visible.
 
@@ -441,15 +339,11 @@ class RunWriter:
         T, (R, A) = self.n_frames, store.grid.shape
         cf = max(1, min(chunk_frames, T))
         self.arrays: dict[str, zarr.Array] = {}
-        shapes = {"images": (T, R, A), "velocity": (T, 2), "time": (T,), "pose": (T, 3),
-                  "snr_db": (T,), "slip": (T, 2)}
         for key in ("images", "velocity", "time", *optional):
             spec = ARRAYS[key]
-            dtype = image_dtype if key == "images" else spec.dtypes[-1] if key == "time" else spec.dtypes[0]
-            if key in ("pose",):
-                dtype = "float64"
-            shape = shapes[key]
-            chunks = (cf, R, A) if key == "images" else (T,) + shape[1:]
+            dtype = image_dtype if key == "images" else spec.write_dtype
+            shape = expected_shape(key, T, (R, A))
+            chunks = (cf, R, A) if key == "images" else shape
             self.arrays[key] = self.group.create_array(
                 key, shape=shape, chunks=chunks, dtype=dtype, dimension_names=spec.dims,
                 compressors=_compressor(np.dtype(dtype)), fill_value=np.nan,
@@ -458,7 +352,7 @@ class RunWriter:
         for key, values in (("range", store.grid.range_centres()), ("azimuth", store.grid.azimuth_centres())):
             spec = ARRAYS[key]
             arr = self.group.create_array(
-                key, shape=values.shape, chunks=values.shape, dtype="float64", dimension_names=spec.dims,
+                key, shape=values.shape, chunks=values.shape, dtype=spec.write_dtype, dimension_names=spec.dims,
                 compressors=None, fill_value=np.nan,
                 attributes={"units": spec.units, "description": spec.description},
             )

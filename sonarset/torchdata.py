@@ -30,7 +30,7 @@ class SonarWindowDataset(Dataset):
         which = np.atleast_1d(np.asarray(k, dtype=np.int64))
         if which.size and (which.min() < -len(self) or which.max() >= len(self)):
             raise IndexError(f"window index out of range for {len(self)} windows")
-        rows = self.index.starts[which][:, None] + np.arange(self.index.span)
+        rows = self.index.rows(which)
         # One gather and one dtype conversion for inputs and targets together; both are views.
         block = torch.from_numpy(self.bank.images[rows]).to(self.dtype)
         out = {

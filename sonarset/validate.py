@@ -20,7 +20,8 @@ from pydantic import ValidationError
 
 from .errors import SonarSetError
 from .schema import NAMESPACE, RUN_NAME_RE, SUPPORTED_MAJOR, RunAttrs, StoreAttrs, parse_version, pydantic_problems
-from .store import ARRAYS, _is_url, open_store
+from .arrays import ARRAYS, expected_shape
+from .store import _is_url, open_store
 
 
 @dataclass(frozen=True)
@@ -137,7 +138,7 @@ def _check_run(store, name: str, check_data: bool, progress: ProgressFn | None) 
         dims = tuple(arr.metadata.dimension_names or ())
         if dims != spec.dims:
             out.append(Problem(aw, f"dimension_names {list(dims) or None} must be {list(spec.dims)}"))
-        expected = _expected_shape(key, T, grid.shape)
+        expected = expected_shape(key, T, grid.shape)
         if arr.shape != expected:
             out.append(Problem(aw, f"shape {arr.shape} does not match {expected} "
                                    f"(n_frames={T}, grid {grid.shape[0]}x{grid.shape[1]})"))
@@ -161,12 +162,6 @@ def _check_run(store, name: str, check_data: bool, progress: ProgressFn | None) 
         for key, arr in arrays.items():
             out += _check_data(f"{where}/{key}", key, arr, progress)
     return out
-
-
-def _expected_shape(key: str, T: int, grid_shape: tuple[int, int]) -> tuple[int, ...]:
-    return {"images": (T, *grid_shape), "velocity": (T, 2), "time": (T,), "pose": (T, 3),
-            "snr_db": (T,), "slip": (T, 2), "range": (grid_shape[0],),
-            "azimuth": (grid_shape[1],)}[key]
 
 
 def _storage_chunk_keys(arr: zarr.Array) -> Iterable[tuple[tuple[int, ...], str]]:

@@ -129,6 +129,11 @@ class WindowIndex:
         pick = np.sort(np.random.default_rng(seed).choice(len(self), size=n, replace=False))
         return self.subset(pick)
 
+    def rows(self, which: np.ndarray | slice | None = None) -> np.ndarray:
+        """Global frame indices (B, n_in + H) of the windows ``index[which]``: inputs, then targets."""
+        starts = np.atleast_1d(self.starts if which is None else self.starts[which])
+        return starts[:, None] + np.arange(self.span)
+
     def locate(self, k: int) -> tuple[int, int]:
         """(run position in the bank, frame index within that run) of window ``k``."""
         g = int(self.starts[k])
@@ -177,14 +182,12 @@ class WindowBatch:
 def gather(bank: FrameBank, index: WindowIndex, which: np.ndarray | slice | None = None,
            image_dtype: str | np.dtype | None = None) -> WindowBatch:
     """The windows ``index[which]`` as one batch (a single vectorised gather per array)."""
-    starts = index.starts if which is None else index.starts[which]
-    starts = np.atleast_1d(starts)
-    rows = starts[:, None] + np.arange(index.span)
+    rows = index.rows(which)
     block = bank.images[rows]  # (B, n_in + H, R, A)
     if image_dtype is not None:
         block = block.astype(image_dtype, copy=False)
     commands = bank.velocity[rows]
-    return WindowBatch(block[:, :index.n_in], commands, block[:, index.n_in:], starts)
+    return WindowBatch(block[:, :index.n_in], commands, block[:, index.n_in:], rows[:, 0])
 
 
 def iter_batches(

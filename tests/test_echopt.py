@@ -72,8 +72,9 @@ def test_tiny_model_overfits_a_handful_of_windows(tiny_store):
 
 
 def _cfg(**kw):
-    return TrainConfig(preset="tiny", epochs=3, batch_size=16, lr=1e-3, n_val=20, eval_every=3, device="cpu",
-                       test_samples=0, command="test", **kw)
+    base = dict(preset="tiny", epochs=3, batch_size=16, lr=1e-3, n_val=20, eval_every=3, device="cpu",
+                test_samples=0, command="test")
+    return TrainConfig(**{**base, **kw})
 
 
 def test_resume_equals_uninterrupted(tiny_store, tmp_path):
@@ -92,9 +93,7 @@ def test_resume_equals_uninterrupted(tiny_store, tmp_path):
     with pytest.raises(SonarSetError, match="exists and is not empty"):
         train(tiny_store, tmp_path / "full", _cfg(max_steps=9))
     with pytest.raises(SonarSetError, match="--resume with lr"):
-        train(tiny_store, tmp_path / "full", _cfg(max_steps=9, lr=5e-4) if False else TrainConfig(
-            preset="tiny", epochs=3, batch_size=16, lr=5e-4, n_val=20, eval_every=3, device="cpu",
-            test_samples=0, max_steps=9), resume=True)
+        train(tiny_store, tmp_path / "full", _cfg(max_steps=9, lr=5e-4), resume=True)
 
 
 def test_checkpoint_is_safetensors_with_a_card(tmp_path):

@@ -139,12 +139,12 @@ def test_fsspec_memory_url_round_trip():
 
 @pytest.mark.parametrize("dtype", [np.float16, np.float32])
 def test_unit_interval_bit_test_is_exact(dtype):
-    from sonarset.store import _in_unit_interval
+    from sonarset.arrays import in_unit_interval
 
     a = np.random.default_rng(0).random(1000).astype(dtype)
     a[:3] = (0.0, -0.0, 1.0)
-    assert _in_unit_interval(a)
+    assert in_unit_interval(a)
     for bad in (np.nan, np.inf, -np.inf, -1e-3, 1.001, -1.0, np.finfo(dtype).tiny * -1):
         b = a.copy()
         b[500] = bad
-        assert not _in_unit_interval(b), bad
+        assert not in_unit_interval(b), bad

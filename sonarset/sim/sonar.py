@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import csv
 import functools
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from importlib import resources
 
 import numpy as np
@@ -249,7 +249,6 @@ class SonarModel:
     snr_db: float = 5.0
     dynamic_range_db: float = DYNAMIC_RANGE_DB
     psf: str = "array"  # azimuth PSF: "array" (the eRTIS delay-and-sum pattern) or "mainlobe"
-    _tables: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         if self.psf not in BEAMS:

@@ -1,0 +1,118 @@
+"""The arrays of a run group (spec/FORMAT.md §2) and the checks every writer applies to them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from .schema import SensorGrid
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    dims: tuple[str, ...]
+    dtypes: tuple[str, ...]
+    required: bool
+    write_dtype: str  # what the reference writer stores (images: float16 unless asked otherwise)
+    last: int | None = None  # fixed size of the last axis, if any
+    units: str | None = None
+    description: str = ""
+
+
+#: Every array a run group may hold. Time-indexed arrays all have length n_frames.
+ARRAYS: dict[str, ArraySpec] = {
+    "images": ArraySpec(("time", "range", "azimuth"), ("float16", "float32"), True, "float16",
+                        units="1", description="energyscape, log energy in [0, 1]"),
+    "velocity": ArraySpec(("time", "velocity_component"), ("float32", "float64"), True, "float32", last=2,
+                          units="m/s, rad/s", description="command (v, omega) that moved the robot from frame k-1 to k"),
+    "time": ArraySpec(("time",), ("float64",), True, "float64", units="s", description="frame time stamps"),
+    "range": ArraySpec(("range",), ("float64", "float32"), True, "float64", units="m", description="range bin centres"),
+    "azimuth": ArraySpec(("azimuth",), ("float64", "float32"), True, "float64", units="rad",
+                         description="azimuth bin centres, positive to the left"),
+    "pose": ArraySpec(("time", "pose_component"), ("float64", "float32"), False, "float64", last=3,
+                      units="m, m, rad", description="ground-truth robot pose (x, y, heading) in the world frame"),
+    "snr_db": ArraySpec(("time",), ("float32", "float64"), False, "float32", units="dB",
+                        description="per-frame SNR at the microphones"),
+    "slip": ArraySpec(("time", "wheel"), ("float32", "float64"), False, "float32", last=2, units="1",
+                      description="wheel speed factors (left, right); 1 = no slip"),
+}
+OPTIONAL_ARRAYS = [k for k, s in ARRAYS.items() if not s.required]
+
+
+def expected_shape(key: str, n_frames: int, grid_shape: tuple[int, int]) -> tuple[int, ...]:
+    """The shape array ``key`` must have in a run of ``n_frames`` frames on a grid (R, A)."""
+    spec = ARRAYS[key]
+    sizes = {"time": n_frames, "range": grid_shape[0], "azimuth": grid_shape[1]}
+    return tuple(sizes.get(d, spec.last) for d in spec.dims)
+
+
+_ONE_BITS = {np.dtype(np.float16): (np.uint16, 0x3C00, 0x8000), np.dtype(np.float32): (np.uint32, 0x3F800000, 0x80000000)}
+
+
+def in_unit_interval(images: np.ndarray) -> bool:
+    """All values finite and in [0, 1], in one integer pass over the bit patterns.
+
+    Non-negative IEEE floats order like their bit patterns; negatives set the sign bit and NaN/inf
+    lie above 1.0, so ``bits <= bits(1.0)`` (or -0.0) is exactly the test. Float16 min/max in
+    NumPy are several times slower than this.
+    """
+    spec = _ONE_BITS.get(images.dtype)
+    if spec is None:
+        return bool(np.all(np.isfinite(images)) and images.min() >= 0 and images.max() <= 1)
+    utype, one, negzero = spec
+    bits = np.ascontiguousarray(images).view(utype)
+    if bits.max() <= one:
+        return True
+    return not bool(np.any((bits > one) & (bits != negzero)))
+
+
+def check_run_arrays(grid: SensorGrid, arrays: Mapping[str, np.ndarray]) -> list[str]:
+    """Every problem with a run's arrays, one line each; empty when they can be written."""
+    problems: list[str] = []
+    for key in ("images", "velocity", "time"):
+        if key not in arrays:
+            problems.append(f"{key}: missing")
+    if problems:
+        return problems
+    images = arrays["images"]
+    T = images.shape[0] if images.ndim else -1
+    images_ok = False
+    for key, arr in arrays.items():
+        spec = ARRAYS.get(key)
+        if spec is None or key in ("range", "azimuth"):
+            continue
+        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+            problems.append(f"{key}: dtype {arr.dtype} is not numeric")
+            continue
+        if arr.ndim != len(spec.dims):
+            problems.append(f"{key}: expected {len(spec.dims)}-D {spec.dims}, got shape {arr.shape}")
+            continue
+        if spec.last is not None and arr.shape[-1] != spec.last:
+            problems.append(f"{key}: last axis must have {spec.last} values, got shape {arr.shape}")
+        if arr.shape[0] != T:
+            problems.append(f"{key}: {arr.shape[0]} frames but images has {T}")
+        if key == "images" and arr.ndim == 3 and arr.size:
+            images_ok = in_unit_interval(arr)  # finite and in [0, 1]: the common case, one fast pass
+            if images_ok:
+                continue
+        if arr.size and not np.all(np.isfinite(arr)):
+            problems.append(f"{key}: contains NaN or infinite values")
+    if images.ndim == 3:
+        if images.shape[1:] != grid.shape:
+            problems.append(f"images: frame shape {images.shape[1:]} does not match the grid {grid.shape}")
+        if T < 1:
+            problems.append("images: a run needs at least one frame")
+        if images.dtype not in (np.float16, np.float32, np.float64):
+            problems.append(f"images: dtype {images.dtype} must be float16 or float32")
+        elif images.size and not images_ok and np.all(np.isfinite(images)):
+            lo, hi = float(images.min()), float(images.max())
+            if lo < 0.0 or hi > 1.0:
+                problems.append(f"images: values must lie in [0, 1] (energyscape), found {lo:g}..{hi:g}")
+    t = arrays["time"]
+    if t.ndim == 1 and t.size > 1 and np.all(np.isfinite(t)):
+        bad = np.flatnonzero(np.diff(t.astype(np.float64)) <= 0)
+        if bad.size:
+            problems.append(f"time: not strictly increasing (first at frame {int(bad[0]) + 1})")
+    return problems
