@@ -168,7 +168,10 @@ class SonarStore:
     def consolidate(self) -> None:
         """Rewrite the root's consolidated metadata; call after runs were written elsewhere."""
         self._require_writable()
-        zarr.consolidate_metadata(self.group.store)
+        with warnings.catch_warnings():
+            # A worker's in-flight atomic write (a "*.partial" temp file) is not a zarr node.
+            warnings.filterwarnings("ignore", message=r".*\.partial is not recognized", category=UserWarning)
+            zarr.consolidate_metadata(self.group.store)
 
 
 def read_store_attrs(group: zarr.Group, location: str) -> StoreAttrs:
@@ -358,6 +361,10 @@ class RunWriter:
             )
             arr[:] = values
         self._written = np.zeros(T, dtype=bool)
+        # Per-frame vectors are one chunk each: written block by block, every block would rewrite
+        # (decompress and compress) the whole chunk. They are a few bytes a frame, so they are
+        # kept here and written once, at commit, before the completion flag.
+        self._small = {k: np.full(a.shape, np.nan, a.dtype) for k, a in self.arrays.items() if k != "images"}
 
     def write(self, start: int, _checked: bool = False, **blocks: np.ndarray | None) -> None:
         """Write frames ``start .. start+len-1`` of the given arrays (images, velocity, time...)."""
@@ -375,16 +382,21 @@ class RunWriter:
         if problems:
             raise InputValidationError(f"run {self.name!r} frames {start}..{start + n - 1}", problems)
         for key, values in blocks.items():
-            self.arrays[key][start:start + n] = values.astype(self.arrays[key].dtype, copy=False)
+            if key in self._small:
+                self._small[key][start:start + n] = values
+            else:
+                self.arrays[key][start:start + n] = values.astype(self.arrays[key].dtype, copy=False)
         self._written[start:start + n] = True
 
     def commit(self) -> "Run":
         if not self._written.all():
             missing = int(np.flatnonzero(~self._written)[0])
             raise SonarSetError(f"run {self.name!r}: frame {missing} was never written")
-        t = self.arrays["time"][:]
+        t = self._small["time"]
         if t.size > 1 and np.any(np.diff(t) <= 0):
             raise SonarSetError(f"run {self.name!r}: time is not strictly increasing across blocks")
+        for key, values in self._small.items():
+            self.arrays[key][:] = values
         attrs = self.attrs.model_copy(update={"complete": True})
         # The completion flag is the run's last write: everything before it is already durable.
         self.group.attrs.update({NAMESPACE: attrs.model_dump(mode="json")})

@@ -51,7 +51,7 @@ def test_same_seed_bit_identical_with_1_and_2_workers(tmp_path):
 
 @pytest.mark.slow
 def test_killed_generation_resumes_to_the_same_store(tmp_path):
-    args = ["--runs", "3", "--test-runs", "0", "--minutes", "1.0", "--seed", "3", "--workers", "1",
+    args = ["--runs", "3", "--test-runs", "0", "--minutes", "3.0", "--seed", "3", "--workers", "1",
             "--n-range", "40", "--n-azimuth", "30"]
     ref = tmp_path / "ref.zarr"
     subprocess.run([sys.executable, "-m", "sonarset.cli", "generate", str(ref), *args], check=True, capture_output=True)
@@ -59,10 +59,10 @@ def test_killed_generation_resumes_to_the_same_store(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "sonarset.cli", "generate", str(out), *args],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
-    # kill once the second run is under way: run_000 complete, run_001 half-written
-    while time.time() < deadline and not (out / "run_001" / "images").exists():
-        time.sleep(0.02)
-    time.sleep(0.3)
+    # kill once the second run is under way: run_000 complete, run_001 has its first image chunks
+    # (of 15) on disk and is not complete
+    while time.time() < deadline and not (out / "run_001" / "images" / "c").exists():
+        time.sleep(0.005)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     partial = open_store(out)

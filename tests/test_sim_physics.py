@@ -156,3 +156,21 @@ def test_noise_sets_the_floor_and_bursts_bury_the_scene():
     burst = model.render(w, np.zeros(3), rng, snr_db=-80.0)
     corr = np.corrcoef(burst.ravel(), model.render(w, np.zeros(3), None).ravel())[0, 1]
     assert abs(corr) < 0.2 and burst.mean() > 0.9
+
+
+def test_a_batch_renders_as_its_frames_one_by_one():
+    from sonarset.sim.world import lab_world
+
+    model, w = SonarModel(GRID.model_copy(update={"n_range": 60, "n_azimuth": 45})), lab_world(3)
+    poses = np.array([[2.0, 2.0, 0.3], [2.1, 2.05, 0.4], [6.0, 5.0, -2.0], [6.0, 5.0, 2.5]])
+    batch, snr = model.render_batch(w, poses, np.random.default_rng(5), snr_db=np.array([5.0, 5.0, -80.0, 5.0]))
+    rng = np.random.default_rng(5)
+    for k, (pose, s) in enumerate(zip(poses, [5.0, 5.0, -80.0, 5.0])):
+        img, eff = model.render(w, pose, rng, snr_db=s, return_snr=True)
+        np.testing.assert_allclose(batch[k], img, atol=1e-6)
+        assert eff == pytest.approx(snr[k])
+    # the echoes of a batch are those of each pose, tagged with the frame they belong to
+    ech = visible_echoes(w, sensor_pose(poses), 5.1)
+    for k, pose in enumerate(poses):
+        one = visible_echoes(w, sensor_pose(pose), 5.1)
+        np.testing.assert_array_equal(ech.r[ech.frame == k], one.r)

@@ -61,10 +61,16 @@ def plan_runs(runs: int = 10, test_runs: int = 1, minutes: float = 25.0, seed: i
 
 
 def simulate_blocks(plan: RunPlan, grid: SensorGrid, block: int = DEFAULT_CHUNK_FRAMES) -> Iterator[tuple[int, dict]]:
-    """(start, arrays) blocks of a run; velocity[k] is the command that moved the robot into frame k."""
+    """(start, arrays) blocks of a run, in order; velocity[k] is the command that moved the robot
+    into frame k.
+
+    The policy sees the world, not the images, so each block's trajectory is driven first and its
+    frames are rendered as one batch. Each block draws its sensor noise from its own seed (the
+    run's noise seed spawned by block index): any block can be re-rendered on its own.
+    """
     world = load_world(plan.world, plan.world_seed)
-    rng = np.random.default_rng(plan.seed)
-    motion_rng, noise_rng = rng.spawn(2)
+    motion_ss, noise_ss = np.random.SeedSequence(plan.seed).spawn(2)
+    motion_rng = np.random.default_rng(motion_ss)
     policy = ExplorationPolicy(world, motion_rng, dt=DT)
     model = SonarModel(grid, snr_db=plan.snr_db, psf=plan.psf)
     pose = world.sample_spawn(motion_rng)
@@ -79,18 +85,27 @@ def simulate_blocks(plan: RunPlan, grid: SensorGrid, block: int = DEFAULT_CHUNK_
             pose = integrate(pose, *apply_slip(v, w, (1.0, 1.0)), DT)
             out["velocity"][j] = (v, w)
             out["pose"][j] = pose
-            out["images"][j], out["snr_db"][j] = model.render(world, pose, noise_rng, return_snr=True)
+        noise_rng = np.random.default_rng(
+            np.random.SeedSequence(noise_ss.entropy, spawn_key=(*noise_ss.spawn_key, start // block)))
+        out["images"][:], out["snr_db"][:] = model.render_batch(world, out["pose"], noise_rng)
         yield start, out
 
 
 def _write_run(location: str, plan: RunPlan, grid: SensorGrid, queue=None) -> str:
     store = open_store(location, "r+")
     with store.run_writer(plan.name, plan.n_frames, split=plan.split, source=plan.source(),
-                          optional=("pose", "snr_db", "slip"), consolidate=False) as w:
+                          optional=("pose", "snr_db", "slip"), consolidate=False) as w, \
+            cf.ThreadPoolExecutor(1) as writer:
+        # Block k is compressed and written (GIL released) while block k+1 is simulated.
+        pending = None
         for start, arrays in simulate_blocks(plan, grid):
-            w.write(start, **arrays)
+            if pending is not None:
+                pending.result()
+            pending = writer.submit(w.write, start, **arrays)
             if queue is not None:
                 queue.put((plan.name, len(arrays["time"])))
+        if pending is not None:
+            pending.result()
         w.commit()
     return plan.name
 

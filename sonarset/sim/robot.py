@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .kernels import arc_clearance
 from .world import World
 
 V_MAX = 0.3  # m/s (paper: linear speeds between -0.3 and 0.3 m/s)
@@ -36,8 +37,10 @@ def apply_slip(v: float, w: float, slip: tuple[float, float]) -> tuple[float, fl
 
 
 def sensor_pose(pose: np.ndarray) -> np.ndarray:
-    x, y, th = pose
-    return np.array([x + SENSOR_OFFSET * np.cos(th), y + SENSOR_OFFSET * np.sin(th), th])
+    """The sonar's pose (x, y, heading) for a robot pose (3,) or a batch of them (F, 3)."""
+    pose = np.asarray(pose, float)
+    th = pose[..., 2]
+    return np.stack([pose[..., 0] + SENSOR_OFFSET * np.cos(th), pose[..., 1] + SENSOR_OFFSET * np.sin(th), th], axis=-1)
 
 
 @dataclass
@@ -72,13 +75,11 @@ class ExplorationPolicy:
         return float(np.clip(x, -lim, lim))
 
     def safe(self, pose: np.ndarray, v: float, w: float) -> bool:
+        w_ = self.world
         steps = int(round(self.lookahead / self.dt))
-        pts = []
-        p = pose
-        for _ in range(steps):
-            p = integrate(p, v, w, self.dt)
-            pts.append(p[:2])
-        return bool(self.world.clearance(np.array(pts)).min() > ROBOT_RADIUS + self.margin)
+        clear = arc_clearance(float(pose[0]), float(pose[1]), float(pose[2]), float(v), float(w), self.dt, steps,
+                              w_.seg_a.reshape(-1, 2), w_.seg_b.reshape(-1, 2), w_.circ_c.reshape(-1, 2), w_.circ_r)
+        return bool(clear > ROBOT_RADIUS + self.margin)
 
     def __call__(self, pose: np.ndarray) -> tuple[float, float]:
         self.v, self.w = self._ou(self.v, V_MAX), self._ou(self.w, W_MAX)

@@ -32,9 +32,10 @@ from importlib import resources
 
 import numpy as np
 from scipy import fft as sfft
-from scipy import signal, sparse, special
+from scipy import signal, special
 
 from ..schema import SensorGrid
+from .kernels import accumulate_psf, reflector_echoes
 from .robot import sensor_pose
 from .world import World
 
@@ -129,116 +130,35 @@ def absorption(r: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Echoes:
-    """Visible reflectors in the sensor frame: range [m], azimuth [rad], amplitude at a microphone."""
+    """Visible reflectors in the sensor frame: range [m], azimuth [rad], amplitude at a microphone,
+    and, for a batch of sensor poses, the index of the frame each echo belongs to."""
 
     r: np.ndarray
     theta: np.ndarray
     amp: np.ndarray
+    frame: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.frame is None:
+            self.frame = np.zeros(len(self.r), np.int64)
 
     def __len__(self) -> int:
         return len(self.r)
 
 
-def _ray_blocked(s: np.ndarray, p: np.ndarray, world: World, skip_seg: np.ndarray | None,
-                 skip_circ: np.ndarray | None) -> np.ndarray:
-    """For rays sensor s -> points p (N, 2): is something closer than p in the way?
-
-    Only walls and circles that come closer to the sensor than the farthest point can block; the
-    others are left out of the (N x S) intersection test, which changes no result.
-    """
-    n = len(p)
-    blocked = np.zeros(n, bool)
-    if n == 0:
-        return blocked
-    d = p - s  # (N, 2)
-    reach = float(np.sqrt((d ** 2).sum(1).max()))
-    if len(world.seg_a):
-        ab = world.seg_b - world.seg_a
-        t0 = np.clip(((s - world.seg_a) * ab).sum(1) / np.maximum((ab ** 2).sum(1), 1e-12), 0, 1)
-        near = np.flatnonzero(np.linalg.norm(world.seg_a + t0[:, None] * ab - s, axis=1) <= reach)
-    else:
-        near = np.zeros(0, np.int64)
-    if len(near):
-        e = world.seg_b[near] - world.seg_a[near]  # (S', 2)
-        w = world.seg_a[near] - s  # (S', 2)
-        den = d[:, None, 0] * e[None, :, 1] - d[:, None, 1] * e[None, :, 0]  # (N, S)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (w[None, :, 0] * e[None, :, 1] - w[None, :, 1] * e[None, :, 0]) / den  # along the ray
-            u = (w[None, :, 0] * d[:, None, 1] - w[None, :, 1] * d[:, None, 0]) / den  # along the wall
-        hit = (np.abs(den) > 1e-12) & (t > 1e-6) & (t < 1 - 1e-4) & (u >= 0) & (u <= 1)
-        if skip_seg is not None:
-            hit &= skip_seg[:, None] != near[None, :]  # a wall sample is not blocked by its own wall
-        blocked |= hit.any(1)
-    cnear = np.flatnonzero(np.linalg.norm(world.circ_c - s, axis=1) - world.circ_r <= reach) if len(world.circ_c) else []
-    if len(cnear):
-        L = np.linalg.norm(d, axis=1)  # (N,)
-        dirn = d / np.maximum(L, 1e-12)[:, None]
-        oc = world.circ_c[cnear] - s  # (C', 2)
-        r = world.circ_r[cnear]
-        proj = dirn @ oc.T  # (N, C')
-        perp2 = (oc ** 2).sum(1)[None] - proj ** 2
-        half = np.sqrt(np.maximum(r[None] ** 2 - perp2, 0))
-        entry = proj - half
-        hit = (perp2 < r[None] ** 2) & (entry > 1e-6) & (entry < L[:, None] - 1e-4)
-        if skip_circ is not None:
-            hit &= skip_circ[:, None] != cnear[None, :]  # nor a pole by itself
-        blocked |= hit.any(1)
-    return blocked
-
-
 def visible_echoes(world: World, sensor: np.ndarray, r_max: float, wall_step: float = WALL_STEP) -> Echoes:
-    """Every reflector the sensor at pose (x, y, heading) hears, occlusion respected."""
-    s, heading = sensor[:2], sensor[2]
-    pts, amps, segs, circs = [], [], [], []
-    # Walls: dense samples within r_max, each an element of length wall_step (all walls at once).
-    if len(world.seg_a):
-        a, b = world.seg_a, world.seg_b
-        e = b - a
-        L = np.linalg.norm(e, axis=1)
-        unit = e / L[:, None]
-        rel = s - a
-        foot = (rel * unit).sum(1)
-        dperp = np.abs(rel[:, 0] * unit[:, 1] - rel[:, 1] * unit[:, 0])
-        near = dperp < r_max
-        h = np.sqrt(np.maximum(r_max ** 2 - dperp ** 2, 0))
-        lo = np.where(near, np.maximum(0.0, foot - h), 0.0)
-        hi = np.where(near, np.minimum(L, foot + h), 0.0)
-        count = np.maximum(np.floor((hi - lo) / wall_step + 0.5).astype(np.int64), 0) * near
-        if count.sum():
-            seg_id = np.repeat(np.arange(len(L)), count)
-            k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-            ts = lo[seg_id] + (k + 0.5) * wall_step
-            q = a[seg_id] + ts[:, None] * unit[seg_id]
-            normal = np.stack([-unit[seg_id, 1], unit[seg_id, 0]], axis=1)
-            to_s = s - q
-            dist = np.linalg.norm(to_s, axis=1)
-            cos_inc = np.abs((to_s * normal).sum(1)) / np.maximum(dist, 1e-9)
-            amp = world.seg_refl[seg_id] * cos_inc ** SPECULAR_N / (2 * np.maximum(dist, 1e-3)) * np.sqrt(wall_step / WALL_STEP)
-            pts.append(q), amps.append(amp), segs.append(seg_id), circs.append(np.full(len(q), -1))
-    # Circles: the specular point faces the sensor.
-    if len(world.circ_c):
-        oc = world.circ_c - s
-        dc = np.linalg.norm(oc, axis=1)
-        ok = (dc - world.circ_r < r_max) & (dc > world.circ_r)
-        if ok.any():
-            q = world.circ_c[ok] - world.circ_r[ok, None] * oc[ok] / dc[ok, None]
-            r = dc[ok] - world.circ_r[ok]
-            amp = world.circ_refl[ok] * np.sqrt(world.circ_r[ok]) / (2 * np.maximum(r, 1e-3) ** 1.5)
-            pts.append(q), amps.append(amp), segs.append(np.full(len(q), -1)), circs.append(np.flatnonzero(ok))
-    if not pts:
-        return Echoes(np.zeros(0), np.zeros(0), np.zeros(0))
-    q, amp = np.concatenate(pts), np.concatenate(amps)
-    seg, circ = np.concatenate(segs), np.concatenate(circs)
-    rel = q - s
-    r = np.linalg.norm(rel, axis=1)
-    theta = np.arctan2(rel[:, 1], rel[:, 0]) - heading
-    theta = (theta + np.pi) % (2 * np.pi) - np.pi
-    front = (np.abs(theta) < np.pi / 2) & (r < r_max) & (r > 1e-3) & (amp > 0)
-    q, amp, r, theta, seg, circ = q[front], amp[front], r[front], theta[front], seg[front], circ[front]
-    vis = ~_ray_blocked(s, q, world, seg, circ)
-    r, theta, amp = r[vis], theta[vis], amp[vis]
-    amp = amp * emitter_directivity(theta) * absorption(r)
-    return Echoes(r, theta, amp)
+    """Every reflector the sensor at pose (x, y, heading) hears, occlusion respected.
+
+    ``sensor`` may also be a batch of poses (F, 3); the echoes then carry their frame index. One
+    vectorised pass over a batch costs far less than a pass per frame.
+    """
+    sensors = np.atleast_2d(np.asarray(sensor, float))
+    rows = reflector_echoes(sensors, world.seg_a.reshape(-1, 2), world.seg_b.reshape(-1, 2), world.seg_refl,
+                            world.circ_c.reshape(-1, 2), world.circ_r, world.circ_refl, float(r_max),
+                            float(wall_step), SPECULAR_N, float(np.sqrt(wall_step / WALL_STEP)))
+    r, theta = rows[:, 1], rows[:, 2]
+    amp = rows[:, 3] * emitter_directivity(theta) * absorption(r)
+    return Echoes(r, theta, amp, rows[:, 0].astype(np.int64))
 
 
 @dataclass
@@ -282,51 +202,66 @@ class SonarModel:
         ech = visible_echoes(world, np.zeros(3), r0 + 1.0)
         return float(self.energy(ech).max())
 
-    def energy(self, echoes: Echoes) -> np.ndarray:
-        """Noise-free echo energy on the grid, (n_range, n_azimuth)."""
+    def energy(self, echoes: Echoes, n_frames: int | None = None) -> np.ndarray:
+        """Noise-free echo energy on the grid: (n_range, n_azimuth), or (n_frames, n_range, n_azimuth)
+        for echoes of a batch of frames."""
         R, A = self.grid.shape
+        F = 1 if n_frames is None else n_frames
         if not len(echoes):
-            return np.zeros((R, A))
-        # The range PSF spans a few bins: evaluate it only there (a sparse R x N matrix).
-        i0 = np.floor((echoes.r - self.r_c[0]) / self.grid.range_step).astype(np.int64)
-        bins = i0[:, None] + self._offsets[None, :]  # (N, K)
-        ir = np.rint((self.r_c[np.clip(bins, 0, R - 1)] - echoes.r[:, None] - self._r0) / self._r_step).astype(np.int64)
-        ok = (bins >= 0) & (bins < R) & (ir >= 0) & (ir < len(self._renv2))
-        w = self._renv2[np.where(ok, ir, 0)] * ok
-        cols = np.broadcast_to(np.arange(len(echoes))[:, None], bins.shape)
-        Hs = sparse.csr_matrix((w[ok], (bins[ok], cols[ok])), shape=(R, len(echoes)))
-        iu = np.rint((self.u_c[None, :] - np.sin(echoes.theta)[:, None] + 2.0) / self._u_step).astype(np.int64)
-        return np.asarray(Hs @ (self._beam2[iu] * (echoes.amp ** 2)[:, None]))
+            e = np.zeros((F, R, A))
+        else:
+            e = np.zeros((F, R, A))
+            accumulate_psf(e, echoes.frame, echoes.r, np.sin(echoes.theta), echoes.amp ** 2, self.r_c,
+                           self.grid.range_step, self._offsets, self._renv2, self._r0, self._r_step,
+                           self.u_c, self._beam2, self._u_step)
+        return e[0] if n_frames is None else e
 
-    def noise_sigma(self, energy: np.ndarray, snr_db: float) -> float:
-        """Image-domain noise std for a frame: SNR below its strongest echo, never under the floor.
+    def noise_sigma(self, energy: np.ndarray, snr_db) -> np.ndarray:
+        """Image-domain noise std per frame: SNR below its strongest echo, never under the floor.
 
         The PSFs peak at 1, so the image peak is the strongest echo's amplitude at a microphone
         (for a wall, the whole specular return); matched filter and beamformer then lower the
-        noise by the processing gain.
+        noise by the processing gain. ``energy`` is one frame (R, A) or a batch (F, R, A).
         """
-        peak = float(np.sqrt(energy.max())) if energy.size else 0.0
-        sigma = peak * 10 ** (-(snr_db + PROCESSING_GAIN_DB) / 20)
-        return max(sigma, float(np.sqrt(self.e_full)) * 10 ** (NOISE_FLOOR_DB / 20))
+        peak = np.sqrt(energy.reshape(-1, energy.shape[-2] * energy.shape[-1]).max(1))
+        sigma = peak * 10 ** (-(np.asarray(snr_db, float) + PROCESSING_GAIN_DB) / 20)
+        sigma = np.maximum(sigma, np.sqrt(self.e_full) * 10 ** (NOISE_FLOOR_DB / 20))
+        return sigma if energy.ndim == 3 else float(sigma[0])
 
-    def effective_snr_db(self, energy: np.ndarray, sigma: float) -> float:
+    def effective_snr_db(self, energy: np.ndarray, sigma) -> np.ndarray:
         """The SNR at the microphones that a frame really has (below the nominal one near the floor)."""
-        peak = float(np.sqrt(energy.max())) if energy.size else 0.0
-        return 20 * np.log10(max(peak, 1e-30) / sigma) - PROCESSING_GAIN_DB
+        peak = np.sqrt(energy.reshape(-1, energy.shape[-2] * energy.shape[-1]).max(1))
+        snr = 20 * np.log10(np.maximum(peak, 1e-30) / sigma) - PROCESSING_GAIN_DB
+        return snr if energy.ndim == 3 else float(snr[0])
 
-    def noise_energy(self, sigma: float, rng: np.random.Generator) -> np.ndarray:
-        """Noise energy per pixel: complex Gaussian noise of std ``sigma``, shaped like the PSF."""
-        shape = self.grid.shape
-        parts = rng.standard_normal((2, *shape), dtype=np.float32)
-        # Matched filter and beamformer correlate the noise over one PSF: shape it in one FFT pass
-        # (single precision: a noise field needs no more).
-        n = sfft.ifft2(sfft.fft2(parts[0] + 1j * parts[1]) * self._noise_tf)
+    def noise_energy(self, sigma, rng: np.random.Generator) -> np.ndarray:
+        """Noise energy per pixel: complex Gaussian noise of std ``sigma``, shaped like the PSF.
+
+        ``sigma`` a number gives one frame (R, A); an array of F gives a batch (F, R, A), drawing
+        the same random numbers as F single frames in turn.
+        """
+        sig = np.atleast_1d(np.asarray(sigma, np.float32))
+        parts = rng.standard_normal((len(sig), 2, *self.grid.shape), dtype=np.float32)
+        # Matched filter and beamformer correlate the noise over one PSF. The spectrum of white
+        # complex Gaussian noise is itself white complex Gaussian noise, so the draw is taken as the
+        # spectrum and shaped in one inverse FFT (single precision: a noise field needs no more).
+        spec = parts[:, 0] + 1j * parts[:, 1]
+        spec *= self._noise_tf
+        n = sfft.ifft2(spec, axes=(-2, -1), overwrite_x=True)
         e = n.real ** 2 + n.imag ** 2
-        return e * (sigma ** 2 / e.mean())
+        e *= (sig ** 2 / e.mean(axis=(1, 2)))[:, None, None]
+        return e if np.ndim(sigma) else e[0]
 
-    def encode(self, energy: np.ndarray) -> np.ndarray:
-        db = 10 * np.log10(np.maximum(energy, 1e-30) / self.e_full)
-        return np.clip((db + self.dynamic_range_db) / self.dynamic_range_db, 0, 1).astype(np.float32)
+    def encode(self, energy: np.ndarray, noise: np.ndarray | None = None) -> np.ndarray:
+        """Pixels (10 log10(E / E_full) + DR) / DR clipped to [0, 1], float32, of energy (plus noise)."""
+        e = np.add(energy, 0 if noise is None else noise, dtype=np.float32)
+        np.maximum(e, np.float32(1e-30), out=e)
+        db = np.log10(e, out=e)
+        # folded into one multiply-add: gain * log10(E) + 1 - gain * log10(E_full)
+        gain = 10 / self.dynamic_range_db
+        db *= np.float32(gain)
+        db += np.float32(1 - gain * np.log10(self.e_full))
+        return np.clip(db, 0, 1, out=db)
 
     def render(self, world: World, robot_pose: np.ndarray, rng: np.random.Generator | None,
                snr_db: float | None = None, return_snr: bool = False):
@@ -334,12 +269,23 @@ class SonarModel:
 
         With ``return_snr`` also returns the frame's effective SNR at the microphones (dB).
         """
-        ech = visible_echoes(world, sensor_pose(robot_pose), self.grid.range_max_m + 0.1)
-        e = self.energy(ech)
-        eff = float("inf")
+        img, eff = self.render_batch(world, np.asarray(robot_pose, float)[None], rng,
+                                     None if snr_db is None else np.array([snr_db]))
+        return (img[0], float(eff[0])) if return_snr else img[0]
+
+    def render_batch(self, world: World, robot_poses: np.ndarray, rng: np.random.Generator | None,
+                     snr_db: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Energyscapes (F, R, A) float32 and effective SNRs (F,) seen from robot poses (F, 3).
+
+        ``snr_db`` (F,) overrides the model's SNR per frame (noise bursts). Rendering F frames in one
+        call gives the same images as F calls of ``render`` with the same generator.
+        """
+        poses = np.asarray(robot_poses, float)
+        ech = visible_echoes(world, sensor_pose(poses), self.grid.range_max_m + 0.1)
+        e = self.energy(ech, len(poses))
+        eff, noise = np.full(len(poses), np.inf), None
         if rng is not None:
             sigma = self.noise_sigma(e, self.snr_db if snr_db is None else snr_db)
             eff = self.effective_snr_db(e, sigma)
-            e = e + self.noise_energy(sigma, rng)
-        img = self.encode(e)
-        return (img, eff) if return_snr else img
+            noise = self.noise_energy(sigma, rng)
+        return self.encode(e, noise), eff
