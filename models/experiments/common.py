@@ -1,0 +1,117 @@
+"""What both experiments share: predictors built once per worker process, a deterministic parallel
+map over seeded tasks, and bootstrap confidence intervals."""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import multiprocessing as mp
+import os
+import warnings
+from typing import Callable, Sequence
+
+import numpy as np
+from scipy import stats
+
+from sonarset.schema import SensorGrid
+from sonarset.sim.generate import DT
+from sonarset.sim.robot import SENSOR_OFFSET
+
+_PREDICTORS: dict = {}
+
+
+def predictor(spec: str, grid: SensorGrid, device: str = "cpu"):
+    """The predictor for a model spec (``naive``, ``flow``, ``echopt:PATH``), built once per process."""
+    key = (spec, grid.model_dump_json(), device)
+    if key not in _PREDICTORS:
+        from ..registry import make_predictor
+
+        _PREDICTORS[key] = make_predictor(spec, grid, dt=DT, sensor_offset=SENSOR_OFFSET, device=device)
+    return _PREDICTORS[key]
+
+
+def _init_worker() -> None:
+    # Each process gets one core: the pool already fills the machine.
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:
+        pass
+
+
+def parallel_map(fn: Callable, tasks: Sequence, workers: int | None = None,
+                 progress: Callable[[int, int], None] | None = None) -> list:
+    """[fn(t) for t in tasks] in worker processes, results in task order whatever the scheduling.
+
+    Every task carries its own seed, so the results do not depend on ``workers``. ``fn`` must be a
+    module-level function (the pool spawns fresh interpreters).
+    """
+    workers = max(1, min(workers or os.cpu_count() or 1, len(tasks)))
+    results: list = [None] * len(tasks)
+    if workers == 1:
+        for i, t in enumerate(tasks):
+            results[i] = fn(t)
+            if progress:
+                progress(i + 1, len(tasks))
+        return results
+    saved = {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+    os.environ.update({k: "1" for k, v in saved.items() if v is None})
+    try:
+        with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker) as pool:
+            futures = {pool.submit(fn, t): i for i, t in enumerate(tasks)}
+            for n, f in enumerate(cf.as_completed(futures), 1):
+                results[futures[f]] = f.result()
+                if progress:
+                    progress(n, len(tasks))
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+    return results
+
+
+def mean_ci(x: np.ndarray, seed: int = 0) -> tuple[float, float, float]:
+    """Mean and its bootstrap 95% CI (BCa, percentile when BCa degenerates); NaNs dropped."""
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    if len(x) == 0:
+        return float("nan"), float("nan"), float("nan")
+    if len(x) < 3 or np.ptp(x) == 0:
+        return float(x.mean()), float("nan"), float("nan")
+    for method in ("BCa", "percentile"):
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ci = stats.bootstrap((x,), np.mean, n_resamples=2000, method=method,
+                                 random_state=np.random.default_rng(seed)).confidence_interval
+        if np.isfinite(ci.low) and np.isfinite(ci.high):
+            return float(x.mean()), float(ci.low), float(ci.high)
+    return float(x.mean()), float("nan"), float("nan")
+
+
+def task_seeds(seed: int, n: int) -> list[int]:
+    """Independent per-task seeds spawned from one master seed."""
+    return [int(s.generate_state(1, np.uint64)[0] >> np.uint64(1)) for s in np.random.SeedSequence(seed).spawn(n)]
+
+
+def finite_or_none(x):
+    """JSON-safe floats: NaN and infinities become null."""
+    if isinstance(x, dict):
+        return {k: finite_or_none(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [finite_or_none(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def save_figure(fig, path) -> None:
+    """Save a matplotlib figure atomically (a reader never sees half a PNG) and close it."""
+    import matplotlib.pyplot as plt
+
+    path = os.fspath(path)
+    tmp = os.path.join(os.path.dirname(path), f".{os.path.basename(path)}.tmp.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    os.replace(tmp, path)

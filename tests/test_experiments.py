@@ -1,0 +1,158 @@
+"""The paper's robot experiments, on short versions: slip detection and corridor control."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from sonarset.cli.app import app
+from sonarset.control import BurstDetector, SubsumptionController
+from sonarset.models.checkpoint import save_checkpoint
+from sonarset.models.echopt import EchoPT, make_config
+from sonarset.models.experiments.common import predictor
+from sonarset.models.experiments.control import BurstSchedule, Episode, run_control_experiment, run_episode
+from sonarset.models.experiments.slip import (
+    SlipPeriod, SlipTrial, frame_labels, run_slip_experiment, slip_signal, write_slip_report,
+)
+from sonarset.schema import SensorGrid
+from sonarset.sim.robot import apply_slip, integrate
+from sonarset.sim.sonar import SonarModel
+from sonarset.sim.world import CircleSpec, SpawnBox, WallSpec, World, WorldSpec, corridor_world, lab_world
+
+GRID = SensorGrid.default()
+SMALL = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=50, azimuth_min_rad=-math.pi / 2,
+                   azimuth_max_rad=math.pi / 2, n_azimuth=30)
+
+
+def test_slip_raises_the_flow_detector_signal():
+    """A robot commanded straight towards a hall's end wall whose wheels stall for 3 s: flow's forecast keeps
+    moving the scene, the measurement does not. The forecast then loses to "nothing moved"
+    (persistence), and the detector signal eps(flow) / eps(persistence) rises during the stall.
+
+    The paper's eps alone does not rise here (it falls slightly; report and docs say why), so the
+    test holds it only to staying finite and positive."""
+    spec = WorldSpec(name="hall", walls=[WallSpec(start=(-1, -1.2), end=(8, -1.2)), WallSpec(start=(-1, 1.4), end=(8, 1.4)),
+                                         WallSpec(start=(6.5, -1.2), end=(6.5, 1.4))],
+                     circles=[CircleSpec(centre=(float(x), y), radius=0.1) for x in (2.0, 3.5, 5.0) for y in (-0.6, 0.7)],
+                     spawn=[SpawnBox(x=(0, 1), y=(-0.1, 0.1), heading=(0, 0))])
+    world = World.from_spec(spec)
+    T, stall = 70, slice(30, 45)
+    commands = np.tile(np.float32([0.3, 0.0]), (T, 1))
+    slip = np.ones((T, 2))
+    slip[stall] = 0.0
+    pose, poses = np.array([0.0, 0.0, 0.0]), np.zeros((T, 3))
+    for k in range(T):
+        pose = integrate(pose, *apply_slip(*commands[k], tuple(slip[k])), 0.2)
+        poses[k] = pose
+    assert np.ptp(poses[stall, 0]) < 1e-9  # the robot did not move, the commands say it did
+    images, _ = SonarModel(GRID).render_batch(world, poses, np.random.default_rng(0))
+    for h in (1, 3):
+        eps = slip_signal(predictor("flow", GRID), images, commands, h)
+        base = slip_signal(predictor("persistence", GRID), images, commands, h)
+        lab = frame_labels(slip, h)
+        assert lab["both"].sum() == 15 + h - 1 and not (lab["both"] & lab["clean"]).any()
+        assert np.isnan(eps[:2 + h]).all() and (eps[2 + h:] > 0).all()
+        ratio = eps / base
+        assert np.nanmean(ratio[lab["both"]]) > 1.4 * np.nanmean(ratio[lab["clean"]])
+        assert np.nanmedian(ratio[lab["both"]]) > np.nanmax(ratio[lab["clean"]])
+
+
+def test_slip_labels_follow_the_horizon():
+    slip = np.ones((20, 2))
+    slip[8:10] = (0.2, 1.0)
+    lab = frame_labels(slip, 3)
+    assert np.flatnonzero(lab["one"]).tolist() == [8, 9, 10, 11]  # moves t-2..t touch frames 8-9
+    assert not lab["clean"][8:14].any() and lab["clean"][[5, 7, 14]].all() and not lab["clean"][:5].any()
+    assert SlipPeriod(1, 2, (0.2, 0.3)).kind == "both" and SlipPeriod(1, 2, (1.0, 0.3)).kind == "one"
+
+
+def test_slip_experiment_end_to_end_with_a_tiny_echopt(tmp_path):
+    ckpt = save_checkpoint(tmp_path / "tiny", EchoPT(make_config("tiny", *SMALL.shape)),
+                           {"grid": SMALL.model_dump(), "preset": "tiny"})
+    models = ["flow", f"echopt:{ckpt}"]
+    res = run_slip_experiment(models, trials=2, seed=3, grid=SMALL, workers=1)
+    again = run_slip_experiment(models, trials=2, seed=3, grid=SMALL, workers=2)
+    np.testing.assert_equal(res.per_trial, again.per_trial)  # deterministic whatever the worker count
+    assert res.names == ["flow", "echopt"] and len(res.per_trial) == 2
+    assert all(0 <= v <= 1 for t in res.per_trial for v in t.values() if np.isfinite(v))
+    assert {c["b"] for c in res.comparisons} == {"flow"}
+    write_slip_report(res, tmp_path / "out")
+    doc = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert {(a["predictor"], a["detector"]) for a in doc["auc"]} >= {("echopt", "eps"), ("flow", "ratio")}
+    assert (tmp_path / "out" / "fig5_slip.png").stat().st_size > 10_000
+    assert "| echopt | AR-5 |" in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_burst_detector_finds_injected_bursts_and_leaves_clean_frames():
+    model, world = SonarModel(GRID), lab_world(11)
+    rng = np.random.default_rng(1)
+    poses = np.array([world.sample_spawn(rng) for _ in range(40)])
+    clean, _ = model.render_batch(world, poses, rng)
+    burst, _ = model.render_batch(world, poses, rng, snr_db=np.full(len(poses), -80.0))
+    detect = BurstDetector()
+    assert not any(detect(f) for f in clean)
+    assert all(detect(f) for f in burst)
+    on = BurstSchedule().frames(np.random.default_rng(0), 5000)
+    assert 0.25 < on.mean() < 0.35  # about 30% of the time, in bursts of 1.2 s
+    starts = np.flatnonzero(np.diff(on.astype(int)) == 1) + 1
+    assert all(on[s:s + 6].all() for s in starts[:-1])
+
+
+def test_controller_reaches_the_waypoint_in_the_clean_corridor():
+    r = run_episode(Episode(0, 123, "clean", GRID))
+    assert r["outcome"] == "success" and r["travel_time_s"] < 60
+    assert r["midline_deviation_m"] < 0.1 and r["layers"]["corridor"] > 0
+    world = corridor_world()
+    assert np.hypot(*(r["pose"][-1, :2] - world.waypoint)) < 0.4
+
+
+def test_controller_steers_away_from_the_nearer_row_and_stops_before_a_pole():
+    world, model = corridor_world(), SonarModel(GRID)
+    ctrl = SubsumptionController(GRID, world.waypoint)
+    left = ctrl(model.render(world, np.array([3.0, 0.35, 0.0]), None), np.array([3.0, 0.35, 0.0]))
+    assert left.layer == "corridor" and left.w < -0.1  # closer to the left row: turn right
+    blocked = World.from_spec(WorldSpec(name="pole", circles=[CircleSpec(centre=(0.85, 0.0), radius=0.1)],
+                                        spawn=[SpawnBox(x=(0, 0), y=(0, 0), heading=(0, 0))]))
+    stop = ctrl(model.render(blocked, np.zeros(3), None), np.zeros(3))
+    assert stop.layer == "avoid" and stop.v == 0 and abs(stop.w) > 0
+
+
+def test_bursts_stall_the_controller_and_a_predictor_bridges_them():
+    seed = 7
+    bursty = run_episode(Episode(0, seed, "bursts", GRID, max_time_s=40))
+    bridged = run_episode(Episode(0, seed, "bursts+flow", GRID, max_time_s=40))
+    assert bursty["burst"].any() and bursty["flagged"].sum() >= 0.9 * bursty["burst"].sum()
+    assert bursty["layers"]["avoid"] > 0  # a burst fills the frontal region: the robot stops and turns
+    assert not bursty["predicted"].any()
+    # the same spawn and burst schedule: forecasts replace the flagged frames
+    n = min(len(bridged["burst"]), len(bursty["burst"]))
+    np.testing.assert_array_equal(bridged["burst"][:n], bursty["burst"][:n])
+    assert bridged["predicted"].sum() > 0 and (bridged["predicted"] <= bridged["flagged"]).all()
+    assert bridged["outcome"] == "success"
+
+
+def test_control_experiment_cli_with_a_tiny_echopt(tmp_path):
+    ckpt = save_checkpoint(tmp_path / "tiny", EchoPT(make_config("tiny", *GRID.shape, max_tokens=256)),
+                           {"grid": GRID.model_dump(), "preset": "tiny"})
+    r = CliRunner().invoke(app, ["experiment", "control", "--model", str(ckpt), "--runs", "2", "--max-time", "8",
+                                 "--workers", "1", "--out", str(tmp_path / "out")])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert list(doc["summary"]) == ["clean", "bursts", f"bursts+echopt:{ckpt}", "bursts+flow"]
+    assert all(s["runs"] == 2 for s in doc["summary"].values())
+    assert doc["summary"]["clean"]["burst_time_fraction"] == 0
+    assert (tmp_path / "out" / "fig6_control.png").exists() and "Fig. 6" in (tmp_path / "out" / "report.md").read_text()
+    bad = CliRunner().invoke(app, ["experiment", "control", "--model", str(tmp_path / "missing"), "--runs", "1",
+                                   "--out", str(tmp_path / "out2")])
+    assert bad.exit_code == 1 and "missing" in bad.output and not (tmp_path / "out2").exists()
+
+
+def test_control_experiment_is_deterministic_across_workers():
+    a = run_control_experiment(["flow"], runs=2, seed=5, max_time_s=10, workers=1)
+    b = run_control_experiment(["flow"], runs=2, seed=5, max_time_s=10, workers=2)
+    for c in a.episodes:
+        for x, y in zip(a.episodes[c], b.episodes[c]):
+            np.testing.assert_array_equal(x["pose"], y["pose"])
+            assert x["outcome"] == y["outcome"]
