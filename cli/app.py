@@ -209,8 +209,11 @@ def generate(
     psf: str = typer.Option("array", "--psf", help="Azimuth PSF: array (eRTIS delay-and-sum, with side lobes) or mainlobe."),
     n_range: int = typer.Option(200, "--n-range", min=2, help="Range bins over 0.5-5 m."),
     n_azimuth: int = typer.Option(90, "--n-azimuth", min=2, help="Azimuth bins over -90..+90 deg."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler",
+                                            help="Dask scheduler address (tcp://host:8786), or 'local' for a "
+                                                 "LocalCluster of --workers processes; default: local processes."),
 ) -> None:
-    """Simulate runs into a SonarSet store; re-run the same command to resume after an interruption."""
+    """Simulate runs into a SonarSet store (a path or an fsspec URL); re-run the same command to resume."""
     import time
 
     from rich.progress import MofNCompleteColumn, TimeElapsedColumn
@@ -235,7 +238,7 @@ def generate(
             bar.update(tasks[name], completed=done, rate=f"{rate:,.0f} frames/s")
 
         written = gen(out_store, runs=runs, test_runs=test_runs, minutes=minutes, seed=seed, world=world,
-                      snr_db=snr_db, psf=psf, workers=workers, grid=grid, progress=progress)
+                      snr_db=snr_db, psf=psf, workers=workers, grid=grid, progress=progress, scheduler=scheduler)
     dt = time.perf_counter() - t0
     out.print(f"{out_store}: wrote {len(written)} run(s) in {dt:.1f} s"
               + (f" ({runs + test_runs - len(written)} already complete)" if len(written) < runs + test_runs else ""))
@@ -346,7 +349,8 @@ def train(
 
     columns = [TextColumn("[bold]training"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
                TimeElapsedColumn(), TimeRemainingColumn()]
-    with Progress(*columns, console=err, disable=not err.is_terminal) as bar:
+    main = int(os.environ.get("RANK", "0")) == 0  # under torchrun only rank 0 reports
+    with Progress(*columns, console=err, disable=not (err.is_terminal and main)) as bar:
         task = bar.add_task("train", total=None, info="")
 
         def progress(rec: dict) -> None:
@@ -358,6 +362,8 @@ def train(
             bar.update(task, completed=rec["step"], total=rec["total_steps"], info=info)
 
         res = run_training(s, out_dir, cfg, resume=resume, progress=progress)
+    if not main:
+        return
     out.print(f"{res.steps} steps ({res.epochs_done:.2f} epochs); best validation loss {res.best_val_loss:.6f}; "
               f"weights: {out_dir / 'model.safetensors'}")
     if test_samples and s.runs("test"):
@@ -487,6 +493,9 @@ def experiment_control(
 
 
 def main() -> None:
+    from sonarset.perf import keep_freed_memory
+
+    keep_freed_memory()
     try:
         app()
     except Exception as exc:  # an unexpected error is a bug: say so in one line

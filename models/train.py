@@ -7,6 +7,13 @@ each batch is one gather from them, so the loader never starves the model.
 Resumable: ``last.safetensors`` (weights and Adam moments) and ``last.json`` (step, epoch, best
 loss) are written atomically every ``eval_every`` steps. The batch order is a pure function of
 (seed, epoch), so a resumed run replays exactly the steps an uninterrupted one would have taken.
+
+Distributed: started by ``torchrun`` (WORLD_SIZE > 1), every process draws the same global batch
+order and trains on its own contiguous slice of each global batch of ``batch_size`` windows, under
+DistributedDataParallel (NCCL on GPUs, gloo on CPUs). DDP averages the gradients of the slices,
+which is the gradient of the global batch's mean loss: the same optimizer steps as one process
+with that batch, up to floating-point summation order. Validation is sharded and all-reduced;
+only rank 0 writes checkpoints, logs and reports progress.
 """
 
 from __future__ import annotations
@@ -79,7 +86,8 @@ class _Batches:
 
     def __init__(self, bank: FrameBank, device: str):
         self.device = device
-        if device == "cuda":
+        self.gpu = device.startswith("cuda")
+        if self.gpu:
             self.images = torch.from_numpy(bank.images).to(device)  # float16 stays float16 on the GPU
             self.velocity = torch.from_numpy(bank.velocity).to(device)
         else:
@@ -88,7 +96,7 @@ class _Batches:
     def get(self, index: WindowIndex, which: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Input frames, commands and the target frame of the windows ``index[which]``."""
         rows = index.rows(which)
-        if self.device == "cuda":
+        if self.gpu:
             rows_t = torch.as_tensor(rows, device=self.device)
             block, cmds = self.images[rows_t].float(), self.velocity[rows_t]
         else:
@@ -126,15 +134,66 @@ def _load_state(out: Path, model: EchoPT, opt: torch.optim.Optimizer) -> dict:
     return meta
 
 
+@dataclass(frozen=True)
+class _Dist:
+    """This process's place in a torchrun job (rank 0 of 1 when not distributed)."""
+
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+    def all_sum(self, *values: float) -> list[float]:
+        if self.world == 1:
+            return list(values)
+        import torch.distributed as dist
+
+        t = torch.tensor(values, dtype=torch.float64)
+        if dist.get_backend() == "nccl":
+            t = t.cuda()
+        dist.all_reduce(t)
+        return t.cpu().tolist()
+
+    def barrier(self) -> None:
+        if self.world > 1:
+            import torch.distributed as dist
+
+            dist.barrier()
+
+
+def _init_distributed(device: str) -> tuple[_Dist, str, bool]:
+    """(rank info, this process's device, whether this call started the process group)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return _Dist(), device, False
+    import torch.distributed as dist
+
+    local = int(os.environ.get("LOCAL_RANK", "0"))
+    if device == "cuda":
+        torch.cuda.set_device(local)
+        device = f"cuda:{local}"
+    started = not dist.is_initialized()
+    if started:
+        dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
+    return _Dist(dist.get_rank(), dist.get_world_size(), local), device, started
+
+
 @torch.no_grad()
-def validation_loss(model: EchoPT, batches: _Batches, index: WindowIndex, batch_size: int = 128) -> float:
+def validation_loss(model: EchoPT, batches: _Batches, index: WindowIndex, batch_size: int = 128,
+                    dist: _Dist = _Dist()) -> float:
+    """Mean squared error per pixel over ``index``; each process takes every world-th batch."""
     model.eval()
     total, n = 0.0, 0
-    for lo in range(0, len(index), batch_size):
+    starts = range(0, len(index), batch_size)
+    for lo in list(starts)[dist.rank::dist.world]:
         f, c, t = batches.get(index, np.arange(lo, min(len(index), lo + batch_size)))
         total += float(F.mse_loss(model(f, c).float(), t, reduction="sum"))
         n += t.numel()
     model.train()
+    total, n = dist.all_sum(total, n)
     return total / n
 
 
@@ -145,7 +204,21 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
         raise SonarSetError(f"{out}: exists and is not empty (use --resume to continue, or another --out)")
     if resume and not (out / "last.json").is_file():
         raise SonarSetError(f"{out}: nothing to resume (no last.json)")
-    device = resolve_device(cfg.device)
+    dist, device, started = _init_distributed(resolve_device(cfg.device))
+    try:
+        if cfg.batch_size % dist.world:
+            raise SonarSetError(f"--batch-size {cfg.batch_size} is not a multiple of the {dist.world} processes")
+        dist.barrier()  # every rank has checked the run directory before rank 0 writes to it
+        return _train(store, out, cfg, resume, progress, dist, device)
+    finally:
+        if started:
+            import torch.distributed
+
+            torch.distributed.destroy_process_group()
+
+
+def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progress, dist: _Dist,
+           device: str) -> TrainResult:
     torch.manual_seed(cfg.seed)
     model_cfg = make_config(cfg.preset, *store.grid.shape)
     model = EchoPT(model_cfg).to(device).to(memory_format=torch.channels_last)
@@ -154,7 +227,8 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
     bank = FrameBank.from_store(store, split="train")
     index = WindowIndex.build(bank, 3, 1)
     train_idx, val_idx = index.split(cfg.n_val, seed=cfg.seed)
-    out.mkdir(parents=True, exist_ok=True)
+    if dist.main:
+        out.mkdir(parents=True, exist_ok=True)
     batches = _Batches(bank, device)
     steps_per_epoch = len(train_idx) // cfg.batch_size  # drop the last partial batch
     if steps_per_epoch == 0:
@@ -172,12 +246,19 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
         for key in ("preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps"):
             if saved[key] != getattr(cfg, key):
                 raise SonarSetError(f"{out}: --resume with {key}={getattr(cfg, key)!r}, but the run used {saved[key]!r}")
-        if (out / "metrics.jsonl").exists():
+        if dist.main and (out / "metrics.jsonl").exists():
             history = [json.loads(l) for l in (out / "metrics.jsonl").read_text().splitlines() if l.strip()]
             history = [h for h in history if h["step"] <= step]
 
-    amp = device == "cuda" and cfg.bf16
-    fwd = torch.compile(model) if (cfg.compile and device == "cuda") else model
+    amp = device.startswith("cuda") and cfg.bf16
+    fwd = model
+    if dist.world > 1:
+        from torch.nn.parallel import DistributedDataParallel
+
+        fwd = DistributedDataParallel(model, device_ids=[dist.local_rank] if device.startswith("cuda") else None)
+    if cfg.compile and device.startswith("cuda"):
+        fwd = torch.compile(fwd)
+    local = cfg.batch_size // dist.world  # this process's slice of each global batch
     card_base = {
         "format": "echopt-card/1", "preset": cfg.preset, "grid": store.grid.model_dump(),
         "training": {"store": store.location, "runs": bank.run_names, "command": cfg.command,
@@ -192,7 +273,7 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
         epoch, pos = divmod(step, steps_per_epoch)
         order = np.random.default_rng([cfg.seed, epoch]).permutation(len(train_idx))
         for b in range(pos, steps_per_epoch):
-            which = order[b * cfg.batch_size:(b + 1) * cfg.batch_size]
+            which = order[b * cfg.batch_size:(b + 1) * cfg.batch_size][dist.rank * local:(dist.rank + 1) * local]
             frames, cmds, target = batches.get(train_idx, which)
             for g in opt.param_groups:
                 g["lr"] = _lr_at(cfg, step, total_steps)
@@ -205,30 +286,37 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
             step += 1
             run_loss += loss.item() * len(which)
             run_n += len(which)
-            samples_window += len(which)
+            samples_window += cfg.batch_size
             out_of_time = cfg.max_minutes and (time.perf_counter() - t_start) > 60 * cfg.max_minutes
+            if dist.world > 1 and cfg.max_minutes:  # every rank must agree to stop at the same step
+                out_of_time = bool(dist.all_sum(float(bool(out_of_time)))[0])
             if step % eval_every == 0 or step == total_steps or out_of_time:
-                val = validation_loss(model, batches, val_idx)
+                val = validation_loss(model, batches, val_idx, dist=dist)
+                run_loss, run_n = dist.all_sum(run_loss, run_n)
                 rate = samples_window / (time.perf_counter() - t_window)
                 rec = {"step": step, "epoch": step / steps_per_epoch, "train_loss": run_loss / max(run_n, 1),
                        "val_loss": val, "lr": opt.param_groups[0]["lr"], "samples_per_s": rate,
                        "elapsed_s": time.perf_counter() - t_start}
                 history.append(rec)
-                with open(out / "metrics.jsonl", "a") as f:
-                    f.write(json.dumps(rec) + "\n")
                 if val < best:
                     best = val
-                    save_checkpoint(out / "model.safetensors", model, {
-                        **card_base, "epochs": step / steps_per_epoch, "steps": step, "val_loss": val})
-                _save_state(out, model, opt, {"step": step, "best_val_loss": best, "train_config": asdict(cfg)})
-                if progress:
-                    progress({**rec, "total_steps": total_steps, "best_val_loss": best})
+                    if dist.main:
+                        save_checkpoint(out / "model.safetensors", model, {
+                            **card_base, "epochs": step / steps_per_epoch, "steps": step, "val_loss": val,
+                            "processes": dist.world})
+                if dist.main:
+                    with open(out / "metrics.jsonl", "a") as f:
+                        f.write(json.dumps(rec) + "\n")
+                    _save_state(out, model, opt, {"step": step, "best_val_loss": best, "train_config": asdict(cfg)})
+                    if progress:
+                        progress({**rec, "total_steps": total_steps, "best_val_loss": best})
                 run_loss, run_n, t_window, samples_window = 0.0, 0, time.perf_counter(), 0
-            elif progress and step % 10 == 0:
+            elif progress and dist.main and step % 10 == 0:
                 progress({"step": step, "total_steps": total_steps, "train_loss": loss.item()})
             if step >= total_steps or out_of_time:
                 stop = True
                 break
+    dist.barrier()  # rank 0's last checkpoint is on disk before any process returns
     return TrainResult(out, step, step / steps_per_epoch, best, history)
 
 

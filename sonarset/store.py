@@ -194,7 +194,7 @@ def read_store_attrs(group: zarr.Group, location: str) -> StoreAttrs:
         raise FormatError(f"{location}: {pydantic_problems(exc, 'sonarset.')[0]}") from None
 
 
-def _open_group(location: str, mode: str, storage_options: dict | None, consolidated: bool | None) -> zarr.Group:
+def _open_group(location: Any, mode: str, storage_options: dict | None, consolidated: bool | None) -> zarr.Group:
     kwargs: dict[str, Any] = {"mode": mode}
     if storage_options:
         kwargs["storage_options"] = storage_options
@@ -212,12 +212,18 @@ def open_store(
     *,
     storage_options: dict | None = None,
     consolidated: bool | None = None,
+    cache_bytes: int | None = None,
 ) -> SonarStore:
-    """Open a SonarSet store from a local path or any fsspec URL (``s3://``, ``memory://``...).
+    """Open a SonarSet store from a local path or any fsspec URL (``s3://``, ``https://``,
+    ``memory://``...).
 
     ``consolidated=None`` uses the root's consolidated metadata for URLs, where it saves a request
     per node, and lists local stores directly, where listing is cheap and never stale (a writer
     killed before re-consolidating leaves the snapshot behind). ``True``/``False`` force either.
+
+    A URL opened for reading goes through an in-memory LRU chunk cache of ``cache_bytes``
+    (default 512 MiB, ``0`` for none; ``sonarset.cache``), so chunks are fetched once, not once
+    per window.
     """
     if mode not in ("r", "r+"):
         raise ValueError("mode must be 'r' or 'r+' (use create_store to make a new store)")
@@ -235,8 +241,19 @@ def open_store(
         loc = str(path)
         if consolidated is None:
             consolidated = False
+    target: Any = loc
+    if _is_url(loc) and mode == "r" and cache_bytes != 0:
+        from zarr.storage import FsspecStore
+
+        from .cache import DEFAULT_CACHE_BYTES, ChunkCache
+
+        try:
+            remote = FsspecStore.from_url(loc, storage_options=storage_options, read_only=True)
+        except (ValueError, TypeError, ImportError) as exc:
+            raise FormatError(f"{loc}: cannot open: {exc}") from None
+        target, storage_options = ChunkCache(remote, cache_bytes or DEFAULT_CACHE_BYTES), None
     try:
-        group = _open_group(loc, mode, storage_options, consolidated)
+        group = _open_group(target, mode, storage_options, consolidated)
     except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError) as exc:
         raise FormatError(f"{loc}: not a zarr store ({type(exc).__name__})") from None
     except (ValueError, TypeError) as exc:

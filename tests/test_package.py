@@ -33,7 +33,8 @@ def test_wheel_installs_in_fresh_venv(tmp_path):
     names = zipfile.ZipFile(wheel).namelist()
     tops = {n.split("/")[0] for n in names if not n.split("/")[0].endswith((".dist-info", ".data"))}
     assert tops == {"sonarset"}, f"wheel installs top-level packages {tops}"
-    assert "sonarset/models/__init__.py" in names and "sonarset/cli/app.py" in names
+    assert {"sonarset/models/__init__.py", "sonarset/cli/app.py", "sonarset/sim/kernels.py",
+            "sonarset/models/experiments/control.py"} <= set(names)
     # package data the simulator and the demo load at run time
     assert "sonarset/data/ertis32_microphones.csv" in names
     assert {"sonarset/models/pretrained/echopt-small.safetensors", "sonarset/models/pretrained/echopt-small.json"} <= set(names)
@@ -46,7 +47,8 @@ def test_wheel_installs_in_fresh_venv(tmp_path):
     # the sonarset that imports is the wheel's and never the checkout's.
     deps = sysconfig.get_paths()["purelib"]
     code = (f"import sys; sys.path.append({deps!r}); "
-            "import sonarset, sonarset.models, sonarset.cli.app, sonarset.store; "
+            "import sonarset, sonarset.models, sonarset.cli.app, sonarset.store, sonarset.sim.generate, "
+            "sonarset.models.experiments.control; "
             f"assert sonarset.__file__.startswith({str(venv)!r}), sonarset.__file__; "
             "import importlib.util as u; "
             "assert u.find_spec('models') is None and u.find_spec('cli') is None, 'top-level models/cli'; "

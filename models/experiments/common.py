@@ -12,6 +12,7 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy import stats
 
+from sonarset.perf import keep_freed_memory
 from sonarset.schema import SensorGrid
 from sonarset.sim.generate import DT
 from sonarset.sim.robot import SENSOR_OFFSET
@@ -30,6 +31,7 @@ def predictor(spec: str, grid: SensorGrid, device: str = "cpu"):
 
 
 def _init_worker() -> None:
+    keep_freed_memory()
     # Each process gets one core: the pool already fills the machine.
     try:
         import torch

@@ -18,6 +18,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import SonarSetError
+from ..perf import keep_freed_memory
 from ..schema import SensorGrid
 from ..store import DEFAULT_CHUNK_FRAMES, open_or_create_store, open_store
 from .robot import SENSOR_OFFSET, WHEEL_BASE, ExplorationPolicy, apply_slip, integrate
@@ -91,8 +92,8 @@ def simulate_blocks(plan: RunPlan, grid: SensorGrid, block: int = DEFAULT_CHUNK_
         yield start, out
 
 
-def _write_run(location: str, plan: RunPlan, grid: SensorGrid, queue=None) -> str:
-    store = open_store(location, "r+")
+def _write_run(location: str, plan: RunPlan, grid: SensorGrid, queue=None, storage_options: dict | None = None) -> str:
+    store = open_store(location, "r+", storage_options=storage_options)
     with store.run_writer(plan.name, plan.n_frames, split=plan.split, source=plan.source(),
                           optional=("pose", "snr_db", "slip"), consolidate=False) as w, \
             cf.ThreadPoolExecutor(1) as writer:
@@ -123,8 +124,17 @@ def generate(
     workers: int | None = None,
     grid: SensorGrid | None = None,
     progress: Callable[[str, int, int], None] | None = None,
+    scheduler=None,
+    storage_options: dict | None = None,
 ) -> list[str]:
-    """Simulate the runs into the store ``out``; returns the names of the runs written now."""
+    """Simulate the runs into the store ``out`` (a path or any fsspec URL); returns the names of the
+    runs written now.
+
+    Runs go to a local process pool, or, with ``scheduler``, to a Dask distributed cluster: an
+    address (``tcp://host:8786``), ``"local"`` for a ``LocalCluster`` of ``workers`` processes, or a
+    ``distributed.Client``. Each task writes its own run group to ``out``, which every worker must
+    reach (a shared file system or object storage). The arrays are the same either way.
+    """
     grid = grid or SensorGrid.default()
     load_world(world, 0)  # fail fast on a bad world name or file, before any process starts
     from .sonar import BEAMS
@@ -133,7 +143,8 @@ def generate(
         raise SonarSetError(f"--psf must be one of {', '.join(BEAMS)}, got {psf!r}")
     plans = plan_runs(runs, test_runs, minutes, seed, world, snr_db, psf)
     loc = os.fspath(out)
-    store = open_or_create_store(loc, grid, description=f"simulated by sonarset {__version__}")
+    store = open_or_create_store(loc, grid, description=f"simulated by sonarset {__version__}",
+                                 storage_options=storage_options)
     todo = []
     for plan in plans:
         if plan.name in store.runs():
@@ -143,12 +154,16 @@ def generate(
                                     "use a new output or the same options")
             continue
         todo.append(plan)
-    workers = max(1, min(workers or os.cpu_count() or 1, len(todo) or 1))
     total = {p.name: p.n_frames for p in todo}
-    if todo:
+    if todo and scheduler is not None:
+        from .distributed import run_on_dask
+
+        run_on_dask(scheduler, loc, todo, grid, workers, storage_options, progress, store)
+    elif todo:
+        workers = max(1, min(workers or os.cpu_count() or 1, len(todo)))
         if workers == 1:
             for plan in todo:
-                _write_run(loc, plan, grid, _Direct(progress, total))
+                _write_run(loc, plan, grid, _Direct(progress, total), storage_options)
                 store.consolidate()
         else:
             ctx = mp.get_context("spawn")  # no fork: zarr's event loop thread must not be copied
@@ -156,7 +171,7 @@ def generate(
             saved = {k: os.environ.get(k) for k in _THREAD_VARS}
             os.environ.update({k: "1" for k in _THREAD_VARS if k not in os.environ})
             try:
-                _run_pool(ctx, loc, todo, grid, workers, total, progress, store)
+                _run_pool(ctx, loc, todo, grid, workers, total, progress, store, storage_options)
             finally:
                 for k, v in saved.items():
                     if v is None:
@@ -169,12 +184,12 @@ _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 def _run_pool(ctx, loc: str, todo: list[RunPlan], grid: SensorGrid, workers: int, total: dict,
-              progress, store) -> None:
+              progress, store, storage_options: dict | None = None) -> None:
     """One task per run in a process pool; progress arrives through a managed queue."""
     with ctx.Manager() as manager:
         queue = manager.Queue()
-        with cf.ProcessPoolExecutor(workers, mp_context=ctx) as pool:
-            pending = {pool.submit(_write_run, loc, p, grid, queue) for p in todo}
+        with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=keep_freed_memory) as pool:
+            pending = {pool.submit(_write_run, loc, p, grid, queue, storage_options) for p in todo}
             done = {p.name: 0 for p in todo}
             while pending:
                 finished, pending = cf.wait(pending, timeout=0.2)

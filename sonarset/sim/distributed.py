@@ -1,0 +1,76 @@
+"""Run generation tasks on a Dask distributed cluster (``sonarset generate --scheduler``).
+
+One task per run, exactly the function the local process pool runs: the task simulates its run
+from the run's own seed and writes the run group to the target store, so the store is the same
+bit for bit whatever the cluster. Progress comes back through a Dask ``Queue``.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import uuid
+
+from ..errors import SonarSetError
+from ..schema import SensorGrid
+
+CONNECT_TIMEOUT = "15s"  # how long to wait for a scheduler address to answer
+
+
+def connect(scheduler, workers: int | None):
+    """(client, cluster or None) for an address, ``"local"`` or an existing ``distributed.Client``."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise SonarSetError("--scheduler needs Dask distributed: pip install 'sonarset[dask]'") from None
+    if isinstance(scheduler, Client):
+        return scheduler, None
+    if scheduler == "local":
+        # One single-threaded worker process per core: a run is one sequential simulation.
+        cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
+                               dashboard_address=None)
+        return Client(cluster), cluster
+    try:
+        return Client(scheduler, timeout=CONNECT_TIMEOUT), None
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise SonarSetError(f"cannot reach the Dask scheduler at {scheduler!r}: {exc}") from None
+
+
+def run_on_dask(scheduler, location: str, plans: list, grid: SensorGrid, workers: int | None,
+                storage_options: dict | None, progress, store) -> None:
+    from distributed import Queue
+
+    from .generate import _write_run
+
+    client, cluster = connect(scheduler, workers)
+    try:
+        tag = uuid.uuid4().hex[:8]
+        queue = Queue(f"sonarset-progress-{tag}", client=client)
+        futures = [client.submit(_write_run, location, p, grid, queue, storage_options,
+                                 key=f"sonarset-generate-{p.name}-{tag}", pure=False, retries=0) for p in plans]
+        done = {p.name: 0 for p in plans}
+        total = {p.name: p.n_frames for p in plans}
+        pending = list(futures)
+        while pending:
+            time.sleep(0.2)
+            for name, n in queue.get(batch=True):
+                done[name] += n
+                if progress:
+                    progress(name, done[name], total[name])
+            still = []
+            for f in pending:
+                if f.done():
+                    f.result()  # re-raise a task's error here
+                    # Only this process writes the root's consolidated metadata.
+                    store.consolidate()
+                else:
+                    still.append(f)
+            pending = still
+        for name, n in queue.get(batch=True):
+            done[name] += n
+            if progress:
+                progress(name, done[name], total[name])
+    finally:
+        if cluster is not None:
+            client.close()
+            cluster.close()
