@@ -20,6 +20,10 @@ from pydantic import ValidationError
 from zarr.codecs import BloscCodec
 
 from . import __version__
+
+# Listing a group while another process writes into it atomically shows that writer's temp file
+# ("zarr.<id>.partial"); it is not a node, zarr skips it, and the warning is noise.
+warnings.filterwarnings("ignore", message=r"Object at .*\.partial is not recognized", category=UserWarning)
 from .errors import FormatError, GridMismatchError, InputValidationError, SonarSetError
 from .arrays import ARRAYS, OPTIONAL_ARRAYS, check_run_arrays, expected_shape
 from .schema import (
@@ -168,10 +172,7 @@ class SonarStore:
     def consolidate(self) -> None:
         """Rewrite the root's consolidated metadata; call after runs were written elsewhere."""
         self._require_writable()
-        with warnings.catch_warnings():
-            # A worker's in-flight atomic write (a "*.partial" temp file) is not a zarr node.
-            warnings.filterwarnings("ignore", message=r".*\.partial is not recognized", category=UserWarning)
-            zarr.consolidate_metadata(self.group.store)
+        zarr.consolidate_metadata(self.group.store)
 
 
 def read_store_attrs(group: zarr.Group, location: str) -> StoreAttrs:
