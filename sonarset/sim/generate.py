@@ -86,9 +86,11 @@ def simulate_blocks(plan: RunPlan, grid: SensorGrid, block: int = DEFAULT_CHUNK_
             pose = integrate(pose, *apply_slip(v, w, (1.0, 1.0)), DT)
             out["velocity"][j] = (v, w)
             out["pose"][j] = pose
-        noise_rng = np.random.default_rng(
-            np.random.SeedSequence(noise_ss.entropy, spawn_key=(*noise_ss.spawn_key, start // block)))
-        out["images"][:], out["snr_db"][:] = model.render_batch(world, out["pose"], noise_rng)
+        # SFC64: the noise needs 36,000 normals a frame, the largest single cost of a frame, and
+        # it draws them ~10% faster than the default PCG64.
+        noise_rng = np.random.Generator(np.random.SFC64(
+            np.random.SeedSequence(noise_ss.entropy, spawn_key=(*noise_ss.spawn_key, start // block))))
+        out["snr_db"][:] = model.render_batch(world, out["pose"], noise_rng, out=out["images"])[1]
         yield start, out
 
 

@@ -189,7 +189,9 @@ class SonarModel:
         sig = (max(0.0085 / self.grid.range_step, 0.3), max(np.radians(2.4) / self.grid.azimuth_step, 0.3))
         fr, fa = np.fft.fftfreq(self.grid.n_range), np.fft.fftfreq(self.grid.n_azimuth)
         self._noise_tf = np.exp(-2 * np.pi ** 2 * ((fr[:, None] * sig[0]) ** 2 + (fa[None, :] * sig[1]) ** 2)).astype(np.float32)
-        support = np.abs(dr[self._renv2 > 1e-8]).max() + self.grid.range_step
+        # The range PSF is evaluated where it is above -60 dB of its peak: farther out, even a
+        # full-scale echo adds less than the 60 dB display range resolves.
+        support = np.abs(dr[self._renv2 > 1e-6 * self._renv2.max()]).max() + self.grid.range_step
         k = int(np.ceil(support / self.grid.range_step)) + 1
         self._offsets = np.arange(-k, k + 1)
         self.e_full = self._full_scale()
@@ -208,9 +210,9 @@ class SonarModel:
         R, A = self.grid.shape
         F = 1 if n_frames is None else n_frames
         if not len(echoes):
-            e = np.zeros((F, R, A))
+            e = np.zeros((F, R, A), np.float32)
         else:
-            e = np.zeros((F, R, A))
+            e = np.zeros((F, R, A), np.float32)  # single precision: the image is float16 in the end
             accumulate_psf(e, echoes.frame, echoes.r, np.sin(echoes.theta), echoes.amp ** 2, self.r_c,
                            self.grid.range_step, self._offsets, self._renv2, self._r0, self._r_step,
                            self.u_c, self._beam2, self._u_step)
@@ -241,19 +243,20 @@ class SonarModel:
         the same random numbers as F single frames in turn.
         """
         sig = np.atleast_1d(np.asarray(sigma, np.float32))
-        parts = rng.standard_normal((len(sig), 2, *self.grid.shape), dtype=np.float32)
         # Matched filter and beamformer correlate the noise over one PSF. The spectrum of white
         # complex Gaussian noise is itself white complex Gaussian noise, so the draw is taken as the
-        # spectrum and shaped in one inverse FFT (single precision: a noise field needs no more).
-        spec = parts[:, 0] + 1j * parts[:, 1]
+        # spectrum (pairs of normals viewed as complex64, no copy) and shaped in one inverse FFT
+        # (single precision: a noise field needs no more).
+        spec = rng.standard_normal((len(sig), *self.grid.shape, 2), dtype=np.float32).view(np.complex64)[..., 0]
         spec *= self._noise_tf
         n = sfft.ifft2(spec, axes=(-2, -1), overwrite_x=True)
         e = n.real ** 2 + n.imag ** 2
         e *= (sig ** 2 / e.mean(axis=(1, 2)))[:, None, None]
         return e if np.ndim(sigma) else e[0]
 
-    def encode(self, energy: np.ndarray, noise: np.ndarray | None = None) -> np.ndarray:
-        """Pixels (10 log10(E / E_full) + DR) / DR clipped to [0, 1], float32, of energy (plus noise)."""
+    def encode(self, energy: np.ndarray, noise: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
+        """Pixels (10 log10(E / E_full) + DR) / DR clipped to [0, 1] of energy (plus noise): float32,
+        or written into ``out`` (e.g. a float16 block)."""
         e = np.add(energy, 0 if noise is None else noise, dtype=np.float32)
         np.maximum(e, np.float32(1e-30), out=e)
         db = np.log10(e, out=e)
@@ -261,7 +264,7 @@ class SonarModel:
         gain = 10 / self.dynamic_range_db
         db *= np.float32(gain)
         db += np.float32(1 - gain * np.log10(self.e_full))
-        return np.clip(db, 0, 1, out=db)
+        return np.clip(db, 0, 1, out=db if out is None else out)
 
     def render(self, world: World, robot_pose: np.ndarray, rng: np.random.Generator | None,
                snr_db: float | None = None, return_snr: bool = False):
@@ -274,8 +277,9 @@ class SonarModel:
         return (img[0], float(eff[0])) if return_snr else img[0]
 
     def render_batch(self, world: World, robot_poses: np.ndarray, rng: np.random.Generator | None,
-                     snr_db: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Energyscapes (F, R, A) float32 and effective SNRs (F,) seen from robot poses (F, 3).
+                     snr_db: np.ndarray | None = None, out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Energyscapes (F, R, A) float32 (or written into ``out``) and effective SNRs (F,) seen from
+        robot poses (F, 3).
 
         ``snr_db`` (F,) overrides the model's SNR per frame (noise bursts). Rendering F frames in one
         call gives the same images as F calls of ``render`` with the same generator.
@@ -288,4 +292,4 @@ class SonarModel:
             sigma = self.noise_sigma(e, self.snr_db if snr_db is None else snr_db)
             eff = self.effective_snr_db(e, sigma)
             noise = self.noise_energy(sigma, rng)
-        return self.encode(e, noise), eff
+        return self.encode(e, noise, out), eff
