@@ -61,13 +61,16 @@ def plan_runs(runs: int = 10, test_runs: int = 1, minutes: float = 25.0, seed: i
     return plans
 
 
-def simulate_blocks(plan: RunPlan, grid: SensorGrid, block: int = DEFAULT_CHUNK_FRAMES) -> Iterator[tuple[int, dict]]:
+def simulate_blocks(plan: RunPlan, grid: SensorGrid, block: int = DEFAULT_CHUNK_FRAMES,
+                    spare_core=None) -> Iterator[tuple[int, dict]]:
     """(start, arrays) blocks of a run, in order; velocity[k] is the command that moved the robot
     into frame k.
 
     The policy sees the world, not the images, so each block's trajectory is driven first and its
     frames are rendered as one batch. Each block draws its sensor noise from its own seed (the
-    run's noise seed spawned by block index): any block can be re-rendered on its own.
+    run's noise seed spawned by block index): any block can be rendered on its own, in any order.
+    While ``spare_core`` (an event) is set, two blocks are rendered at a time, one in a helper
+    thread: a pool's last runs then use the cores that runs already finished have freed.
     """
     world = load_world(plan.world, plan.world_seed)
     motion_ss, noise_ss = np.random.SeedSequence(plan.seed).spawn(2)
@@ -76,7 +79,9 @@ def simulate_blocks(plan: RunPlan, grid: SensorGrid, block: int = DEFAULT_CHUNK_
     model = SonarModel(grid, snr_db=plan.snr_db, psf=plan.psf)
     pose = world.sample_spawn(motion_rng)
     R, A = grid.shape
-    for start in range(0, plan.n_frames, block):
+
+    def drive(start: int) -> dict:
+        nonlocal pose
         n = min(block, plan.n_frames - start)
         out = {"images": np.empty((n, R, A), np.float16), "velocity": np.empty((n, 2), np.float32),
                "time": (start + np.arange(n)) * DT, "pose": np.empty((n, 3)),
@@ -86,22 +91,38 @@ def simulate_blocks(plan: RunPlan, grid: SensorGrid, block: int = DEFAULT_CHUNK_
             pose = integrate(pose, *apply_slip(v, w, (1.0, 1.0)), DT)
             out["velocity"][j] = (v, w)
             out["pose"][j] = pose
+        return out
+
+    def render(start: int, out: dict) -> tuple[int, dict]:
         # SFC64: the noise needs 36,000 normals a frame, the largest single cost of a frame, and
         # it draws them ~10% faster than the default PCG64.
         noise_rng = np.random.Generator(np.random.SFC64(
             np.random.SeedSequence(noise_ss.entropy, spawn_key=(*noise_ss.spawn_key, start // block))))
         out["snr_db"][:] = model.render_batch(world, out["pose"], noise_rng, out=out["images"])[1]
-        yield start, out
+        return start, out
+
+    starts = iter(range(0, plan.n_frames, block))
+    with cf.ThreadPoolExecutor(1) as helper:
+        for start in starts:
+            out = drive(start)
+            nxt = next(starts, None) if spare_core is not None and spare_core.is_set() else None
+            if nxt is None:
+                yield render(start, out)
+                continue
+            later = helper.submit(render, nxt, drive(nxt))  # the heavy parts release the GIL
+            yield render(start, out)
+            yield later.result()
 
 
-def _write_run(location: str, plan: RunPlan, grid: SensorGrid, queue=None, storage_options: dict | None = None) -> str:
+def _write_run(location: str, plan: RunPlan, grid: SensorGrid, queue=None, storage_options: dict | None = None,
+               spare_core=None) -> str:
     store = open_store(location, "r+", storage_options=storage_options)
     with store.run_writer(plan.name, plan.n_frames, split=plan.split, source=plan.source(),
                           optional=("pose", "snr_db", "slip"), consolidate=False) as w, \
             cf.ThreadPoolExecutor(1) as writer:
         # Block k is compressed and written (GIL released) while block k+1 is simulated.
         pending = None
-        for start, arrays in simulate_blocks(plan, grid):
+        for start, arrays in simulate_blocks(plan, grid, spare_core=spare_core):
             if pending is not None:
                 pending.result()
             pending = writer.submit(w.write, start, **arrays)
@@ -190,10 +211,13 @@ def _run_pool(ctx, loc: str, todo: list[RunPlan], grid: SensorGrid, workers: int
     """One task per run in a process pool; progress arrives through a managed queue."""
     with ctx.Manager() as manager:
         queue = manager.Queue()
+        spare = manager.Event()  # set once fewer runs remain than workers: a core is free
         with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=keep_freed_memory) as pool:
-            pending = {pool.submit(_write_run, loc, p, grid, queue, storage_options) for p in todo}
+            pending = {pool.submit(_write_run, loc, p, grid, queue, storage_options, spare) for p in todo}
             done = {p.name: 0 for p in todo}
             while pending:
+                if len(pending) < workers:
+                    spare.set()
                 finished, pending = cf.wait(pending, timeout=0.2)
                 while not queue.empty():
                     name, n = queue.get()
