@@ -12,36 +12,17 @@ window through the lazy path, with the chunk cache and without it.
 from __future__ import annotations
 
 import argparse
-import functools
-import http.server
 import os
 import platform
 import tempfile
-import threading
 import time
 
 import numpy as np
 
 from sonarset.sim import generate
 from sonarset.store import open_store
+from sonarset.testing import serve_directory
 from sonarset.windows import FrameBank
-
-
-class _Handler(http.server.SimpleHTTPRequestHandler):
-    requests = 0
-
-    def log_message(self, *args):
-        pass
-
-    def do_GET(self):
-        type(self).requests += 1
-        super().do_GET()
-
-
-def serve(directory: str) -> tuple[http.server.ThreadingHTTPServer, str]:
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_Handler, directory=directory))
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    return server, f"http://127.0.0.1:{server.server_address[1]}"
 
 
 def lazy_windows(location: str, n: int, **kw) -> float:
@@ -74,32 +55,29 @@ def main() -> None:
               f"dask 2 workers / local pool of 2 = {rates['dask LocalCluster, 2 workers'] / rates['local processes, 2']:.2f}x")
 
         local = os.path.join(tmp, "0.zarr")
-        server, base = serve(tmp)
-        url = f"{base}/0.zarr"
-        try:
+        with serve_directory(tmp) as (base, served):
+            url = f"{base}/0.zarr"
             t0 = time.perf_counter()
             FrameBank.from_store(open_store(local))
             t_local = time.perf_counter() - t0
-            _Handler.requests = 0
+            served.requests = 0
             t0 = time.perf_counter()
             FrameBank.from_store(open_store(url))
             t_http = time.perf_counter() - t0
             print(f"load {frames} frames into memory: local {frames / t_local:8,.0f} frames/s, "
-                  f"http {frames / t_http:8,.0f} frames/s ({_Handler.requests} requests); remote/local time = {t_http / t_local:.2f}x")
+                  f"http {frames / t_http:8,.0f} frames/s ({served.requests} requests); remote/local time = {t_http / t_local:.2f}x")
             n = 2000
             w_local = lazy_windows(local, n)
-            _Handler.requests = 0
+            served.requests = 0
             w_cached = lazy_windows(url, n)
-            req_cached = _Handler.requests
-            _Handler.requests = 0
+            req_cached = served.requests
+            served.requests = 0
             w_raw = lazy_windows(url, n // 10, cache_bytes=0)
-            req_raw = _Handler.requests * 10
+            req_raw = served.requests * 10
             print(f"lazy window reads (4 frames each): local {w_local:6,.0f} windows/s; "
                   f"http with chunk cache {w_cached:6,.0f} windows/s ({req_cached} requests for {n} windows); "
                   f"http without cache {w_raw:6,.0f} windows/s (~{req_raw} requests for {n})")
             print(f"remote/local time per window: with cache {w_local / w_cached:.2f}x, without {w_local / w_raw:.2f}x")
-        finally:
-            server.shutdown()
 
 
 if __name__ == "__main__":

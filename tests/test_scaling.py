@@ -1,13 +1,10 @@
 """Scale-out: Dask generation, stores behind URLs (memory://, a loopback HTTP server), DDP training."""
 
-import functools
-import http.server
 import json
 import math
 import os
 import subprocess
 import sys
-import threading
 
 import numpy as np
 import pytest
@@ -16,6 +13,7 @@ import torch
 from sonarset.schema import SensorGrid
 from sonarset.sim import generate
 from sonarset.store import open_store
+from sonarset.testing import serve_directory
 from sonarset.validate import validate_store
 from sonarset.windows import FrameBank, WindowIndex, gather
 
@@ -81,27 +79,11 @@ def test_unreachable_scheduler_is_a_clear_error(tmp_path, monkeypatch):
         generate(tmp_path / "x.zarr", workers=1, scheduler="tcp://127.0.0.1:9", **KW)
 
 
-class _Quiet(http.server.SimpleHTTPRequestHandler):
-    requests = 0
-
-    def log_message(self, *args):
-        pass
-
-    def do_GET(self):
-        type(self).requests += 1
-        super().do_GET()
-
-
 @pytest.fixture
 def http_root(local_ref):
-    """A read-only HTTP server on loopback serving the reference store's directory."""
-    root = os.path.dirname(local_ref.location)
-    handler = functools.partial(_Quiet, directory=root)
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    yield f"http://127.0.0.1:{server.server_address[1]}/{os.path.basename(local_ref.location)}"
-    server.shutdown()
+    """The reference store served read-only over HTTP on loopback: (URL, request counter)."""
+    with serve_directory(os.path.dirname(local_ref.location)) as (base, handler):
+        yield f"{base}/{os.path.basename(local_ref.location)}", handler
 
 
 def test_store_over_http_validates_reads_identically_and_caches_chunks(local_ref, http_root):
@@ -109,6 +91,7 @@ def test_store_over_http_validates_reads_identically_and_caches_chunks(local_ref
 
     from sonarset.cli.app import app
 
+    http_root, served = http_root
     assert validate_store(http_root) == []
     remote = open_store(http_root)
     assert_identical(arrays(local_ref), arrays(remote))
@@ -117,10 +100,10 @@ def test_store_over_http_validates_reads_identically_and_caches_chunks(local_ref
     assert json.loads(r.output)["runs"][0]["name"] == "run_000"
     # window by window through the lazy path: each chunk crosses the network once
     run = open_store(http_root).run("run_000")
-    _Quiet.requests = 0
+    served.requests = 0
     for k in range(0, run.n_frames - 4):
         run.images[k:k + 4]
-    assert 0 < _Quiet.requests <= 4  # chunks of 64 frames: 90 frames are 2 chunks (+ metadata)
+    assert 0 < served.requests <= 4  # chunks of 64 frames: 90 frames are 2 chunks (+ metadata)
     # and the in-memory bank built from the URL equals the local one
     idx = WindowIndex.build(FrameBank.from_store(local_ref), 3, 1)
     f_local = gather(FrameBank.from_store(local_ref), idx, np.arange(10))
