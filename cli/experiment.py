@@ -1,0 +1,86 @@
+"""``sonarset experiment slip|control``: the paper's robot experiments."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Optional
+
+import typer
+from rich.progress import Progress
+from rich.table import Table
+
+from .common import out, progress_bar, user_errors
+
+experiment_app = typer.Typer(help="The paper's robot experiments: wheel-slip detection, corridor control.",
+                             no_args_is_help=True)
+
+
+def _echopt_spec(model: str) -> str:
+    return model if model.startswith("echopt:") else f"echopt:{model}"
+
+
+def _specs(text: str) -> list[str]:
+    return [m.strip() for m in text.split(",") if m.strip()]
+
+
+def _count_progress(bar: Progress, name: str) -> Callable[[int, int], None]:
+    task = bar.add_task(name, total=None)
+    return lambda done, total: bar.update(task, completed=done, total=total)
+
+
+@experiment_app.command("slip")
+@user_errors
+def experiment_slip(
+    out_dir: Path = typer.Option(..., "--out", help="Directory for metrics.json, report.md and fig5_slip.png."),
+    model: str = typer.Option("pretrained", "--model", help="EchoPT checkpoint: pretrained or a path."),
+    baselines: str = typer.Option("naive,flow", "--baselines", help="Comma-separated baselines to compare."),
+    trials: int = typer.Option(20, "--trials", min=1, help="Random trajectories for the ROC analysis."),
+    seed: int = typer.Option(0, "--seed", help="Master seed: trajectories, slip periods, sensor noise."),
+    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Processes (default: all cores)."),
+    device: str = typer.Option("cpu", "--device", help="Device for EchoPT: cpu, cuda, auto."),
+) -> None:
+    """Wheel-slip detection (paper Fig. 5) and its ROC AUC over random trajectories."""
+    from sonarset.models.experiments.slip import run_slip_experiment, write_slip_report
+
+    models = [*_specs(baselines), _echopt_spec(model)]
+    with progress_bar() as bar:
+        res = run_slip_experiment(models, trials=trials, seed=seed, workers=workers, device=device,
+                                  progress=_count_progress(bar, "trajectories"))
+    write_slip_report(res, out_dir)
+    table = Table("predictor", "horizon", "AUC both (eps)", "AUC one (eps)", "AUC both (ratio)", "AUC one (ratio)")
+    by = {(x["predictor"], x["horizon"], x["kind"], x["detector"]): x["auc_mean"] for x in res.summary}
+    for name in res.names:
+        for h in (1, 3, 5):
+            table.add_row(name, "one-shot" if h == 1 else f"AR-{h}",
+                          *(f"{by[(name, h, k, d)]:.3f}" for d in ("eps", "ratio") for k in ("both", "one")))
+    out.print(table)
+    out.print(f"{res.trials} trajectories in {res.seconds:.0f} s; report: {out_dir / 'report.md'}")
+
+
+@experiment_app.command("control")
+@user_errors
+def experiment_control(
+    out_dir: Path = typer.Option(..., "--out", help="Directory for metrics.json, report.md and fig6_control.png."),
+    model: str = typer.Option("pretrained", "--model", help="EchoPT checkpoint: pretrained or a path."),
+    compare: str = typer.Option("flow", "--compare",
+                                help="Comma-separated other predictors that also bridge the bursts ('' for none)."),
+    runs: int = typer.Option(50, "--runs", min=1, help="Runs per condition."),
+    seed: int = typer.Option(0, "--seed", help="Master seed: spawn poses, burst schedules, sensor noise."),
+    max_time: float = typer.Option(120.0, "--max-time", min=1.0, help="Seconds before a run times out."),
+    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Processes (default: all cores)."),
+    device: str = typer.Option("cpu", "--device", help="Device for EchoPT: cpu, cuda, auto."),
+) -> None:
+    """Corridor control through noise bursts (paper Fig. 6): clean, bursts, bursts bridged by EchoPT."""
+    from sonarset.models.experiments.control import run_control_experiment, write_control_report
+
+    models = [_echopt_spec(model), *_specs(compare)]
+    with progress_bar() as bar:
+        res = run_control_experiment(models, runs=runs, seed=seed, workers=workers, device=device,
+                                     max_time_s=max_time, progress=_count_progress(bar, "runs"))
+    write_control_report(res, out_dir)
+    table = Table("condition", "success", "collision", "timeout", "travel time [s]", "midline dev. [m]")
+    for c, x in res.summary.items():
+        table.add_row(c, str(x["success"]), str(x["collision"]), str(x["timeout"]),
+                      f"{x['travel_time_s']['mean']:.1f}", f"{x['midline_deviation_m']['mean']:.3f}")
+    out.print(table)
+    out.print(f"{runs} runs per condition in {res.seconds:.0f} s; report: {out_dir / 'report.md'}")
