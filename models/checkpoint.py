@@ -13,6 +13,7 @@ from pathlib import Path
 import torch
 from safetensors.torch import load_file, save_file
 
+from sonarset.atomic import atomic_text, atomic_write
 from sonarset.errors import GridMismatchError, SonarSetError
 from sonarset.schema import SensorGrid
 
@@ -21,19 +22,13 @@ from .echopt import EchoPT, EchoPTConfig
 PRETRAINED = Path(__file__).resolve().parent / "pretrained" / "echopt-small.safetensors"
 
 
-def _atomic(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    write(tmp)
-    os.replace(tmp, path)
-
-
 def save_checkpoint(path: str | os.PathLike, model: EchoPT, card: dict) -> Path:
     path = Path(path).with_suffix(".safetensors")
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
-    _atomic(path, lambda p: save_file(state, str(p), metadata={"format": "echopt", "card": path.with_suffix(".json").name}))
+    atomic_write(path, lambda p: save_file(state, str(p), metadata={"format": "echopt", "card": path.with_suffix(".json").name}))
     card = {**card, "config": model.cfg.to_dict(), "n_params": model.n_params()}
-    _atomic(path.with_suffix(".json"), lambda p: p.write_text(json.dumps(card, indent=2) + "\n"))
+    atomic_text(path.with_suffix(".json"), json.dumps(card, indent=2) + "\n")
     return path
 
 

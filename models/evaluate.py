@@ -17,6 +17,7 @@ from typing import Callable
 
 import numpy as np
 
+from sonarset.atomic import atomic_text, atomic_write
 from sonarset.errors import SonarSetError
 from sonarset.metrics import cc, nrmsd
 from sonarset.stats import Comparison, compare, holm
@@ -166,28 +167,23 @@ def write_report(res: EvalResult, out: str | os.PathLike, *, figures: bool = Tru
         "seconds": res.seconds,
         "paper": {m: {k: {str(h): v for h, v in d.items()} for k, d in t.items()} for m, t in PAPER.items()},
     }
-    _atomic_text(out / "metrics.json", json.dumps(doc, indent=2) + "\n")
+    atomic_text(out / "metrics.json", json.dumps(doc, indent=2) + "\n")
     rows = [(m, h, f"{r}:{k}", float(res.per_window[m][h]["cc"][i]), float(res.per_window[m][h]["nrmsd"][i]))
             for m in res.methods for h in res.horizons for i, (r, k) in enumerate(res.window_ids)]
-    tmp = out / ".per_window.csv.tmp"
-    with open(tmp, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["method", "horizon", "window", "cc", "nrmsd"])
-        w.writerows(rows)
-    os.replace(tmp, out / "per_window.csv")
+    def write_csv(path: Path) -> None:
+        with open(path, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["method", "horizon", "window", "cc", "nrmsd"])
+            w.writerows(rows)
+
+    atomic_write(out / "per_window.csv", write_csv)
     figs = []
     if figures:
         from .figures import write_figures
 
         figs = write_figures(res, out)
-    _atomic_text(out / "report.md", render_report(res, figs))
+    atomic_text(out / "report.md", render_report(res, figs))
     return out
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def _fmt_p(p: float | None) -> str:

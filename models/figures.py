@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 from scipy import signal
 
+from sonarset.atomic import save_figure
 from sonarset.plots import _plt, draw_energyscape
 
 
@@ -47,8 +48,7 @@ def write_figures(res, out: Path) -> list[str]:
         row[3].set_xlabel("azimuth lag [bins]")
         row[3].set_ylabel("range lag [bins]")
     p = out / "fig_prediction.png"
-    fig.savefig(p, dpi=90)
-    plt.close(fig)
+    save_figure(fig, p, dpi=90)
     paths.append(str(p))
 
     # Auto-regressive strip: measured frames, then each method's predictions and differences.
@@ -72,8 +72,7 @@ def write_figures(res, out: Path) -> list[str]:
         a.set_xticks([])
         a.set_yticks([])
     p = out / "fig_autoregressive.png"
-    fig.savefig(p, dpi=90)
-    plt.close(fig)
+    save_figure(fig, p, dpi=90)
     paths.append(str(p))
 
     # Metrics against horizon.
@@ -91,7 +90,6 @@ def write_figures(res, out: Path) -> list[str]:
         ax.grid(alpha=0.3)
     axes[0].legend()
     p = out / "fig_horizon.png"
-    fig.savefig(p, dpi=100)
-    plt.close(fig)
+    save_figure(fig, p, dpi=100)
     paths.append(str(p))
     return paths

@@ -34,11 +34,12 @@ import torch.nn.functional as F
 from safetensors.torch import load_file, save_file
 
 from sonarset import __version__
+from sonarset.atomic import atomic_text, atomic_write
 from sonarset.errors import SonarSetError
 from sonarset.store import SonarStore
 from sonarset.windows import FrameBank, WindowIndex
 
-from .checkpoint import _atomic, resolve_device, save_checkpoint
+from .checkpoint import resolve_device, save_checkpoint
 from .echopt import EchoPT, make_config
 
 
@@ -112,9 +113,9 @@ def _save_state(out: Path, model: EchoPT, opt: torch.optim.Optimizer, meta: dict
     for idx, st in sd["state"].items():
         for k, v in st.items():
             tensors[f"opt.{idx}.{k}"] = (v if torch.is_tensor(v) else torch.tensor(v)).detach().cpu().contiguous()
-    _atomic(out / "last.safetensors", lambda p: save_file(tensors, str(p)))
+    atomic_write(out / "last.safetensors", lambda p: save_file(tensors, str(p)))
     meta = {**meta, "param_groups": [{k: v for k, v in g.items() if k != "params"} for g in sd["param_groups"]]}
-    _atomic(out / "last.json", lambda p: p.write_text(json.dumps(meta, indent=2) + "\n"))
+    atomic_text(out / "last.json", json.dumps(meta, indent=2) + "\n")
 
 
 def _load_state(out: Path, model: EchoPT, opt: torch.optim.Optimizer) -> dict:
@@ -332,5 +333,5 @@ def add_test_metrics(out_dir: str | os.PathLike, store: SonarStore, samples: int
     card["test"] = {"store": store.location, "split": "test", "windows": len(res.window_ids), "seed": seed,
                     "results": res.summary(),
                     "echopt_vs_flow": [c.to_dict() for c in res.comparisons if {c.a, c.b} == {"echopt", "flow"}]}
-    _atomic(card_path, lambda p: p.write_text(json.dumps(card, indent=2) + "\n"))
+    atomic_text(card_path, json.dumps(card, indent=2) + "\n")
     return card["test"]

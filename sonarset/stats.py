@@ -40,22 +40,29 @@ def compare(a: np.ndarray, b: np.ndarray, *, metric: str, horizon: int, names: t
     if n < 3 or np.all(d == d[0]):
         nan = float("nan")
         return Comparison(metric, horizon, *names, n, float(d.mean()) if n else nan, nan, nan, nan, nan, nan)
-    if np.ptp(d) <= 1e-12 * max(1.0, abs(float(d.mean()))):
-        lo = hi = float(d.mean())  # every window differs by the same amount: no spread to resample
-    else:
-        lo, hi = np.nan, np.nan
-        for method in ("BCa", "percentile"):  # BCa is better; it degenerates on near-constant data
-            with np.errstate(all="ignore"), warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                ci = stats.bootstrap((d,), np.mean, n_resamples=n_resamples, confidence_level=0.95,
-                                     random_state=np.random.default_rng(seed), method=method).confidence_interval
-            lo, hi = float(ci.low), float(ci.high)
-            if np.isfinite(lo) and np.isfinite(hi):
-                break
+    lo, hi = bootstrap_ci(d, n_resamples, seed)
     return Comparison(
         metric, horizon, *names, n, float(d.mean()), lo, hi,
         *_pvalues(a, b, d),
     )
+
+
+def bootstrap_ci(x: np.ndarray, n_resamples: int = 2000, seed: int = 0) -> tuple[float, float]:
+    """Bootstrap 95% CI of the mean of ``x`` (finite values): BCa, percentile where BCa
+    degenerates; (mean, mean) when every value is the same; NaNs for fewer than 3 values."""
+    x = np.asarray(x, float)
+    if len(x) < 3:
+        return float("nan"), float("nan")
+    if np.ptp(x) <= 1e-12 * max(1.0, abs(float(x.mean()))):
+        return float(x.mean()), float(x.mean())  # no spread to resample
+    for method in ("BCa", "percentile"):  # BCa is better; it degenerates on near-constant data
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ci = stats.bootstrap((x,), np.mean, n_resamples=n_resamples, confidence_level=0.95,
+                                 random_state=np.random.default_rng(seed), method=method).confidence_interval
+        if np.isfinite(ci.low) and np.isfinite(ci.high):
+            return float(ci.low), float(ci.high)
+    return float("nan"), float("nan")
 
 
 def _pvalues(a: np.ndarray, b: np.ndarray, d: np.ndarray) -> tuple[float, float, float]:

@@ -6,14 +6,12 @@ from __future__ import annotations
 import concurrent.futures as cf
 import multiprocessing as mp
 import os
-import warnings
 from typing import Callable, Sequence
 
 import numpy as np
-from scipy import stats
-
 from sonarset.perf import keep_freed_memory
 from sonarset.schema import SensorGrid
+from sonarset.stats import bootstrap_ci
 from sonarset.sim.generate import DT
 from sonarset.sim.robot import SENSOR_OFFSET
 
@@ -73,26 +71,12 @@ def parallel_map(fn: Callable, tasks: Sequence, workers: int | None = None,
 
 
 def mean_ci(x: np.ndarray, seed: int = 0) -> tuple[float, float, float]:
-    """Mean and its bootstrap 95% CI (BCa, percentile when BCa degenerates); NaNs dropped."""
+    """Mean and its bootstrap 95% CI (``sonarset.stats.bootstrap_ci``); NaNs dropped."""
     x = np.asarray(x, float)
     x = x[np.isfinite(x)]
     if len(x) == 0:
         return float("nan"), float("nan"), float("nan")
-    if len(x) < 3 or np.ptp(x) == 0:
-        return float(x.mean()), float("nan"), float("nan")
-    for method in ("BCa", "percentile"):
-        with np.errstate(all="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            ci = stats.bootstrap((x,), np.mean, n_resamples=2000, method=method,
-                                 random_state=np.random.default_rng(seed)).confidence_interval
-        if np.isfinite(ci.low) and np.isfinite(ci.high):
-            return float(x.mean()), float(ci.low), float(ci.high)
-    return float(x.mean()), float("nan"), float("nan")
-
-
-def task_seeds(seed: int, n: int) -> list[int]:
-    """Independent per-task seeds spawned from one master seed."""
-    return [int(s.generate_state(1, np.uint64)[0] >> np.uint64(1)) for s in np.random.SeedSequence(seed).spawn(n)]
+    return (float(x.mean()), *bootstrap_ci(x, seed=seed))
 
 
 def finite_or_none(x):
@@ -106,14 +90,3 @@ def finite_or_none(x):
     if isinstance(x, np.integer):
         return int(x)
     return x
-
-
-def save_figure(fig, path) -> None:
-    """Save a matplotlib figure atomically (a reader never sees half a PNG) and close it."""
-    import matplotlib.pyplot as plt
-
-    path = os.fspath(path)
-    tmp = os.path.join(os.path.dirname(path), f".{os.path.basename(path)}.tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    os.replace(tmp, path)

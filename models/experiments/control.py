@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -28,14 +28,15 @@ import numpy as np
 from scipy import ndimage, stats
 
 from sonarset.control import BurstDetector, ControllerGains, SubsumptionController
+from sonarset.atomic import atomic_text, save_figure
 from sonarset.schema import SensorGrid
-from sonarset.sim.generate import DT
+from sonarset.sim.generate import DT, spawn_seeds
 from sonarset.sim.robot import ROBOT_RADIUS, integrate
 from sonarset.sim.sonar import SonarModel
 from sonarset.sim.world import World, corridor_world
 from sonarset.stats import holm
 
-from .common import finite_or_none, mean_ci, parallel_map, predictor, save_figure, task_seeds
+from .common import finite_or_none, mean_ci, parallel_map, predictor
 
 CONDITIONS = ("clean", "bursts")  # plus one "bursts+<model>" condition per predictor
 N_IN = 3
@@ -153,7 +154,7 @@ def run_control_experiment(models: list[str] | tuple[str, ...] = ("echopt:pretra
     for m in models:
         predictor(m, grid, device)  # fail fast on a bad model
     conditions = [*CONDITIONS, *(f"bursts+{m}" for m in models)]
-    seeds = task_seeds(seed, runs)  # run i uses the same spawn, bursts and noise seed in every condition
+    seeds = spawn_seeds(seed, runs)  # run i uses the same spawn, bursts and noise seed in every condition
     eps = [Episode(i, s, c, grid, max_time_s=max_time_s, device=device) for c in conditions for i, s in enumerate(seeds)]
     results = parallel_map(run_episode, eps, workers, progress)
     names = {c: condition_name(c.partition("+")[2]) if "+" in c else c for c in conditions}
@@ -206,13 +207,11 @@ def summarise(by: dict, seed: int = 0) -> tuple[dict, list[dict], dict]:
         c["p_holm"] = p
     detector = {}
     for c, rs in by.items():
-        if c == "clean":
-            truth = np.concatenate([r["burst"] for r in rs])
-            flag = np.concatenate([r["flagged"] for r in rs])
-            detector["false_positive_rate_clean"] = float(flag.mean()) if len(flag) else float("nan")
-            continue
         truth = np.concatenate([r["burst"] for r in rs])
         flag = np.concatenate([r["flagged"] for r in rs])
+        if c == "clean":
+            detector["false_positive_rate_clean"] = float(flag.mean()) if len(flag) else float("nan")
+            continue
         detector[c] = {"frames": len(truth), "bursts": int(truth.sum()),
                        "recall": float((flag & truth).sum() / max(truth.sum(), 1)),
                        "precision": float((flag & truth).sum() / max(flag.sum(), 1))}
@@ -220,7 +219,7 @@ def summarise(by: dict, seed: int = 0) -> tuple[dict, list[dict], dict]:
 
 
 def write_control_report(res: ControlResult, out: str | os.PathLike) -> Path:
-    from ..evaluate import _atomic_text, _fmt_p
+    from ..evaluate import _fmt_p
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -230,7 +229,7 @@ def write_control_report(res: ControlResult, out: str | os.PathLike) -> Path:
     doc = {"experiment": "control", "model": res.model, "runs": res.runs, "conditions": list(res.episodes),
            "summary": res.summary, "tests": res.comparisons, "burst_detector": res.detector,
            "controller_gains": res.gains, "per_run": per_run, "seconds": res.seconds}
-    _atomic_text(out / "metrics.json", json.dumps(finite_or_none(doc), indent=2) + "\n")
+    atomic_text(out / "metrics.json", json.dumps(finite_or_none(doc), indent=2) + "\n")
     fig_path = out / "fig6_control.png"
     save_figure(fig6(res), fig_path)
     lines = ["# Corridor control through noise bursts (EchoPT paper, Fig. 6)", "",
@@ -258,7 +257,7 @@ def write_control_report(res: ControlResult, out: str | os.PathLike) -> Path:
                  if "false_positive_rate_clean" in det else "") + ".",
               "", "Controller gains: " + ", ".join(f"{k} = {v}" for k, v in res.gains.items()) + ".",
               "", f"![Fig. 6]({fig_path.name})", "", f"{res.seconds:.0f} s in all."]
-    _atomic_text(out / "report.md", "\n".join(lines) + "\n")
+    atomic_text(out / "report.md", "\n".join(lines) + "\n")
     return out
 
 

@@ -33,15 +33,16 @@ import numpy as np
 from scipy import stats
 
 from sonarset.metrics import slip_error
+from sonarset.atomic import atomic_text, save_figure
 from sonarset.schema import SensorGrid
-from sonarset.sim.generate import DT
+from sonarset.sim.generate import DT, spawn_seeds
 from sonarset.sim.robot import ExplorationPolicy, apply_slip, integrate
 from sonarset.sim.sonar import SonarModel
 from sonarset.sim.world import lab_world
 from sonarset.stats import holm
 
 from ..baselines import rollout
-from .common import finite_or_none, mean_ci, parallel_map, predictor, save_figure, task_seeds
+from .common import finite_or_none, mean_ci, parallel_map, predictor
 
 HORIZONS = (1, 3, 5)
 KINDS = ("both", "one")
@@ -196,7 +197,7 @@ def run_slip_experiment(models: list[str], trials: int = 30, seed: int = 0, grid
     grid = grid or SensorGrid.default()
     t0 = time.perf_counter()
     names = [predictor(m, grid, device).name for m in models]  # fail fast on a bad model
-    seeds = task_seeds(seed, trials + 1)
+    seeds = spawn_seeds(seed, trials + 1)
     tasks = [_Task(paper_trial(seeds[0]), grid, tuple(models), snr_db, device, True)]
     tasks += [_Task(random_trial(s), grid, tuple(models), snr_db, device, False) for s in seeds[1:]]
     results = parallel_map(_run_trial, tasks, workers, progress)
@@ -239,7 +240,7 @@ def _h(h: int) -> str:
 
 
 def write_slip_report(res: SlipResult, out: str | os.PathLike) -> Path:
-    from ..evaluate import _atomic_text, _fmt_p
+    from ..evaluate import _fmt_p
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -257,7 +258,7 @@ def write_slip_report(res: SlipResult, out: str | os.PathLike) -> Path:
         "paper_trajectory": {"trial": trial, "signal_ratio": _slip_ratios(paper, res.names)},
         "seconds": res.seconds,
     }
-    _atomic_text(out / "metrics.json", json.dumps(finite_or_none(doc), indent=2) + "\n")
+    atomic_text(out / "metrics.json", json.dumps(finite_or_none(doc), indent=2) + "\n")
     fig_path = out / "fig5_slip.png"
     save_figure(fig5(paper, res.names), fig_path)
     by = {(s["predictor"], s["horizon"], s["kind"], s["detector"]): s for s in res.summary}
@@ -300,7 +301,7 @@ def write_slip_report(res: SlipResult, out: str | os.PathLike) -> Path:
             cells = [f"{ratios[f'{name}|{h}|{det}'][kind]:.2f}" for det in DETECTORS for kind in KINDS]
             lines.append(f"| {name} | {_h(h)} | " + " | ".join(cells) + " |")
     lines += ["", f"![Fig. 5]({fig_path.name})", "", f"{res.seconds:.0f} s in all."]
-    _atomic_text(out / "report.md", "\n".join(lines) + "\n")
+    atomic_text(out / "report.md", "\n".join(lines) + "\n")
     return out
 
 

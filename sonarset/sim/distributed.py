@@ -50,26 +50,22 @@ def run_on_dask(scheduler, location: str, plans: list, grid: SensorGrid, workers
                                  key=f"sonarset-generate-{p.name}-{tag}", pure=False, retries=0) for p in plans]
         done = {p.name: 0 for p in plans}
         total = {p.name: p.n_frames for p in plans}
-        pending = list(futures)
-        while pending:
-            time.sleep(0.2)
+
+        def drain() -> None:
             for name, n in queue.get(batch=True):
                 done[name] += n
                 if progress:
                     progress(name, done[name], total[name])
-            still = []
-            for f in pending:
-                if f.done():
-                    f.result()  # re-raise a task's error here
-                    # Only this process writes the root's consolidated metadata.
-                    store.consolidate()
-                else:
-                    still.append(f)
-            pending = still
-        for name, n in queue.get(batch=True):
-            done[name] += n
-            if progress:
-                progress(name, done[name], total[name])
+
+        pending = list(futures)
+        while pending:
+            time.sleep(0.2)
+            drain()
+            for f in [f for f in pending if f.done()]:
+                f.result()  # re-raise a task's error here
+                store.consolidate()  # only this process writes the root's consolidated metadata
+                pending.remove(f)
+        drain()
     finally:
         if cluster is not None:
             client.close()

@@ -44,6 +44,12 @@ class RunPlan:
                 "sensor_offset_m": SENSOR_OFFSET, "wheel_base_m": WHEEL_BASE}
 
 
+def spawn_seeds(seed: int, n: int) -> list[int]:
+    """``n`` independent seeds (non-negative int64) spawned from ``seed`` by NumPy's SeedSequence:
+    one per run, trial or episode, so results do not depend on how tasks are scheduled."""
+    return [int(ss.generate_state(1, np.uint64)[0] >> np.uint64(1)) for ss in np.random.SeedSequence(seed).spawn(n)]
+
+
 def plan_runs(runs: int = 10, test_runs: int = 1, minutes: float = 25.0, seed: int = 0,
               world: str = "lab", snr_db: float = 5.0, psf: str = "array") -> list[RunPlan]:
     n_frames = int(round(minutes * 60 / DT))
@@ -51,10 +57,8 @@ def plan_runs(runs: int = 10, test_runs: int = 1, minutes: float = 25.0, seed: i
         raise SonarSetError(f"--minutes {minutes} gives no frames at 5 Hz")
     if runs < 0 or test_runs < 0 or runs + test_runs < 1:
         raise SonarSetError("need at least one run")
-    children = np.random.SeedSequence(seed).spawn(runs + test_runs)
     plans = []
-    for k, ss in enumerate(children):
-        s = int(ss.generate_state(1, np.uint64)[0] >> np.uint64(1))
+    for k, s in enumerate(spawn_seeds(seed, runs + test_runs)):
         name, split = (f"run_{k:03d}", "train") if k < runs else (f"test_{k - runs:03d}", "test")
         # Every run gets its own variant of a procedural world; a fixed world is the same for all.
         plans.append(RunPlan(name, split, s, world, s % 1_000_003, n_frames, float(snr_db), psf))

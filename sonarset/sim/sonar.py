@@ -209,32 +209,26 @@ class SonarModel:
         for echoes of a batch of frames."""
         R, A = self.grid.shape
         F = 1 if n_frames is None else n_frames
-        if not len(echoes):
-            e = np.zeros((F, R, A), np.float32)
-        else:
-            e = np.zeros((F, R, A), np.float32)  # single precision: the image is float16 in the end
+        e = np.zeros((F, R, A), np.float32)  # single precision: the image is float16 in the end
+        if len(echoes):
             accumulate_psf(e, echoes.frame, echoes.r, np.sin(echoes.theta), echoes.amp ** 2, self.r_c,
                            self.grid.range_step, self._offsets, self._renv2, self._r0, self._r_step,
                            self.u_c, self._beam2, self._u_step)
         return e[0] if n_frames is None else e
 
-    def noise_sigma(self, energy: np.ndarray, snr_db) -> np.ndarray:
-        """Image-domain noise std per frame: SNR below its strongest echo, never under the floor.
+    def noise_sigma(self, energy: np.ndarray, snr_db) -> tuple[np.ndarray, np.ndarray]:
+        """(image-domain noise std, effective SNR at the microphones in dB) per frame of ``energy``
+        (F, R, A): noise ``snr_db`` below each frame's strongest echo, never under the floor, so
+        near the floor a frame's real SNR is below the nominal one.
 
         The PSFs peak at 1, so the image peak is the strongest echo's amplitude at a microphone
         (for a wall, the whole specular return); matched filter and beamformer then lower the
-        noise by the processing gain. ``energy`` is one frame (R, A) or a batch (F, R, A).
+        noise by the processing gain.
         """
-        peak = np.sqrt(energy.reshape(-1, energy.shape[-2] * energy.shape[-1]).max(1))
+        peak = np.sqrt(energy.reshape(len(energy), -1).max(1))
         sigma = peak * 10 ** (-(np.asarray(snr_db, float) + PROCESSING_GAIN_DB) / 20)
         sigma = np.maximum(sigma, np.sqrt(self.e_full) * 10 ** (NOISE_FLOOR_DB / 20))
-        return sigma if energy.ndim == 3 else float(sigma[0])
-
-    def effective_snr_db(self, energy: np.ndarray, sigma) -> np.ndarray:
-        """The SNR at the microphones that a frame really has (below the nominal one near the floor)."""
-        peak = np.sqrt(energy.reshape(-1, energy.shape[-2] * energy.shape[-1]).max(1))
-        snr = 20 * np.log10(np.maximum(peak, 1e-30) / sigma) - PROCESSING_GAIN_DB
-        return snr if energy.ndim == 3 else float(snr[0])
+        return sigma, 20 * np.log10(np.maximum(peak, 1e-30) / sigma) - PROCESSING_GAIN_DB
 
     def noise_energy(self, sigma, rng: np.random.Generator) -> np.ndarray:
         """Noise energy per pixel: complex Gaussian noise of std ``sigma``, shaped like the PSF.
@@ -289,7 +283,6 @@ class SonarModel:
         e = self.energy(ech, len(poses))
         eff, noise = np.full(len(poses), np.inf), None
         if rng is not None:
-            sigma = self.noise_sigma(e, self.snr_db if snr_db is None else snr_db)
-            eff = self.effective_snr_db(e, sigma)
+            sigma, eff = self.noise_sigma(e, self.snr_db if snr_db is None else snr_db)
             noise = self.noise_energy(sigma, rng)
         return self.encode(e, noise, out), eff
