@@ -11,7 +11,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import multiprocessing as mp
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Callable, Iterator
 
 import numpy as np
@@ -19,13 +19,19 @@ import numpy as np
 from .. import __version__
 from ..errors import SonarSetError
 from ..perf import keep_freed_memory
-from ..schema import SensorGrid
+from ..schema import Processing, RobotRig, SensorGrid
 from ..store import DEFAULT_CHUNK_FRAMES, open_or_create_store, open_store
-from .robot import SENSOR_OFFSET, WHEEL_BASE, ExplorationPolicy, apply_slip, integrate
-from .sonar import SonarModel
+from .robot import SENSOR_OFFSET, V_MAX, W_MAX, WHEEL_BASE, ExplorationPolicy, apply_slip, integrate
+from .sonar import SonarModel, check_psf
 from .world import load_world
 
 DT = 0.2  # s, 5 Hz frames
+
+
+def simulator_rig() -> RobotRig:
+    """The simulated robot's geometry, as stores record it."""
+    return RobotRig(frame_interval_s=DT, sensor_offset_m=SENSOR_OFFSET, wheel_base_m=WHEEL_BASE,
+                    v_max_m_s=V_MAX, omega_max_rad_s=W_MAX)
 
 
 @dataclass(frozen=True)
@@ -38,9 +44,11 @@ class RunPlan:
     n_frames: int
     snr_db: float
     psf: str = "array"
+    processing: Processing = field(default_factory=Processing.ertis)  # the store records it in full
 
     def source(self) -> dict:
-        return {"kind": "simulator", "simulator": f"sonarset {__version__}", **asdict(self), "dt": DT,
+        plan = {**asdict(self), "processing": self.processing.profile}
+        return {"kind": "simulator", "simulator": f"sonarset {__version__}", **plan, "dt": DT,
                 "sensor_offset_m": SENSOR_OFFSET, "wheel_base_m": WHEEL_BASE}
 
 
@@ -51,7 +59,8 @@ def spawn_seeds(seed: int, n: int) -> list[int]:
 
 
 def plan_runs(runs: int = 10, test_runs: int = 1, minutes: float = 25.0, seed: int = 0,
-              world: str = "lab", snr_db: float = 5.0, psf: str = "array") -> list[RunPlan]:
+              world: str = "lab", snr_db: float = 5.0, psf: str = "array",
+              processing: Processing | None = None) -> list[RunPlan]:
     n_frames = int(round(minutes * 60 / DT))
     if n_frames < 1:
         raise SonarSetError(f"--minutes {minutes} gives no frames at 5 Hz")
@@ -61,7 +70,8 @@ def plan_runs(runs: int = 10, test_runs: int = 1, minutes: float = 25.0, seed: i
     for k, s in enumerate(spawn_seeds(seed, runs + test_runs)):
         name, split = (f"run_{k:03d}", "train") if k < runs else (f"test_{k - runs:03d}", "test")
         # Every run gets its own variant of a procedural world; a fixed world is the same for all.
-        plans.append(RunPlan(name, split, s, world, s % 1_000_003, n_frames, float(snr_db), psf))
+        plans.append(RunPlan(name, split, s, world, s % 1_000_003, n_frames, float(snr_db), psf,
+                             processing or Processing.ertis()))
     return plans
 
 
@@ -80,7 +90,7 @@ def simulate_blocks(plan: RunPlan, grid: SensorGrid, block: int = DEFAULT_CHUNK_
     motion_ss, noise_ss = np.random.SeedSequence(plan.seed).spawn(2)
     motion_rng = np.random.default_rng(motion_ss)
     policy = ExplorationPolicy(world, motion_rng, dt=DT)
-    model = SonarModel(grid, snr_db=plan.snr_db, psf=plan.psf)
+    model = SonarModel(grid, snr_db=plan.snr_db, psf=plan.psf, processing=plan.processing)
     pose = world.sample_spawn(motion_rng)
     R, A = grid.shape
 
@@ -148,6 +158,7 @@ def generate(
     world: str = "lab",
     snr_db: float = 5.0,
     psf: str = "array",
+    processing: Processing | str = "ertis",
     workers: int | None = None,
     grid: SensorGrid | None = None,
     progress: Callable[[str, int, int], None] | None = None,
@@ -161,21 +172,29 @@ def generate(
     address (``tcp://host:8786``), ``"local"`` for a ``LocalCluster`` of ``workers`` processes, or a
     ``distributed.Client``. Each task writes its own run group to ``out``, which every worker must
     reach (a shared file system or object storage). The arrays are the same either way.
+
+    ``processing`` is a profile name (``ertis``, the default, or ``raw``) or ``Processing`` settings;
+    the store records it, with the robot's rig, in its attributes.
     """
     grid = grid or SensorGrid.default()
     load_world(world, 0)  # fail fast on a bad world name or file, before any process starts
-    from .sonar import BEAMS
-
-    if psf not in BEAMS:
-        raise SonarSetError(f"--psf must be one of {', '.join(BEAMS)}, got {psf!r}")
-    plans = plan_runs(runs, test_runs, minutes, seed, world, snr_db, psf)
+    if isinstance(processing, str):
+        try:
+            processing = Processing.named(processing)
+        except ValueError as exc:
+            raise SonarSetError(f"--processing: {exc}") from None
+    try:
+        check_psf(psf, processing)
+    except ValueError as exc:
+        raise SonarSetError(f"--psf: {exc}") from None
+    plans = plan_runs(runs, test_runs, minutes, seed, world, snr_db, psf, processing)
     loc = os.fspath(out)
     store = open_or_create_store(loc, grid, description=f"simulated by sonarset {__version__}",
-                                 storage_options=storage_options)
+                                 storage_options=storage_options, processing=processing, rig=simulator_rig())
     todo = []
     for plan in plans:
         if plan.name in store.runs():
-            have = store.run(plan.name).attrs.source
+            have = {"processing": "raw", **store.run(plan.name).attrs.source}  # 1.0 runs were raw
             if {k: have.get(k) for k in plan.source()} != plan.source():
                 raise SonarSetError(f"{loc}: run {plan.name} was generated with other settings; "
                                     "use a new output or the same options")

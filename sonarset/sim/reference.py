@@ -2,10 +2,13 @@
 
 For each visible reflector it synthesises the 25->50 kHz sweep at each of the 32 microphones with
 the true two-way delay (emitter at the array centre; far-field arrival across the array), then
-does what eRTIS processing does: matched filter, delay-and-sum beamforming towards every azimuth
-of the grid (in the frequency domain, as an analytic signal), envelope, envelope low-pass, and
-sampling at the grid's range bins. Nothing here shares code with the fast model's PSF tables
-except the sweep definition and the microphone positions.
+does what eRTIS processing does: matched filter, beamforming towards every azimuth of the grid,
+envelope, envelope low-pass, and sampling at the grid's range bins. Two beamformers, as in the
+Cosys-Lab toolbox's ``calculateDMASCF``: delay-and-sum (in the frequency domain, as an analytic
+signal), and DMAS3 with a coherence factor (in the time domain, on the steered channel signals).
+Nothing here shares code with the fast model's PSF tables except the sweep definition and the
+microphone positions; the post-processing of the envelope image (``energyscape.postprocess``) is
+an image operation that both use.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from scipy import fft as sfft
 from scipy import signal
 
 from ..schema import SensorGrid
+from .energyscape import BEAMFORMERS, dmas3
 from .sonar import C_SOUND, Echoes, envelope_lowpass, microphone_y, sweep
 
 FS_REF = 200e3  # Hz: above Nyquist for the 50 kHz top of the sweep
@@ -22,7 +26,16 @@ FS_REF = 200e3  # Hz: above Nyquist for the 50 kHz top of the sweep
 
 def reference_energy(echoes: Echoes, grid: SensorGrid, *, realizations: int = 8, coherent: bool = False,
                      seed: int = 0, fs: float = FS_REF) -> np.ndarray:
-    """Echo energy on the grid (n_range, n_azimuth), from simulated microphone signals.
+    """Delay-and-sum echo energy on the grid (n_range, n_azimuth): ``reference_amplitude`` squared."""
+    return reference_amplitude(echoes, grid, "das", realizations=realizations, coherent=coherent,
+                               seed=seed, fs=fs) ** 2
+
+
+def reference_amplitude(echoes: Echoes, grid: SensorGrid, beamformer: str = "das", *, realizations: int = 8,
+                        coherent: bool = False, seed: int = 0, fs: float = FS_REF) -> np.ndarray:
+    """Beamformed envelope amplitude on the grid (n_range, n_azimuth), from simulated microphone
+    signals: RMS over the noise-free realizations, on the fast model's scale (a lone echo of
+    amplitude a at a microphone peaks at a).
 
     The fast model adds echoes incoherently (diffuse scattering; wall samples 2 cm apart are more
     than half a wavelength apart, so their coherent sum would be an artefact of the sampling). By
@@ -52,10 +65,27 @@ def reference_energy(echoes: Echoes, grid: SensorGrid, *, realizations: int = 8,
     for m in range(len(y)):  # per microphone, to bound memory: (N, F) phase terms at a time
         X[:, m] = weights @ np.exp(-2j * np.pi * tau[:, m, None] * f[None, :])
     Y = X * (np.abs(S) ** 2)[None, None, :]  # sweep spectrum times its matched filter
-    Z = np.einsum("fam,kmf->kaf", steer, Y) / len(y)
-    # Analytic signal: positive frequencies doubled, inverse FFT, magnitude = envelope.
-    full = np.zeros((n_real, len(u), n_fft), complex)
-    full[:, :, band] = 2 * Z
-    env = envelope_lowpass(np.abs(sfft.ifft(full, axis=2)), fs, axis=2)
+    if beamformer not in BEAMFORMERS:
+        raise ValueError(f"beamformer must be one of {', '.join(BEAMFORMERS)}, got {beamformer!r}")
+    if beamformer == "das":
+        Z = np.einsum("fam,kmf->kaf", steer, Y) / len(y)
+        # Analytic signal: positive frequencies doubled, inverse FFT, magnitude = envelope.
+        full = np.zeros((n_real, len(u), n_fft), complex)
+        full[:, :, band] = 2 * Z
+        env = envelope_lowpass(np.abs(sfft.ifft(full, axis=2)), fs, axis=2)
+    else:
+        env = np.empty((n_real, len(u), n_fft))
+        # Only the samples of the grid's ranges (with a margin for the filters' edges) are processed.
+        t0 = max(0, int(t_idx.min()) - int(0.002 * fs))
+        t1 = min(n_fft, int(t_idx.max()) + int(0.002 * fs))
+        env[:] = 0
+        for a in range(len(u)):
+            # The channels steered towards azimuth a, as analytic signals (K, M, T).
+            full = np.zeros((n_real, len(y), n_fft), complex)
+            full[:, :, band] = 2 * Y * steer[:, a, :].T[None]
+            z = sfft.ifft(full, axis=2)[:, :, t0:t1]
+            out = dmas3(z.real, axis=1)
+            out *= np.abs(z.sum(1)) ** 2 / (len(y) * (np.abs(z) ** 2).sum(1) + 1e-300)  # coherence factor
+            env[:, a, t0:t1] = envelope_lowpass(np.abs(signal.hilbert(out, axis=-1)), fs, axis=-1)
     amp = np.maximum(env[:, :, t_idx], 0) / norm  # (K, A, R)
-    return (amp ** 2).mean(0).T
+    return np.sqrt((amp ** 2).mean(0).T)

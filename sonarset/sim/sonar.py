@@ -19,23 +19,29 @@ Physics (DESIGN.md §3), with sources:
 - Noise: SNR is peak echo amplitude over noise std at one microphone; matched filter and array add
   ~33 dB processing gain (10 log10 of time-bandwidth 62.5 plus 32 microphones: 18 + 15 dB).
 
-Echoes add incoherently in energy. Pixels: clip((10 log10(E / E_full) + 60) / 60, 0, 1), where E_full
-is the image peak of a perfect wall at normal incidence at the minimum range 0.5 m.
+Echoes add incoherently in energy. The image is then made as the sensor's toolchain makes it
+(``energyscape.py``, the ``processing`` settings): delay-and-sum, or DMAS3 with a coherence factor
+(its pattern ``energyscape.dmas3_beam_table``; the factor from the ratio of beamformed energy to the
+energy at one microphone, which is exact for one echo and for noise), then smoothing, removal of
+1.5 x the azimuth mean, clipping and a log with a floor. The ``raw`` profile is delay-and-sum energy
+with no post-processing: clip((10 log10(E / E_full) + 60) / 60, 0, 1), where E_full is the image
+peak of a perfect wall at normal incidence at the minimum range 0.5 m.
 """
 
 from __future__ import annotations
 
 import csv
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 
 import numpy as np
 from scipy import fft as sfft
 from scipy import signal, special
 
-from ..schema import SensorGrid
-from .kernels import accumulate_psf, reflector_echoes
+from ..schema import Processing, SensorGrid
+from .energyscape import dmas3_beam_table, dmas3_noise_gain, postprocess, smooth
+from .kernels import accumulate_psf, accumulate_psf_coherence, reflector_echoes
 from .robot import sensor_pose
 from .world import World
 
@@ -116,6 +122,15 @@ def mainlobe_table(n: int = 4001) -> tuple[np.ndarray, np.ndarray]:
 BEAMS = {"array": beam_table, "mainlobe": mainlobe_table}
 
 
+def check_psf(psf: str, processing: Processing) -> None:
+    """ValueError unless the azimuth PSF ``psf`` can be used with ``processing``."""
+    if psf not in BEAMS:
+        raise ValueError(f"psf must be one of {', '.join(BEAMS)}, got {psf!r}")
+    if processing.beamformer != "das" and psf != "array":
+        raise ValueError(f"psf {psf!r} is a delay-and-sum ablation; it needs a 'das' beamformer "
+                         f"(processing {processing.profile!r} uses {processing.beamformer!r})")
+
+
 def emitter_directivity(theta: np.ndarray, f: float = 40e3) -> np.ndarray:
     x = 2 * np.pi * f / C_SOUND * EMITTER_RADIUS * np.sin(theta)
     out = np.ones_like(x)
@@ -169,10 +184,12 @@ class SonarModel:
     snr_db: float = 5.0
     dynamic_range_db: float = DYNAMIC_RANGE_DB
     psf: str = "array"  # azimuth PSF: "array" (the eRTIS delay-and-sum pattern) or "mainlobe"
+    processing: Processing = field(default_factory=Processing.ertis)
 
     def __post_init__(self) -> None:
-        if self.psf not in BEAMS:
-            raise ValueError(f"psf must be one of {', '.join(BEAMS)}, got {self.psf!r}")
+        check_psf(self.psf, self.processing)
+        # raw: format 1.0's images, made by the energy-domain encoder below (bit for bit the same)
+        self._raw = self.processing.beamformer == "das" and not self.processing.post_processed
         dr, env = range_psf_table()
         du, bp = BEAMS[self.psf]()
         self._r_step = dr[1] - dr[0]
@@ -183,8 +200,21 @@ class SonarModel:
         self._r0, self._renv2 = dr[0], np.convolve(env ** 2, np.ones(box) / box, mode="same")
         self._u_step = du[1] - du[0]
         self._beam2 = bp ** 2
+        if self.processing.beamformer == "dmas3-cf":
+            du3, b3 = dmas3_beam_table(len(du))
+            assert np.allclose(du3, du)
+            self._beam3_2 = b3 ** 2
+            # DMAS3's side lobes sit near -43 dB and the coherence factor takes them ~30 dB lower
+            # (it is the delay-and-sum pattern squared for one echo): below the 60 dB display range,
+            # so only the main lobe down to -40 dB is accumulated.
+            below = np.abs(du)[b3 < 1e-2]
+            self._u3_max = float(below.min())  # the main lobe's -40 dB half-width in u
+            self._n_mics = len(microphone_y())
+            self._dmas3_noise = np.float32(dmas3_noise_gain(self._n_mics))
         self.r_c = self.grid.range_centres()
         self.u_c = np.sin(self.grid.azimuth_centres())
+        if self.processing.beamformer == "dmas3-cf" and not np.all(np.diff(self.u_c) > 0):
+            self._u3_max = 2.0  # azimuths beyond +-90 deg: u is not monotonic, accumulate everywhere
         # noise correlation lengths in bins: the PSF widths at broadside (Gaussian sigma)
         sig = (max(0.0085 / self.grid.range_step, 0.3), max(np.radians(2.4) / self.grid.azimuth_step, 0.3))
         fr, fa = np.fft.fftfreq(self.grid.n_range), np.fft.fftfreq(self.grid.n_azimuth)
@@ -194,15 +224,21 @@ class SonarModel:
         support = np.abs(dr[self._renv2 > 1e-6 * self._renv2.max()]).max() + self.grid.range_step
         k = int(np.ceil(support / self.grid.range_step)) + 1
         self._offsets = np.arange(-k, k + 1)
-        self.e_full = self._full_scale()
+        self.e_full, self.a_full = self._full_scale()
 
-    def _full_scale(self) -> float:
-        """Peak energy of a perfect wall at normal incidence at the grid's minimum range."""
+    def _full_scale(self) -> tuple[float, float]:
+        """(peak delay-and-sum energy, peak processed amplitude) of a perfect wall at normal incidence
+        at the grid's minimum range: the strongest echo the sensor can see, through the same
+        beamformer and smoothing."""
         r0 = max(self.grid.range_min_m, 0.05) + self.grid.range_step / 2
         world = World("cal", np.array([[r0, -50.0]]), np.array([[r0, 50.0]]), np.ones(1),
                       np.zeros((0, 2)), np.zeros(0), np.zeros(0))
         ech = visible_echoes(world, np.zeros(3), r0 + 1.0)
-        return float(self.energy(ech).max())
+        e_full = float(self.energy(ech).max())
+        if self._raw:
+            return e_full, float(np.sqrt(e_full))
+        amp = smooth(self.amplitude(ech, 1)[0][0], self.grid, self.processing)
+        return e_full, float(amp.max())
 
     def energy(self, echoes: Echoes, n_frames: int | None = None) -> np.ndarray:
         """Noise-free echo energy on the grid: (n_range, n_azimuth), or (n_frames, n_range, n_azimuth)
@@ -215,6 +251,52 @@ class SonarModel:
                            self.grid.range_step, self._offsets, self._renv2, self._r0, self._r_step,
                            self.u_c, self._beam2, self._u_step)
         return e[0] if n_frames is None else e
+
+    def amplitude(self, echoes: Echoes, n_frames: int, rng: np.random.Generator | None = None,
+                  snr_db=None) -> tuple[np.ndarray, np.ndarray]:
+        """Beamformed envelope amplitude (n_frames, R, A) float32, before post-processing, and the
+        frames' effective SNRs (n_frames,) as ``noise_sigma`` gives them.
+
+        With ``rng``, sensor noise is added (``snr_db`` overrides the model's SNR per frame): drawn
+        as ``noise_energy`` (the same numbers whatever the beamformer) and passed through the
+        beamformer. DMAS3 sees the same noise field, ``dmas3_noise_gain`` weaker; the coherence
+        factor is (beamformed energy) / (energy at one microphone), the noise's share of which is
+        N sigma^2 (the array's gain is N).
+        """
+        R, A = self.grid.shape
+        if self.processing.beamformer == "das":
+            e = self.energy(echoes, n_frames)
+        else:
+            e = np.zeros((n_frames, R, A), np.float32)
+            e3 = np.zeros((n_frames, R, A), np.float32)
+            e_mic = np.zeros((n_frames, R), np.float32)
+            if len(echoes):
+                accumulate_psf_coherence(e, e3, e_mic, echoes.frame, echoes.r, np.sin(echoes.theta), echoes.amp ** 2,
+                                         self.r_c, self.grid.range_step, self._offsets, self._renv2, self._r0,
+                                         self._r_step, self.u_c, self._beam2, self._beam3_2, self._u_step,
+                                         self._u3_max)
+        eff = np.full(n_frames, np.inf)
+        noise = None
+        if rng is not None:
+            sigma, eff = self.noise_sigma(e, self.snr_db if snr_db is None else snr_db)
+            noise = self.noise_energy(sigma, rng)
+            e += noise
+        if self.processing.beamformer == "das":
+            return np.sqrt(e, out=e), eff
+        if noise is not None:
+            noise *= self._dmas3_noise
+            e3 += noise
+            e_mic += (self._n_mics * sigma.astype(np.float32) ** 2)[:, None]
+        # CF <= 1 by Cauchy-Schwarz; float rounding of the tabulated PSFs can nudge it over
+        cf = np.divide(e, np.maximum(e_mic, np.float32(1e-30))[:, :, None], out=e)
+        np.minimum(cf, 1, out=cf)
+        np.sqrt(e3, out=e3)
+        e3 *= cf
+        return e3, eff
+
+    def pixels(self, amplitude: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Post-processed pixels in [0, 1] from ``amplitude`` (overwritten)."""
+        return postprocess(amplitude, self.grid, self.processing, self.a_full, out)
 
     def noise_sigma(self, energy: np.ndarray, snr_db) -> tuple[np.ndarray, np.ndarray]:
         """(image-domain noise std, effective SNR at the microphones in dB) per frame of ``energy``
@@ -280,6 +362,9 @@ class SonarModel:
         """
         poses = np.asarray(robot_poses, float)
         ech = visible_echoes(world, sensor_pose(poses), self.grid.range_max_m + 0.1)
+        if not self._raw:
+            amp, eff = self.amplitude(ech, len(poses), rng, snr_db)
+            return self.pixels(amp, out), eff
         e = self.energy(ech, len(poses))
         eff, noise = np.full(len(poses), np.inf), None
         if rng is not None:
