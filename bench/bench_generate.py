@@ -3,7 +3,8 @@
     python bench/bench_generate.py            # quick: 2 runs x 1500 frames
     python bench/bench_generate.py --full     # plus the paper-scale default: 11 runs x 7500 frames
 
-Prints frames/s of the simulator alone (one process, no storage), of simulate+write with 1 and 2
+Prints frames/s of the simulator alone (one process, no storage) for the default ``ertis`` images and
+for ``raw`` delay-and-sum images (the reference in the same run), of simulate+write with 1 and 2
 worker processes (the ratio is the parallel scaling), the wall time of the full default
 configuration, and peak memory of the parent and of the largest worker.
 """
@@ -17,7 +18,7 @@ import resource
 import tempfile
 import time
 
-from sonarset.schema import SensorGrid
+from sonarset.schema import Processing, SensorGrid
 from sonarset.sim.generate import generate, plan_runs, simulate_blocks
 from sonarset.sim.sonar import beam_table, range_psf_table
 
@@ -32,12 +33,17 @@ def main() -> None:
     beam_table(), range_psf_table()  # one-time tables, not part of the per-frame rate
     minutes = args.frames * 0.2 / 60
 
-    list(simulate_blocks(plan_runs(1, 0, 0.2, seed=1)[0], grid))  # load the compiled kernels first
-    plan = plan_runs(1, 0, minutes, seed=0)[0]
-    t0 = time.perf_counter()
-    n = sum(len(b["time"]) for _, b in simulate_blocks(plan, grid))
-    sim = n / (time.perf_counter() - t0)
-    print(f"simulate only, 1 process     {sim:8,.0f} frames/s  ({1000 / sim:.2f} ms/frame)")
+    rate = {}
+    for name in ("raw", "ertis"):
+        processing = Processing.named(name)
+        list(simulate_blocks(plan_runs(1, 0, 0.2, seed=1, processing=processing)[0], grid))  # compile, tabulate
+        plan = plan_runs(1, 0, minutes, seed=0, processing=processing)[0]
+        t0 = time.perf_counter()
+        n = sum(len(b["time"]) for _, b in simulate_blocks(plan, grid))
+        rate[name] = n / (time.perf_counter() - t0)
+        print(f"simulate only, 1 process, {name:5s} {rate[name]:8,.0f} frames/s  ({1000 / rate[name]:.2f} ms/frame)")
+    sim = rate["ertis"]
+    print(f"ertis processing costs {rate['raw'] / sim:.2f}x the raw images")
 
     with tempfile.TemporaryDirectory() as tmp:
         rates = {}

@@ -69,6 +69,9 @@ def info(
     summary = {
         "store": s.location, "format_version": s.format_version, "grid": g.model_dump(),
         "frame_rate_hz": s.attrs.frame_rate_hz, "created_by": s.attrs.created_by,
+        "processing": s.processing.model_dump(mode="json"),
+        "rig": s.rig.model_dump(mode="json") if s.rig is not None else None,
+        "rig_recorded": s.attrs.rig is not None,
         "runs": [{"name": r.name, "split": r.split, "frames": r.n_frames,
                   "duration_s": float(r.time[-1] - r.time[0]) if r.n_frames > 1 else 0.0,
                   "image_dtype": str(r.images.dtype),
@@ -80,6 +83,11 @@ def info(
         return
     out.print(f"[bold]{s.location}[/]  SonarSet {s.format_version}  ({s.attrs.created_by or 'unknown writer'})")
     out.print(f"grid: {g.describe()}, bins {g.range_step * 100:.3g} cm x {math.degrees(g.azimuth_step):.3g} deg")
+    out.print(f"processing: {s.processing.describe()}", highlight=False)
+    rig = s.rig
+    out.print(f"rig: {rig.describe() if rig is not None else 'not recorded'}"
+              + (" (from the simulator's run provenance)" if rig is not None and s.attrs.rig is None else ""),
+              highlight=False)
     table = Table("run", "split", "frames", "duration", "images", "optional")
     for r in summary["runs"]:
         table.add_row(r["name"], r["split"], str(r["frames"]), f"{r['duration_s']:.1f} s", r["image_dtype"],
@@ -161,6 +169,9 @@ def generate(
     world: str = typer.Option("lab", "--world", help="Built-in world (lab, corridor) or a JSON/TOML world file."),
     snr_db: float = typer.Option(5.0, "--snr-db", help="SNR at the microphones, dB."),
     psf: str = typer.Option("array", "--psf", help="Azimuth PSF: array (eRTIS delay-and-sum, with side lobes) or mainlobe."),
+    processing: str = typer.Option("ertis", "--processing",
+                                   help="Images: ertis (DMAS3 + coherence factor, energyscape post-processing, "
+                                        "the sensor toolchain's) or raw (delay-and-sum energy, format 1.0's)."),
     n_range: int = typer.Option(200, "--n-range", min=2, help="Range bins over 0.5-5 m."),
     n_azimuth: int = typer.Option(90, "--n-azimuth", min=2, help="Azimuth bins over -90..+90 deg."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler",
@@ -192,7 +203,8 @@ def generate(
             bar.update(tasks[name], completed=done, rate=f"{rate:,.0f} frames/s")
 
         written = gen(out_store, runs=runs, test_runs=test_runs, minutes=minutes, seed=seed, world=world,
-                      snr_db=snr_db, psf=psf, workers=workers, grid=grid, progress=progress, scheduler=scheduler)
+                      snr_db=snr_db, psf=psf, processing=processing, workers=workers, grid=grid,
+                      progress=progress, scheduler=scheduler)
     dt = time.perf_counter() - t0
     out.print(f"{out_store}: wrote {len(written)} run(s) in {dt:.1f} s"
               + (f" ({runs + test_runs - len(written)} already complete)" if len(written) < runs + test_runs else ""))
@@ -249,6 +261,9 @@ def eval_(
     seed: int = typer.Option(0, "--seed", help="Seed of the window draw and the bootstrap."),
     device: str = typer.Option("cpu", "--device", help="Device for learned models: cpu, cuda, auto."),
     figures: bool = typer.Option(True, "--figures/--no-figures", help="Write the PNG figures."),
+    ceiling: bool = typer.Option(False, "--ceiling",
+                                 help="Add the noise ceiling: target frames of simulated runs re-rendered with "
+                                      "independent noise (how much of a frame is predictable at all)."),
 ) -> None:
     """Evaluate predictors on the same windows: the paper's table, statistics and figures."""
     from sonarset.store import open_store
@@ -259,10 +274,16 @@ def eval_(
     with progress_bar() as bar:
         progress = per_name_progress(bar)
         res = evaluate(s, specs, horizons=tuple(_int_list(horizons, "--horizons")), samples=samples,
-                       split=split, seed=seed, device=device, progress=progress)
+                       split=split, seed=seed, device=device, progress=progress, ceiling=ceiling)
     write_report(res, out_dir, figures=figures)
+    _print_notes(res.notes)
     out.print(results_table(res, with_paper=False))
     out.print(f"{len(res.window_ids)} windows of split {split!r}; report: {out_dir / 'report.md'}")
+
+
+def _print_notes(notes: list[str]) -> None:
+    for note in notes:
+        out.print(note, style="yellow", markup=False, highlight=False)
 
 
 @app.command()
@@ -338,7 +359,8 @@ def demo(
     model: str = typer.Option("pretrained", "--model", help="EchoPT checkpoint: pretrained or a path."),
     device: str = typer.Option("auto", "--device"),
 ) -> None:
-    """Simulate a fresh test run and compare the pretrained EchoPT with persistence, naive and flow."""
+    """Simulate a fresh test run and compare the pretrained EchoPT with persistence, naive and flow
+    (and the noise ceiling)."""
     import time
 
     from sonarset.models.evaluate import evaluate, results_table, write_report
@@ -354,12 +376,18 @@ def demo(
         gen(store_path, runs=0, test_runs=1, minutes=minutes, seed=seed, workers=1, grid=SensorGrid.default(),
             progress=lambda name, done, total: bar.update(task, completed=done, total=total))
     s = open_store(store_path)
-    out.print(f"evaluating persistence, naive, flow and EchoPT ({model}) on {samples} windows, horizons 1, 3, 5, 10")
+    from sonarset.models.cards import card_processing, describe_images, read_card
+
+    out.print(f"EchoPT ({model}) was trained on {describe_images(card_processing(read_card(model)))}; "
+              f"the fresh run has {describe_images(s.processing)}", highlight=False)
+    out.print(f"evaluating persistence, naive, flow and EchoPT ({model}) on {samples} windows, horizons 1, 3, 5, 10, "
+              "with the noise ceiling")
     with progress_bar() as bar:
         progress = per_name_progress(bar)
         res = evaluate(s, ["persistence", "naive", "flow", f"echopt:{model}"], samples=samples,
-                       device=device, progress=progress)
+                       device=device, progress=progress, ceiling=True)
     write_report(res, out_dir)
+    _print_notes(res.notes)
     out.print(results_table(res, with_paper=True))
     one = {c.metric: c for c in res.comparisons if c.horizon == 1 and {c.a, c.b} == {"flow", "echopt"}}
     from sonarset.models.evaluate import _fmt_p

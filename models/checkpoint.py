@@ -1,7 +1,8 @@
 """EchoPT weights as safetensors with a JSON model card; no pickle is ever loaded.
 
 A checkpoint is two files: ``NAME.safetensors`` (the weights) and ``NAME.json`` (the card: preset,
-config, grid, training store and command, epochs, validation loss, test metrics).
+config, grid, the training store's image processing and robot rig (models/cards.py), training
+store and command, epochs, validation loss, test metrics).
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ import torch
 
 from sonarset.schema import SensorGrid
 
-from .checkpoint import load_checkpoint, resolve_device
+from .checkpoint import load_checkpoint, resolve, resolve_device
 
 
 class EchoPTPredictor:
@@ -15,6 +15,7 @@ class EchoPTPredictor:
         self.model, self.card, self.grid = model, card, grid
         self.device, self.batch_size = device, batch_size
         self.name = "echopt"
+        self.label = "echopt"  # names the checkpoint in notes: echopt-small, run-small/model
 
     @torch.no_grad()
     def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:
@@ -30,4 +31,7 @@ class EchoPTPredictor:
 def load_echopt_predictor(spec: str, grid: SensorGrid, device: str = "cpu") -> EchoPTPredictor:
     dev = resolve_device(device)
     model, card = load_checkpoint(spec, grid, dev)
-    return EchoPTPredictor(model, card, grid, dev)
+    p = EchoPTPredictor(model, card, grid, dev)
+    path = resolve(spec)
+    p.label = path.stem if path.stem.startswith("echopt") else f"echopt {path.parent.name}/{path.stem}"
+    return p

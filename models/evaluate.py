@@ -18,6 +18,7 @@ from typing import Callable
 import numpy as np
 
 from sonarset.atomic import atomic_text, atomic_write
+from sonarset.ceiling import CEILING
 from sonarset.errors import SonarSetError
 from sonarset.metrics import cc, nrmsd
 from sonarset.stats import Comparison, compare, holm
@@ -34,6 +35,9 @@ PAPER = {
 }
 METRICS = ("cc", "nrmsd")
 LOWER_IS_BETTER = {"cc": False, "nrmsd": True}
+CEILING_MEANING = ("noise ceiling: each target frame re-rendered from its run's recorded world and poses "
+                   "with an independent noise draw, scored against the recorded frame; it shows how much "
+                   "of a frame is predictable at all (the same scene, only the noise differs).")
 
 
 @dataclass
@@ -49,6 +53,14 @@ class EvalResult:
     comparisons: list[Comparison] = field(default_factory=list)
     seconds: dict[str, float] = field(default_factory=dict)
     examples: dict = field(default_factory=dict)  # data for the figures
+    notes: list[str] = field(default_factory=list)  # one line each: what makes scores less comparable
+    # ceiling=True: run -> one-line reason, for each run of the split it could not re-render
+    ceiling_skipped: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def predictors(self) -> list[str]:
+        """The methods that predict: every method but the noise ceiling."""
+        return [m for m in self.methods if m != CEILING]
 
     def summary(self) -> dict:
         out: dict = {}
@@ -65,13 +77,15 @@ class EvalResult:
         return out
 
 
-def _robot_geometry(store: SonarStore, runs: list[str]) -> tuple[float, float]:
-    """(dt, sensor offset) of the runs: from provenance when recorded, else the frame rate and 0."""
+def _robot_geometry(store: SonarStore) -> tuple[float, float, str | None]:
+    """(dt, sensor offset, note) from the store's robot rig; without one, the frame rate and offset 0,
+    and a note saying so."""
+    rig = store.rig
+    if rig is not None:
+        return rig.frame_interval_s, rig.sensor_offset_m, None
     dt = 1.0 / store.attrs.frame_rate_hz
-    offsets = {float(store.run(r).attrs.source.get("sensor_offset_m", 0.0)) for r in runs}
-    if len(offsets) > 1:
-        raise SonarSetError(f"{store.location}: runs have different sensor mounts {sorted(offsets)}")
-    return dt, offsets.pop()
+    return dt, 0.0, (f"note: the store records no robot rig: naive and flow assume {dt:g} s frames "
+                     "(its frame rate) and the sensor on the wheel axle")
 
 
 def evaluate(
@@ -86,24 +100,36 @@ def evaluate(
     device: str = "cpu",
     predictors: dict[str, Predictor] | None = None,
     progress: Callable[[str, int, int], None] | None = None,
+    ceiling: bool = False,
 ) -> EvalResult:
     """Evaluate every model on the same ``samples`` windows of ``split``, for every horizon.
 
     Windows are drawn once (seeded) among those with room for the longest horizon, so every
     method and horizon sees the same starting points; each method is rolled out once to the
     longest horizon and scored at every requested one.
+
+    With ``ceiling``, the target frames of simulated runs are also re-rendered from their recorded
+    world and poses with an independent noise draw (seeded by ``seed``) and scored as the method
+    ``"ceiling"``: the noise ceiling, how much of a frame is predictable at all. Runs it cannot
+    re-render get NaN there, a reason in ``ceiling_skipped`` and a line in ``notes``; with none,
+    the row is omitted.
     """
+    from .cards import training_notices
     from .registry import make_predictor
 
     horizons = tuple(sorted(set(int(h) for h in horizons)))
     if not horizons or horizons[0] < 1:
         raise SonarSetError("horizons must be positive integers")
     bank = FrameBank.from_store(store, split=split, image_dtype=np.float32)
-    dt, offset = _robot_geometry(store, bank.run_names)
+    dt, offset, note = _robot_geometry(store)
+    notes = [note] if note else []
     preds: dict[str, Predictor] = dict(predictors or {})
     for spec in model_specs:
         p = make_predictor(spec, store.grid, dt=dt, sensor_offset=offset, device=device)
         preds[p.name] = p
+    for p in preds.values():  # a learned model meeting other images than it was trained on
+        if isinstance(getattr(p, "card", None), dict):
+            notes += training_notices(getattr(p, "label", p.name), p.card, store.processing, store.rig)
     if not preds:
         raise SonarSetError("no models to evaluate")
     H = horizons[-1]
@@ -132,16 +158,78 @@ def evaluate(
                 examples["methods"][name] = pred[0]
             if progress:
                 progress(name, sl.stop, len(index))
-    result = EvalResult(store.location, split, bank.run_names, list(horizons), list(preds),
-                        index.starts, ids, per_window, seconds=seconds, examples=examples)
+    skipped: dict[str, str] = {}
+    if ceiling:
+        t0 = time.perf_counter()
+        scores, skipped = _ceiling_scores(store, bank, index, ids, horizons, seed, batch_size, progress)
+        notes += [f"ceiling: run {r} not re-rendered: {why}" for r, why in skipped.items()]
+        if scores is None:
+            notes.append(f"ceiling: no run of split {split!r} can be re-rendered; the ceiling row is omitted")
+        else:
+            per_window[CEILING] = scores
+            seconds[CEILING] = time.perf_counter() - t0
+    result = EvalResult(store.location, split, bank.run_names, list(horizons), list(per_window),
+                        index.starts, ids, per_window, seconds=seconds, examples=examples, notes=notes,
+                        ceiling_skipped=skipped)
     result.comparisons = _compare_all(result, seed)
     return result
+
+
+def _ceiling_scores(store: SonarStore, bank: FrameBank, index: WindowIndex, ids: list[tuple[str, int]],
+                    horizons: tuple[int, ...], seed: int, batch_size: int, progress=None):
+    """Per-window scores of the noise ceiling (NaN for windows of runs it cannot re-render), or
+    None when it can re-render no run; and {run: reason} for the runs it skipped.
+
+    The ceiling's prediction of a target frame is that frame re-rendered: at horizon h, window w's
+    target is frame k_w + n_in + h - 1 of its run. Only those frames are rendered, in batches.
+    """
+    from sonarset.ceiling import CeilingUnavailable, RunRenderer
+
+    n_in = index.n_in
+    scores = {h: {k: np.full(len(ids), np.nan) for k in METRICS} for h in horizons}
+    run_of = np.array([r for r, _ in ids])
+    first = np.array([k for _, k in ids], np.int64)
+    hs = np.asarray(horizons, np.int64)
+    skipped: dict[str, str] = {}
+    todo = []
+    for name in bank.run_names:
+        try:
+            todo.append(RunRenderer(store, name, seed))
+        except CeilingUnavailable as exc:
+            skipped[name] = str(exc)
+    if not todo:
+        return None, skipped
+    plans = []
+    for r in todo:
+        w = np.flatnonzero(run_of == r.name)
+        # (window, horizon) pairs of this run and their target frames, each frame rendered once
+        ww, hh = np.repeat(w, len(hs)), np.tile(hs, len(w))
+        frames, which = np.unique(first[ww] + n_in + hh - 1, return_inverse=True)
+        plans.append((r, ww, hh, frames, which))
+    total, done = sum(len(p[3]) for p in plans), 0
+    step = max(1, batch_size)
+    for r, ww, hh, frames, which in plans:
+        for lo in range(0, len(frames), step):
+            hi = min(len(frames), lo + step)
+            images = r.render(frames[lo:hi])
+            sel = np.flatnonzero((which >= lo) & (which < hi))
+            w, h = ww[sel], hh[sel]
+            pred = images[which[sel] - lo]
+            target = bank.images[index.starts[w] + n_in + h - 1]
+            for k, metric in (("cc", cc), ("nrmsd", nrmsd)):
+                vals = metric(pred, target)
+                for hz in horizons:
+                    scores[hz][k][w[h == hz]] = vals[h == hz]
+            done += hi - lo
+            if progress:
+                progress(CEILING, done, total)
+    return scores, skipped
 
 
 def _compare_all(res: EvalResult, seed: int) -> list[Comparison]:
     comps = []
     for h in res.horizons:
-        for a, b in combinations(res.methods, 2):
+        for a, b in combinations(res.predictors, 2):  # the noise ceiling is no predictor
             for k in METRICS:
                 comps.append(compare(res.per_window[a][h][k], res.per_window[b][h][k], metric=k,
                                      horizon=h, names=(a, b), seed=seed))
@@ -165,11 +253,15 @@ def write_report(res: EvalResult, out: str | os.PathLike, *, figures: bool = Tru
         "windows": {"n": len(res.window_ids), "n_in": 3, "horizons": res.horizons,
                     "ids": [[r, k] for r, k in res.window_ids]},
         "seconds": res.seconds,
+        "notes": res.notes,
+        **({"ceiling": {"method": CEILING, "meaning": CEILING_MEANING, "skipped_runs": res.ceiling_skipped}}
+           if CEILING in res.methods or res.ceiling_skipped else {}),
         "paper": {m: {k: {str(h): v for h, v in d.items()} for k, d in t.items()} for m, t in PAPER.items()},
     }
     atomic_text(out / "metrics.json", json.dumps(doc, indent=2) + "\n")
     rows = [(m, h, f"{r}:{k}", float(res.per_window[m][h]["cc"][i]), float(res.per_window[m][h]["nrmsd"][i]))
-            for m in res.methods for h in res.horizons for i, (r, k) in enumerate(res.window_ids)]
+            for m in res.methods for h in res.horizons for i, (r, k) in enumerate(res.window_ids)
+            if m != CEILING or r not in res.ceiling_skipped]  # the ceiling has no row for runs it skipped
     def write_csv(path: Path) -> None:
         with open(path, "w", newline="") as f:
             w = csv.writer(f)
@@ -200,7 +292,8 @@ def results_table(res: EvalResult, with_paper: bool = True) -> str:
     for m in res.methods:
         cells = [f"{s[m][str(h)]['cc']['mean']:.3f} ({s[m][str(h)]['cc']['std']:.3f})" for h in res.horizons]
         cells += [f"{s[m][str(h)]['nrmsd']['mean']:.3f} ({s[m][str(h)]['nrmsd']['std']:.3f})" for h in res.horizons]
-        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        label = f"*{m} (noise ceiling, not a predictor)*" if m == CEILING else m
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
         if with_paper and m in PAPER:
             p = PAPER[m]
             cells = [f"{p['cc'].get(h, float('nan')):.2f}" if h in p["cc"] else "-" for h in res.horizons]
@@ -223,7 +316,10 @@ def render_report(res: EvalResult, figures: list[str]) -> str:
         "Table 1 values in italics below ours (its simulator differs: compare orderings and gaps, "
         "not absolute values). CC higher is better; NRMSD lower is better.",
         "",
+        *[f"> {n}\n" for n in res.notes],
         results_table(res),
+        *(["", f"*{CEILING}* is the {CEILING_MEANING} It is not a predictor and is left out of the "
+               "statistics below."] if CEILING in res.methods else []),
         "",
         "## Statistics",
         "",
@@ -244,7 +340,8 @@ def render_report(res: EvalResult, figures: list[str]) -> str:
                      f"[{c.ci_low:+.4f}, {c.ci_high:+.4f}] | {_fmt_p(c.t_two_sample_p)} | {_fmt_p(c.t_paired_p)} | "
                      f"{_fmt_p(c.wilcoxon_p)} | {_fmt_p(c.p_holm)} | {better} |")
     parts += ["", "## Timing", ""]
-    parts += [f"- {m}: {t:.2f} s for {n} windows rolled out to {max(res.horizons)} steps" for m, t in res.seconds.items()]
+    parts += [f"- {m}: {t:.2f} s to re-render the target frames" if m == CEILING else
+              f"- {m}: {t:.2f} s for {n} windows rolled out to {max(res.horizons)} steps" for m, t in res.seconds.items()]
     if figures:
         parts += ["", "## Figures", ""]
         parts += [f"![{Path(f).stem}]({Path(f).name})" for f in figures]

@@ -83,7 +83,8 @@ def write_figures(res, out: Path) -> list[str]:
             mean = [s[m][str(h)][k]["mean"] for h in res.horizons]
             n = [s[m][str(h)]["n"] for h in res.horizons]
             sem = [s[m][str(h)][k]["std"] / np.sqrt(max(1, nn)) for h, nn in zip(res.horizons, n)]
-            ax.errorbar(res.horizons, mean, yerr=1.96 * np.array(sem), marker="o", capsize=3, label=m)
+            style = {"color": "0.3", "ls": "--", "label": "noise ceiling"} if m == "ceiling" else {"label": m}
+            ax.errorbar(res.horizons, mean, yerr=1.96 * np.array(sem), marker="o", capsize=3, **style)
         ax.set_xlabel("horizon H (frames ahead)")
         ax.set_ylabel(k.upper())
         ax.set_xticks(res.horizons)

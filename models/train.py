@@ -262,6 +262,9 @@ def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progres
     local = cfg.batch_size // dist.world  # this process's slice of each global batch
     card_base = {
         "format": "echopt-card/1", "preset": cfg.preset, "grid": store.grid.model_dump(),
+        # what the model knows: the images' processing and the robot (models/cards.py reads them)
+        "processing": store.processing.model_dump(mode="json"),
+        "rig": store.rig.model_dump(mode="json") if store.rig is not None else None,
         "training": {"store": store.location, "runs": bank.run_names, "command": cfg.command,
                      "sonarset": __version__, "config": asdict(cfg), "windows_train": len(train_idx),
                      "windows_val": len(val_idx), "steps_per_epoch": steps_per_epoch},

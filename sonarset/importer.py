@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from .errors import InputValidationError, SonarSetError
-from .schema import RecordingMeta, SensorGrid, pydantic_problems
+from .schema import Processing, RecordingMeta, SensorGrid, pydantic_problems
 from .store import Run, _is_url, create_store, open_or_create_store, open_store
 
 ARRAY_KEYS = ("images", "velocity", "time", "range", "azimuth", "pose", "snr_db", "slip")
@@ -326,6 +326,8 @@ def import_recording(
 
     ``out`` is created when missing (atomically: built aside, then renamed) or must already be a
     store with the same grid. The run is named ``name``, else metadata ``name``, else the stem.
+    The sidecar's ``processing`` and ``rig`` are recorded in a new store (processing default:
+    profile 'unknown'); an existing store must match those the sidecar declares.
     """
     rec = load_recording(src, meta_path)
     run_name = name or rec.meta.name or Path(src).stem
@@ -335,7 +337,7 @@ def import_recording(
     opt = {k: rec.arrays.get(k) for k in ("pose", "snr_db", "slip")}
     out_s = os.fspath(out)
     if _is_url(out_s) or (Path(out_s) / "zarr.json").exists():
-        store = open_or_create_store(out_s, rec.grid)
+        store = open_or_create_store(out_s, rec.grid, processing=rec.meta.processing, rig=rec.meta.rig)
         if run_name in store.runs() and not overwrite:
             raise SonarSetError(f"{out_s}: run {run_name!r} already exists (use --overwrite or --name)")
         return store.write_run(run_name, rec.arrays["images"], rec.arrays["velocity"], rec.arrays["time"],
@@ -346,7 +348,8 @@ def import_recording(
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent))
     try:
-        store = create_store(tmp / "store.zarr", rec.grid)
+        store = create_store(tmp / "store.zarr", rec.grid, rig=rec.meta.rig,
+                             processing=rec.meta.processing or Processing(profile="unknown"))
         store.write_run(run_name, rec.arrays["images"], rec.arrays["velocity"], rec.arrays["time"],
                         split=run_split, source=source, **opt)
         if dest.exists():

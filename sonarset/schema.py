@@ -16,7 +16,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 #: Format version written by this library. Readers accept any 1.x (see spec/FORMAT.md §8).
-FORMAT_VERSION = "1.0"
+#: 1.1 added the typed ``processing`` and ``rig`` store attributes.
+FORMAT_VERSION = "1.1"
 SUPPORTED_MAJOR = 1
 #: Key under which all SonarSet attributes live (namespaced, as OME-Zarr's "ome").
 NAMESPACE = "sonarset"
@@ -143,6 +144,91 @@ class ImageEncoding(BaseModel):
     dynamic_range_db: float = Field(60.0, gt=0, le=300)
 
 
+class Processing(BaseModel):
+    """How the images were made from the microphone signals: beamformer and energyscape post-processing.
+
+    The stages follow the Cosys-Lab Acoustic-Imaging-Toolbox (``generate2DEnergyscape``): matched
+    filter -> beamformer -> envelope -> Gaussian smoothing -> subtract ``azimuth_mean_factor`` x the
+    mean over azimuth at each range -> clip at zero -> log mapping. Amplitudes are normalised to the
+    strongest echo the sensor can see (a perfect wall at normal incidence at the grid's minimum
+    range, through the same beamformer and smoothing), then
+    ``pixel = clip((20 log10(a + offset) - floor_db) / span_db, 0, 1)`` with
+    ``offset = 10^(floor_db / 20)`` when ``floor_offset`` (the toolbox's mapping, so that zero maps
+    to 0) and ``offset = 0`` otherwise. Profiles: ``ertis`` (the simulator's default) and ``raw``
+    (delay-and-sum energy, no post-processing: format 1.0's images).
+    """
+
+    # Unknown keys are kept (a later 1.y may add a stage) and take part in comparisons.
+    model_config = ConfigDict(extra="allow", frozen=True)
+
+    profile: str = Field("custom", pattern=r"^[a-z][a-z0-9_-]{0,31}$",
+                         description="Name of the settings: 'ertis', 'raw', or 'custom'/'unknown'.")
+    beamformer: Literal["das", "dmas3-cf"] = Field(
+        "das", description="das: delay-and-sum; dmas3-cf: third-order delay-multiply-and-sum times the "
+                           "coherence factor |sum of analytic signals|^2 / (N sum of |analytic|^2).")
+    smoothing_range_m: float = Field(0.0, ge=0, le=10, description="Gaussian smoothing sigma along range, metres (0: none).")
+    smoothing_azimuth_deg: float = Field(0.0, ge=0, le=90, description="Gaussian smoothing sigma along azimuth, degrees (0: none).")
+    azimuth_mean_factor: float = Field(0.0, ge=0, le=100,
+                                       description="Subtract this factor x the mean over azimuth at each range (0: none).")
+    clip_at_zero: bool = Field(False, description="Clip negative amplitudes (after the subtraction) to zero.")
+    floor_db: float = Field(-60.0, lt=0, ge=-300, description="Log floor, dB re full scale: maps to pixel 0.")
+    span_db: float = Field(60.0, gt=0, le=300, description="dB from the floor to pixel 1.")
+    floor_offset: bool = Field(False, description="Add the floor's amplitude before the log (toolbox mapping).")
+
+    @classmethod
+    def ertis(cls) -> "Processing":
+        """The eRTIS toolchain's energyscapes, calibrated on the default grid (BENCHMARKS.md)."""
+        return cls(profile="ertis", beamformer="dmas3-cf", smoothing_range_m=0.0675, smoothing_azimuth_deg=2.0,
+                   azimuth_mean_factor=1.5, clip_at_zero=True, floor_db=-60.0, span_db=60.0, floor_offset=True)
+
+    @classmethod
+    def raw(cls) -> "Processing":
+        """Delay-and-sum energy on a 60 dB log scale, no post-processing (format 1.0's images)."""
+        return cls(profile="raw")
+
+    @classmethod
+    def named(cls, name: str) -> "Processing":
+        profiles = {"ertis": cls.ertis, "raw": cls.raw}
+        if name not in profiles:
+            raise ValueError(f"unknown processing profile {name!r}; choose from {', '.join(profiles)}")
+        return profiles[name]()
+
+    @property
+    def post_processed(self) -> bool:
+        return bool(self.smoothing_range_m or self.smoothing_azimuth_deg or self.azimuth_mean_factor
+                    or self.clip_at_zero or self.floor_offset)
+
+    def same_images(self, other: "Processing") -> bool:
+        """True when both settings make the same images (the profile name aside)."""
+        return self.model_dump(exclude={"profile"}) == other.model_dump(exclude={"profile"})
+
+    def describe(self) -> str:
+        if not self.post_processed:
+            return f"{self.profile} ({self.beamformer}, no post-processing)"
+        return (f"{self.profile} ({self.beamformer}, smoothing {self.smoothing_range_m:g} m x "
+                f"{self.smoothing_azimuth_deg:g} deg, {self.azimuth_mean_factor:g} x azimuth mean removed, "
+                f"{self.floor_db:g} dB floor over {self.span_db:g} dB)")
+
+
+class RobotRig(BaseModel):
+    """The robot geometry that predictors need to turn commands into image motion."""
+
+    # Unknown keys are kept (a later 1.y may add a stage) and take part in comparisons.
+    model_config = ConfigDict(extra="allow", frozen=True)
+
+    frame_interval_s: float = Field(0.2, gt=0, le=3600, description="Nominal time between frames, seconds.")
+    sensor_offset_m: float = Field(
+        0.15, ge=-10, le=10, description="Sensor position ahead of the wheel axle on the robot's x axis, metres.")
+    wheel_base_m: float = Field(0.3, gt=0, le=10, description="Distance between the wheels, metres.")
+    v_max_m_s: float = Field(0.3, gt=0, description="Largest linear speed command, m/s (symmetric).")
+    omega_max_rad_s: float = Field(1.0, gt=0, description="Largest angular speed command, rad/s (symmetric).")
+
+    def describe(self) -> str:
+        return (f"{self.frame_interval_s:g} s frames, sensor {self.sensor_offset_m:g} m ahead of the axle, "
+                f"wheel base {self.wheel_base_m:g} m, |v| <= {self.v_max_m_s:g} m/s, "
+                f"|omega| <= {self.omega_max_rad_s:g} rad/s")
+
+
 class _Attrs(BaseModel):
     # Unknown keys are kept, not rejected: a 1.x reader must read a later 1.y store.
     model_config = ConfigDict(extra="allow")
@@ -156,6 +242,11 @@ class StoreAttrs(_Attrs):
     grid: SensorGrid = Field(description="The sensor grid shared by every run in the store.")
     frame_rate_hz: float = Field(5.0, gt=0, description="Nominal frame rate; times are authoritative.")
     image_encoding: ImageEncoding = Field(default_factory=ImageEncoding)
+    processing: Processing = Field(
+        default_factory=Processing.raw,
+        description="How the images were made (1.1). Absent in 1.0 stores, whose images are 'raw'.")
+    rig: RobotRig | None = Field(
+        None, description="Robot geometry (1.1); absent: unknown (1.0 stores made by the simulator: the default rig).")
     created_by: str = Field("", description="Software that created the store, with version.")
     description: str = ""
 
@@ -244,6 +335,10 @@ class RecordingMeta(BaseModel):
             "next: velocity[k] is executed after frame k (shifted on import, dropping frame 0)."
         ),
     )
+    processing: Processing | None = Field(
+        None, description="How the images were made, as stored after the importer's conversion "
+                          "(default: profile 'unknown').")
+    rig: RobotRig | None = Field(None, description="Robot geometry (default: unknown).")
     source: dict[str, Any] = Field(default_factory=dict, description="Free-form provenance.")
 
     @field_validator("name")
@@ -257,6 +352,14 @@ class RecordingMeta(BaseModel):
     @classmethod
     def _split(cls, v: str) -> str:
         return RunAttrs._split(v)
+
+    @field_validator("processing", "rig")
+    @classmethod
+    def _closed(cls, v: BaseModel | None) -> BaseModel | None:
+        # Stores keep unknown keys of a later minor version; a hand-written sidecar has no such excuse.
+        if v is not None and v.model_extra:
+            raise ValueError(f"unknown key(s) {', '.join(sorted(v.model_extra))}")
+        return v
 
 
 SCHEMAS: dict[str, type[BaseModel]] = {

@@ -27,8 +27,8 @@ warnings.filterwarnings("ignore", message=r"Object at .*\.partial is not recogni
 from .errors import FormatError, GridMismatchError, InputValidationError, SonarSetError
 from .arrays import ARRAYS, OPTIONAL_ARRAYS, check_run_arrays, expected_shape
 from .schema import (
-    FORMAT_VERSION, NAMESPACE, RUN_NAME_RE, SUPPORTED_MAJOR, RunAttrs, SensorGrid, StoreAttrs,
-    parse_version, pydantic_problems,
+    FORMAT_VERSION, NAMESPACE, RUN_NAME_RE, SUPPORTED_MAJOR, Processing, RobotRig, RunAttrs, SensorGrid,
+    StoreAttrs, parse_version, pydantic_problems,
 )
 
 # zarr-python warns on every consolidation that consolidated metadata is not yet in the v3 spec;
@@ -66,6 +66,37 @@ class SonarStore:
     @property
     def format_version(self) -> str:
         return self.attrs.format_version
+
+    @property
+    def processing(self) -> Processing:
+        """How the images were made (format 1.1; a 1.0 store's images are 'raw')."""
+        return self.attrs.processing
+
+    @property
+    def rig(self) -> RobotRig | None:
+        """The robot geometry: the store's ``rig`` attribute (1.1), else None when unknown.
+
+        Backward compatibility: a store without ``rig`` (format 1.0) whose complete runs were all
+        made by the simulator gets the rig recorded in their provenance (``dt``, ``sensor_offset_m``,
+        ``wheel_base_m``; speed limits: the defaults). This is the one place that reads geometry
+        from the free-form ``source``.
+        """
+        if self.attrs.rig is not None:
+            return self.attrs.rig
+        return self._rig_from_provenance()
+
+    def _rig_from_provenance(self) -> RobotRig | None:
+        rigs = set()
+        for name in self.runs():
+            src = self.run(name).attrs.source
+            if src.get("kind") != "simulator":
+                return None
+            try:
+                rigs.add(RobotRig(frame_interval_s=float(src["dt"]), sensor_offset_m=float(src["sensor_offset_m"]),
+                                  wheel_base_m=float(src["wheel_base_m"])))
+            except (KeyError, TypeError, ValueError):  # pydantic's ValidationError is a ValueError
+                return None
+        return rigs.pop() if len(rigs) == 1 else None
 
     def _run_attrs(self, name: str) -> RunAttrs | None:
         try:
@@ -270,8 +301,14 @@ def create_store(
     frame_rate_hz: float = 5.0,
     description: str = "",
     storage_options: dict | None = None,
+    processing: Processing | None = None,
+    rig: RobotRig | None = None,
 ) -> SonarStore:
-    """Create an empty store with a sensor grid (default: the eRTIS-like 200 x 90 grid)."""
+    """Create an empty store with a sensor grid (default: the eRTIS-like 200 x 90 grid).
+
+    ``processing`` says how its images are made (default: 'raw', delay-and-sum without
+    post-processing); ``rig`` is the robot geometry (default: unknown, not recorded).
+    """
     loc = os.fspath(location)
     if not _is_url(loc):
         path = Path(loc)
@@ -280,9 +317,13 @@ def create_store(
     attrs = StoreAttrs(
         format_version=FORMAT_VERSION, grid=grid or SensorGrid.default(),
         frame_rate_hz=frame_rate_hz, created_by=f"sonarset {__version__}", description=description,
+        processing=processing or Processing.raw(), rig=rig,
     )
+    doc = attrs.model_dump(mode="json")
+    if doc.get("rig") is None:
+        doc.pop("rig", None)  # unknown: absent, as in a 1.0 store
     kwargs: dict[str, Any] = {"mode": "w" if overwrite else "w-", "zarr_format": 3,
-                              "attributes": {NAMESPACE: attrs.model_dump(mode="json")}}
+                              "attributes": {NAMESPACE: doc}}
     if storage_options:
         kwargs["storage_options"] = storage_options
     try:
@@ -295,8 +336,19 @@ def create_store(
                       loc, "r+")
 
 
-def open_or_create_store(location: str | os.PathLike, grid: SensorGrid, **kwargs: Any) -> SonarStore:
-    """Open an existing store for writing (its grid must equal ``grid``) or create a new one."""
+def open_or_create_store(
+    location: str | os.PathLike,
+    grid: SensorGrid,
+    *,
+    processing: Processing | None = None,
+    rig: RobotRig | None = None,
+    **kwargs: Any,
+) -> SonarStore:
+    """Open an existing store for writing or create a new one (``create_store``'s keywords).
+
+    An existing store must have the same ``grid`` and, where given, make the same images
+    (``processing``, per ``Processing.same_images``) on the same ``rig``; None skips that check.
+    """
     loc = os.fspath(location)
     exists = (Path(loc) / "zarr.json").exists() if not _is_url(loc) else _url_exists(loc, kwargs.get("storage_options"))
     if exists:
@@ -305,8 +357,15 @@ def open_or_create_store(location: str | os.PathLike, grid: SensorGrid, **kwargs
             raise GridMismatchError(
                 f"{loc}: store grid {store.grid.describe()} differs from the data's {grid.describe()}"
             )
+        if processing is not None and not store.processing.same_images(processing):
+            raise SonarSetError(f"{loc}: store images are {store.processing.describe()}, the data's are "
+                                f"{processing.describe()}; write them to another store")
+        if rig is not None and store.rig != rig:
+            have = store.rig.describe() if store.rig is not None else "not recorded"
+            raise SonarSetError(f"{loc}: store robot rig is {have}, the data's is {rig.describe()}; "
+                                "write them to another store")
         return store
-    return create_store(loc, grid, **kwargs)
+    return create_store(loc, grid, processing=processing, rig=rig, **kwargs)
 
 
 def _url_exists(url: str, storage_options: dict | None) -> bool:

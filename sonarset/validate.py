@@ -57,9 +57,10 @@ def validate_store(location: str | os.PathLike, *, check_data: bool = True,
         return [Problem(loc, f"cannot be opened as a zarr v3 group ({type(exc).__name__}: {exc})")]
 
     root = store.group
+    problems += _check_store_attrs(loc, store.attrs)
     names = sorted(root.group_keys())
     if not names:
-        return [Problem(loc, "empty store: no run groups")]
+        return problems + [Problem(loc, "empty store: no run groups")]
     for name in names:
         problems += _check_run(store, name, check_data, progress)
     problems += _check_consolidated(loc, root, names)
@@ -102,6 +103,16 @@ def _check_local_root(path: Path) -> Problem | None:
     except ValidationError as exc:
         return Problem(where, "; ".join(pydantic_problems(exc, f"attributes.{NAMESPACE}.")))
     return None
+
+
+def _check_store_attrs(loc: str, attrs: StoreAttrs) -> list[Problem]:
+    """What the schema alone cannot say about the root attributes (format 1.1)."""
+    rig = attrs.rig
+    if rig is not None and not math.isclose(rig.frame_interval_s * attrs.frame_rate_hz, 1.0, rel_tol=1e-6):
+        return [Problem(loc, f"attributes.{NAMESPACE}.rig.frame_interval_s {rig.frame_interval_s:g} s disagrees "
+                             f"with frame_rate_hz {attrs.frame_rate_hz:g} (1/{attrs.frame_rate_hz:g} = "
+                             f"{1 / attrs.frame_rate_hz:g} s)")]
+    return []
 
 
 def _check_run(store, name: str, check_data: bool, progress: ProgressFn | None) -> list[Problem]:

@@ -16,9 +16,22 @@ FIX = Path(__file__).resolve().parents[1] / "spec" / "fixtures"
 def test_info_and_json(store):
     r = runner.invoke(app, ["info", store.location])
     assert r.exit_code == 0 and "run_001" in r.output and "3 complete run(s), 75 frames" in r.output
+    assert "processing: raw (das, no post-processing)" in r.output and "rig: not recorded" in r.output
     r = runner.invoke(app, ["info", store.location, "--json"])
     doc = json.loads(r.output)
-    assert doc["frames"] == 75 and doc["grid"]["n_range"] == 8 and doc["format_version"] == "1.0"
+    assert doc["frames"] == 75 and doc["grid"]["n_range"] == 8 and doc["format_version"] == "1.1"
+    assert doc["processing"]["profile"] == "raw" and doc["rig"] is None
+
+
+def test_info_shows_processing_and_rig_of_1_0_and_1_1_stores():
+    r = runner.invoke(app, ["info", str(FIX / "valid" / "format_1_1.zarr")])
+    assert r.exit_code == 0 and "processing: ertis (dmas3-cf, smoothing 0.0675 m x 2 deg" in r.output
+    assert "rig: 0.2 s frames, sensor 0.15 m ahead of the axle, wheel base 0.3 m" in r.output
+    r = runner.invoke(app, ["info", str(FIX / "valid" / "format_1_0.zarr")])
+    assert "SonarSet 1.0" in r.output and "processing: raw" in r.output
+    assert "(from the simulator's run provenance)" in r.output
+    doc = json.loads(runner.invoke(app, ["info", str(FIX / "valid" / "format_1_0.zarr"), "--json"]).output)
+    assert doc["rig"]["sensor_offset_m"] == 0.15 and doc["rig_recorded"] is False
 
 
 def test_validate_exit_codes(store):

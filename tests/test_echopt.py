@@ -124,6 +124,9 @@ def test_train_and_eval_cli(tiny_store, tmp_path):
     assert r.exit_code == 0, r.output
     card = json.loads((tmp_path / "run" / "model.json").read_text())
     assert card["test"]["results"]["echopt"]["1"]["n"] == 30 and card["training"]["runs"] == ["run_000", "run_001"]
+    # the card records what the model knows: the training store's images and robot
+    assert card["processing"] == tiny_store.processing.model_dump(mode="json")
+    assert card["rig"] == (tiny_store.rig.model_dump(mode="json") if tiny_store.rig else None)
     r = CliRunner().invoke(app, ["eval", tiny_store.location, "--models", f"flow,echopt:{tmp_path / 'run'}",
                                  "--samples", "20", "--horizons", "1,3", "--out", str(tmp_path / "ev"), "--no-figures"])
     assert r.exit_code == 0, r.output

@@ -16,7 +16,7 @@ from sonarset.models.experiments.control import BurstSchedule, Episode, run_cont
 from sonarset.models.experiments.slip import (
     SlipPeriod, SlipTrial, frame_labels, run_slip_experiment, slip_signal, write_slip_report,
 )
-from sonarset.schema import SensorGrid
+from sonarset.schema import Processing, SensorGrid
 from sonarset.sim.robot import apply_slip, integrate
 from sonarset.sim.sonar import SonarModel
 from sonarset.sim.world import CircleSpec, SpawnBox, WallSpec, World, WorldSpec, corridor_world, lab_world
@@ -24,6 +24,10 @@ from sonarset.sim.world import CircleSpec, SpawnBox, WallSpec, World, WorldSpec,
 GRID = SensorGrid.default()
 SMALL = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=50, azimuth_min_rad=-math.pi / 2,
                    azimuth_max_rad=math.pi / 2, n_azimuth=30)
+
+
+# The controller and the burst detector are calibrated on raw images (sonarset.control).
+RAW = Processing.raw()
 
 
 def test_slip_raises_the_flow_detector_signal():
@@ -47,7 +51,7 @@ def test_slip_raises_the_flow_detector_signal():
         pose = integrate(pose, *apply_slip(*commands[k], tuple(slip[k])), 0.2)
         poses[k] = pose
     assert np.ptp(poses[stall, 0]) < 1e-9  # the robot did not move, the commands say it did
-    images, _ = SonarModel(GRID).render_batch(world, poses, np.random.default_rng(0))
+    images, _ = SonarModel(GRID, processing=RAW).render_batch(world, poses, np.random.default_rng(0))
     for h in (1, 3):
         eps = slip_signal(predictor("flow", GRID), images, commands, h)
         base = slip_signal(predictor("persistence", GRID), images, commands, h)
@@ -86,7 +90,7 @@ def test_slip_experiment_end_to_end_with_a_tiny_echopt(tmp_path):
 
 
 def test_burst_detector_finds_injected_bursts_and_leaves_clean_frames():
-    model, world = SonarModel(GRID), lab_world(11)
+    model, world = SonarModel(GRID, processing=RAW), lab_world(11)
     rng = np.random.default_rng(1)
     poses = np.array([world.sample_spawn(rng) for _ in range(40)])
     clean, _ = model.render_batch(world, poses, rng)
@@ -109,7 +113,7 @@ def test_controller_reaches_the_waypoint_in_the_clean_corridor():
 
 
 def test_controller_steers_away_from_the_nearer_row_and_stops_before_a_pole():
-    world, model = corridor_world(), SonarModel(GRID)
+    world, model = corridor_world(), SonarModel(GRID, processing=RAW)
     ctrl = SubsumptionController(GRID, world.waypoint)
     left = ctrl(model.render(world, np.array([3.0, 0.35, 0.0]), None), np.array([3.0, 0.35, 0.0]))
     assert left.layer == "corridor" and left.w < -0.1  # closer to the left row: turn right
@@ -156,3 +160,18 @@ def test_control_experiment_is_deterministic_across_workers():
         for x, y in zip(a.episodes[c], b.episodes[c]):
             np.testing.assert_array_equal(x["pose"], y["pose"])
             assert x["outcome"] == y["outcome"]
+
+
+def test_experiments_simulate_the_images_their_models_were_trained_on(tmp_path):
+    from sonarset import SonarSetError
+    from sonarset.models.experiments.common import experiment_processing
+
+    def ckpt(name, processing):
+        return save_checkpoint(tmp_path / name, EchoPT(make_config("tiny", *SMALL.shape)),
+                               {"grid": SMALL.model_dump(), "preset": "tiny", "processing": processing.model_dump()})
+
+    raw, ertis = ckpt("raw", Processing.raw()), ckpt("ertis", Processing.ertis())
+    assert experiment_processing(["flow"]) == Processing.raw()
+    assert experiment_processing(["flow", f"echopt:{ertis}"]) == Processing.ertis()
+    with pytest.raises(SonarSetError, match="different images"):
+        experiment_processing([f"echopt:{raw}", f"echopt:{ertis}"])

@@ -10,7 +10,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 from sonarset.perf import keep_freed_memory
-from sonarset.schema import SensorGrid
+from sonarset.errors import SonarSetError
+from sonarset.schema import Processing, SensorGrid
 from sonarset.stats import bootstrap_ci
 from sonarset.sim.generate import DT
 from sonarset.sim.robot import SENSOR_OFFSET
@@ -26,6 +27,27 @@ def predictor(spec: str, grid: SensorGrid, device: str = "cpu"):
 
         _PREDICTORS[key] = make_predictor(spec, grid, dt=DT, sensor_offset=SENSOR_OFFSET, device=device)
     return _PREDICTORS[key]
+
+
+def experiment_processing(models) -> Processing:
+    """The images an experiment simulates: those its learned models were trained on (their cards).
+
+    Models trained on different images cannot share one experiment. Without a learned model the
+    experiments simulate 'raw' images, on which the controller's thresholds and the burst detector
+    are calibrated (``sonarset.control``).
+    """
+    from ..cards import card_processing, read_card
+
+    found: dict[str, Processing] = {}
+    for spec in models:
+        kind, _, path = spec.partition(":")
+        if kind == "echopt":
+            found[spec] = card_processing(read_card(path or "pretrained"))
+    distinct = {p.model_dump_json(exclude={"profile"}) for p in found.values()}
+    if len(distinct) > 1:
+        listed = ", ".join(f"{k}: {p.profile}" for k, p in found.items())
+        raise SonarSetError(f"the models were trained on different images ({listed}); run them in separate experiments")
+    return next(iter(found.values())) if found else Processing.raw()
 
 
 def _init_worker() -> None:

@@ -29,14 +29,14 @@ from scipy import ndimage, stats
 
 from sonarset.control import BurstDetector, ControllerGains, SubsumptionController
 from sonarset.atomic import atomic_text, save_figure
-from sonarset.schema import SensorGrid
+from sonarset.schema import Processing, SensorGrid
 from sonarset.sim.generate import DT, spawn_seeds
 from sonarset.sim.robot import ROBOT_RADIUS, integrate
 from sonarset.sim.sonar import SonarModel
 from sonarset.sim.world import World, corridor_world
 from sonarset.stats import holm
 
-from .common import finite_or_none, mean_ci, parallel_map, predictor
+from .common import experiment_processing, finite_or_none, mean_ci, parallel_map, predictor
 
 CONDITIONS = ("clean", "bursts")  # plus one "bursts+<model>" condition per predictor
 N_IN = 3
@@ -73,6 +73,7 @@ class Episode:
     bursts: BurstSchedule = BurstSchedule()
     gains: ControllerGains = ControllerGains()
     device: str = "cpu"
+    processing: Processing = Processing.raw()  # the controller's thresholds are calibrated on raw images
 
 
 def run_episode(ep: Episode, world: World | None = None) -> dict:
@@ -84,7 +85,7 @@ def run_episode(ep: Episode, world: World | None = None) -> dict:
     burst = BurstSchedule.frames(ep.bursts, np.random.default_rng(burst_ss), n_max) if ep.condition != "clean" \
         else np.zeros(n_max, bool)
     noise_rng = np.random.default_rng(noise_ss)
-    model = SonarModel(ep.grid, snr_db=ep.snr_db)
+    model = SonarModel(ep.grid, snr_db=ep.snr_db, processing=ep.processing)
     ctrl = SubsumptionController(ep.grid, world.waypoint, ep.gains)
     detector = BurstDetector()
     spec = ep.condition.partition("+")[2]
@@ -138,6 +139,7 @@ class ControlResult:
     detector: dict = field(default_factory=dict)
     gains: dict = field(default_factory=dict)
     seconds: float = 0.0
+    processing: Processing = field(default_factory=Processing.raw)  # the images simulated
 
 
 def condition_name(spec: str) -> str:
@@ -153,13 +155,15 @@ def run_control_experiment(models: list[str] | tuple[str, ...] = ("echopt:pretra
     t0 = time.perf_counter()
     for m in models:
         predictor(m, grid, device)  # fail fast on a bad model
+    processing = experiment_processing(models)
     conditions = [*CONDITIONS, *(f"bursts+{m}" for m in models)]
     seeds = spawn_seeds(seed, runs)  # run i uses the same spawn, bursts and noise seed in every condition
-    eps = [Episode(i, s, c, grid, max_time_s=max_time_s, device=device) for c in conditions for i, s in enumerate(seeds)]
+    eps = [Episode(i, s, c, grid, max_time_s=max_time_s, device=device, processing=processing)
+           for c in conditions for i, s in enumerate(seeds)]
     results = parallel_map(run_episode, eps, workers, progress)
     names = {c: condition_name(c.partition("+")[2]) if "+" in c else c for c in conditions}
     by = {names[c]: [dict(r, condition=names[c]) for r in results if r["condition"] == c] for c in conditions}
-    res = ControlResult(", ".join(models), runs, by, gains=ControllerGains().to_dict())
+    res = ControlResult(", ".join(models), runs, by, gains=ControllerGains().to_dict(), processing=processing)
     res.summary, res.comparisons, res.detector = summarise(by, seed)
     res.seconds = time.perf_counter() - t0
     return res
@@ -228,13 +232,15 @@ def write_control_report(res: ControlResult, out: str | os.PathLike) -> Path:
                for rs in res.episodes.values() for r in rs]
     doc = {"experiment": "control", "model": res.model, "runs": res.runs, "conditions": list(res.episodes),
            "summary": res.summary, "tests": res.comparisons, "burst_detector": res.detector,
-           "controller_gains": res.gains, "per_run": per_run, "seconds": res.seconds}
+           "controller_gains": res.gains, "processing": res.processing.model_dump(), "per_run": per_run,
+           "seconds": res.seconds}
     atomic_text(out / "metrics.json", json.dumps(finite_or_none(doc), indent=2) + "\n")
     fig_path = out / "fig6_control.png"
     save_figure(fig6(res), fig_path)
     lines = ["# Corridor control through noise bursts (EchoPT paper, Fig. 6)", "",
              f"{res.runs} runs per condition from the same random spawn poses; bursts: SNR -80 dB for 1.2 s, "
-             f"about 30% of the time; predictors bridging the bursts: `{res.model}`.", "",
+             f"about 30% of the time; predictors bridging the bursts: `{res.model}`. Images: "
+             f"{res.processing.describe()} (the bridging models' training images).", "",
              "| condition | success | collision | timeout | success rate 95% CI | travel time [s] mean [CI] (median) | "
              "midline deviation [m] mean [CI] |", "| --- | ---: | ---: | ---: | --- | --- | --- |"]
     for c, s in res.summary.items():

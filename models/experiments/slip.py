@@ -34,7 +34,7 @@ from scipy import stats
 
 from sonarset.metrics import slip_error
 from sonarset.atomic import atomic_text, save_figure
-from sonarset.schema import SensorGrid
+from sonarset.schema import Processing, SensorGrid
 from sonarset.sim.generate import DT, spawn_seeds
 from sonarset.sim.robot import ExplorationPolicy, apply_slip, integrate
 from sonarset.sim.sonar import SonarModel
@@ -42,7 +42,7 @@ from sonarset.sim.world import lab_world
 from sonarset.stats import holm
 
 from ..baselines import rollout
-from .common import finite_or_none, mean_ci, parallel_map, predictor
+from .common import experiment_processing, finite_or_none, mean_ci, parallel_map, predictor
 
 HORIZONS = (1, 3, 5)
 KINDS = ("both", "one")
@@ -87,7 +87,7 @@ def random_trial(seed: int) -> SlipTrial:
     return SlipTrial(seed, seed % 1_000_003, 60.0, (SlipPeriod(s1, s1 + d1, both), SlipPeriod(s2, s2 + d2, one)))
 
 
-def simulate_trial(trial: SlipTrial, grid: SensorGrid, snr_db: float = 5.0) -> dict:
+def simulate_trial(trial: SlipTrial, grid: SensorGrid, snr_db: float = 5.0, processing: Processing | None = None) -> dict:
     """Images (T, R, A), logged commands (T, 2), true slip factors (T, 2) and poses (T, 3);
     ``commands[k]`` and ``slip[k]`` belong to the motion into frame k (DESIGN.md §2)."""
     world = lab_world(trial.world_seed)
@@ -105,7 +105,7 @@ def simulate_trial(trial: SlipTrial, grid: SensorGrid, snr_db: float = 5.0) -> d
         v, w = policy(pose)
         pose = integrate(pose, *apply_slip(v, w, tuple(slip[k])), DT)
         commands[k], poses[k] = (v, w), pose
-    model = SonarModel(grid, snr_db=snr_db)
+    model = SonarModel(grid, snr_db=snr_db, processing=processing or Processing.raw())
     images, _ = model.render_batch(world, poses, np.random.default_rng(noise_ss))
     return {"images": images, "commands": commands, "slip": slip, "pose": poses}
 
@@ -156,10 +156,11 @@ class _Task:
     snr_db: float
     device: str
     keep_signals: bool
+    processing: Processing = field(default_factory=Processing.raw)
 
 
 def _run_trial(task: _Task) -> dict:
-    data = simulate_trial(task.trial, task.grid, task.snr_db)
+    data = simulate_trial(task.trial, task.grid, task.snr_db, task.processing)
     out = {"trial": asdict(task.trial), "auc": {}, "signals": {}}
     still = predictor("persistence", task.grid)
     for h in HORIZONS:
@@ -188,6 +189,7 @@ class SlipResult:
     summary: list[dict] = field(default_factory=list)
     comparisons: list[dict] = field(default_factory=list)
     seconds: float = 0.0
+    processing: Processing = field(default_factory=Processing.raw)  # the images simulated
 
 
 def run_slip_experiment(models: list[str], trials: int = 30, seed: int = 0, grid: SensorGrid | None = None,
@@ -197,11 +199,12 @@ def run_slip_experiment(models: list[str], trials: int = 30, seed: int = 0, grid
     grid = grid or SensorGrid.default()
     t0 = time.perf_counter()
     names = [predictor(m, grid, device).name for m in models]  # fail fast on a bad model
+    processing = experiment_processing(models)
     seeds = spawn_seeds(seed, trials + 1)
-    tasks = [_Task(paper_trial(seeds[0]), grid, tuple(models), snr_db, device, True)]
-    tasks += [_Task(random_trial(s), grid, tuple(models), snr_db, device, False) for s in seeds[1:]]
+    tasks = [_Task(paper_trial(seeds[0]), grid, tuple(models), snr_db, device, True, processing)]
+    tasks += [_Task(random_trial(s), grid, tuple(models), snr_db, device, False, processing) for s in seeds[1:]]
     results = parallel_map(_run_trial, tasks, workers, progress)
-    res = SlipResult(list(models), names, trials, results[0], [r["auc"] for r in results[1:]])
+    res = SlipResult(list(models), names, trials, results[0], [r["auc"] for r in results[1:]], processing=processing)
     res.summary, res.comparisons = summarise(res.per_trial, names, seed)
     res.seconds = time.perf_counter() - t0
     return res
@@ -256,6 +259,7 @@ def write_slip_report(res: SlipResult, out: str | os.PathLike) -> Path:
         "tests": res.comparisons,
         "per_trial_auc": res.per_trial,
         "paper_trajectory": {"trial": trial, "signal_ratio": _slip_ratios(paper, res.names)},
+        "processing": res.processing.model_dump(),
         "seconds": res.seconds,
     }
     atomic_text(out / "metrics.json", json.dumps(finite_or_none(doc), indent=2) + "\n")
@@ -267,7 +271,8 @@ def write_slip_report(res: SlipResult, out: str | os.PathLike) -> Path:
         f"{res.trials} random 60 s trajectories in lab worlds, each with one both-wheel and one one-wheel slip "
         "period (3-8 s, wheel speed factors U(0, 0.5)); the logged commands never change. Per trajectory, the "
         "ROC AUC of the detector signal separating frames reached through slip from slip-free frames; mean "
-        "over trajectories with a bootstrap 95% CI. 0.5 is chance, below 0.5 the signal drops during slip.", "",
+        "over trajectories with a bootstrap 95% CI. 0.5 is chance, below 0.5 the signal drops during slip. "
+        f"Images: {res.processing.describe()} (the models' training images).", "",
         "| predictor | horizon | " + " | ".join(f"{d}: both wheels | {d}: one wheel" for d in DETECTORS) + " |",
         "| --- | ---: | " + " | ".join("---: | ---:" for _ in DETECTORS) + " |",
     ]

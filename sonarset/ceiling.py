@@ -1,0 +1,108 @@
+"""The noise ceiling: target frames of simulated runs re-rendered with an independent noise draw.
+
+A simulated run records its world (``source``) and the robot's true poses (``pose``), so any of
+its frames can be rendered again from the same scene with fresh sensor noise. Scoring a target
+frame against such a re-render measures how much of the image is predictable at all: no predictor,
+however good, knows the target's noise draw. ``sonarset eval --ceiling`` reports it as the method
+``ceiling`` (the same at every horizon: the re-render of the target itself).
+
+Runs that cannot be re-rendered (imported recordings, runs without poses or simulator provenance,
+a world file no longer on disk, unknown image processing) raise :class:`CeilingUnavailable` with
+a one-line reason. This module does not import torch.
+"""
+
+from __future__ import annotations
+
+import zlib
+
+import numpy as np
+
+from .errors import SonarSetError
+from .store import SonarStore
+
+CEILING = "ceiling"
+#: Spawn-key tag of the ceiling's noise streams: with the eval seed as entropy, they are
+#: independent of every stream the simulator drew the recorded frames from.
+_STREAM_TAG = 0x6365696C  # "ceil"
+_NEEDS = ("world", "world_seed", "snr_db")
+
+
+class CeilingUnavailable(SonarSetError):
+    """A run cannot be re-rendered; the message is the one-line reason."""
+
+
+def _store_processing(store: SonarStore):
+    """The store's image processing (``sonarset.schema.Processing``), or None when unknown."""
+    proc = getattr(store, "processing", None)
+    if proc is None or getattr(proc, "profile", None) == "unknown":
+        return None
+    return proc
+
+
+class RunRenderer:
+    """Renders frames of one simulated run again, from its recorded world and poses.
+
+    Raises :class:`CeilingUnavailable` when the run cannot be re-rendered. ``render`` draws the
+    noise from one generator per run seeded by ``seed`` (e.g. the eval seed) and the run's name:
+    the same seed and the same sequence of calls give the same images, whatever the batch size.
+    """
+
+    def __init__(self, store: SonarStore, name: str, seed: int = 0):
+        from .sim.sonar import SonarModel
+        from .sim.world import load_world
+
+        run = store.run(name)
+        src = dict(run.attrs.source or {})
+        kind = src.get("kind")
+        if kind != "simulator":
+            raise CeilingUnavailable("an imported recording, not a simulated run" if kind == "import"
+                                     else f"no simulator provenance (source kind {kind or 'missing'})")
+        if not run.has("pose"):
+            raise CeilingUnavailable("no recorded poses (no 'pose' array)")
+        missing = [k for k in _NEEDS if k not in src]
+        if missing:
+            raise CeilingUnavailable(f"its provenance lacks {', '.join(missing)}")
+        try:
+            self.world = load_world(str(src["world"]), int(src["world_seed"]))
+        except SonarSetError as exc:
+            raise CeilingUnavailable(f"world cannot be rebuilt: {exc}") from None
+        except (TypeError, ValueError) as exc:
+            raise CeilingUnavailable(f"world seed {src['world_seed']!r} is not an integer ({exc})") from None
+        proc = _store_processing(store)
+        if proc is None:
+            raise CeilingUnavailable("the store's image processing is unknown")
+        try:
+            self.model = SonarModel(store.grid, snr_db=float(src["snr_db"]), psf=str(src.get("psf", "array")),
+                                    processing=proc)
+        except (TypeError, ValueError) as exc:
+            raise CeilingUnavailable(f"cannot build its sonar model ({exc})") from None
+        self.name = name
+        self.poses = np.asarray(run["pose"][:], float)
+        self.image_dtype = run.images.dtype
+        self.shape = store.grid.shape
+        self.rng = np.random.Generator(np.random.SFC64(np.random.SeedSequence(
+            int(seed) & (2 ** 128 - 1), spawn_key=(_STREAM_TAG, zlib.crc32(name.encode())))))
+
+    def render(self, frames: np.ndarray) -> np.ndarray:
+        """Frames ``frames`` (indices into the run) rendered again with fresh noise: float32
+        (F, R, A), rounded through the run's image dtype as the recorded frames were.
+
+        Every frame is re-rendered at the run's nominal SNR (``source.snr_db``), burst frames
+        included: a burst is noise of the target frame, which no predictor can know, while the
+        re-render stands for the best prediction of the scene. (The recorded ``snr_db`` array is
+        each frame's effective SNR, which also moves with the noise floor; it is not re-used.)
+        The true poses are recorded, so wheel slip plays no part.
+        """
+        frames = np.asarray(frames, np.int64)
+        out = np.empty((len(frames), *self.shape), self.image_dtype)
+        if len(frames):
+            self.model.render_batch(self.world, self.poses[frames], self.rng, out=out)
+        return out.astype(np.float32, copy=False)
+
+
+def rerender(store: SonarStore, name: str, frames: np.ndarray, seed: int = 0, batch_size: int = 64) -> np.ndarray:
+    """Frames ``frames`` of run ``name`` re-rendered with independent noise (see :class:`RunRenderer`)."""
+    r = RunRenderer(store, name, seed)
+    frames = np.asarray(frames, np.int64)
+    parts = [r.render(frames[lo:lo + batch_size]) for lo in range(0, len(frames), batch_size)]
+    return np.concatenate(parts) if parts else np.empty((0, *r.shape), np.float32)

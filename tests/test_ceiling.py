@@ -1,0 +1,127 @@
+"""The noise ceiling (``eval --ceiling``): target frames re-rendered with independent noise."""
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from sonarset import open_store
+from sonarset.ceiling import CeilingUnavailable, RunRenderer, rerender
+from sonarset.cli.app import app
+from sonarset.models.evaluate import evaluate, write_report
+from sonarset.schema import SensorGrid
+from sonarset.sim import generate
+from sonarset.sim import sonar
+from sonarset.store import create_store
+
+GRID = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=100, azimuth_min_rad=-math.pi / 2,
+                  azimuth_max_rad=math.pi / 2, n_azimuth=45)
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    path = tmp_path_factory.mktemp("ceiling") / "sim.zarr"
+    generate(path, runs=0, test_runs=1, minutes=1.0, seed=3, snr_db=5, workers=1, grid=GRID)
+    return open_store(path)
+
+
+@pytest.fixture(scope="module")
+def mixed(sim, tmp_path_factory):
+    """The simulated run, a copy whose world file is gone, and a copy marked as imported."""
+    s = create_store(tmp_path_factory.mktemp("mixed") / "mixed.zarr", GRID, processing=sim.processing)
+    d = sim.run("test_000").load()
+    src = dict(sim.run("test_000").attrs.source)
+    arrays = dict(images=d.images, velocity=d.velocity, time=d.time, pose=d.pose, snr_db=d.snr_db, slip=d.slip)
+    s.write_run("test_000", **arrays, split="test", source=src)
+    s.write_run("test_001", **arrays, split="test", source={**src, "world": "/nowhere/gone.json"})
+    s.write_run("test_002", **arrays, split="test", source={"kind": "import", "file": "rec.npz"})
+    return s
+
+
+def test_ceiling_row_bounds_the_predictors(sim, tmp_path):
+    res = evaluate(sim, ["persistence", "naive"], horizons=(1, 3), samples=120, seed=1, ceiling=True)
+    assert res.methods == ["persistence", "naive", "ceiling"] and res.predictors == ["persistence", "naive"]
+    assert not res.ceiling_skipped and not any(n.startswith("ceiling") for n in res.notes)
+    s = res.summary()
+    for h in ("1", "3"):
+        assert s["ceiling"][h]["n"] == 120
+        assert s["ceiling"][h]["cc"]["mean"] > s["persistence"][h]["cc"]["mean"] + 0.02, h
+        assert s["ceiling"][h]["nrmsd"]["mean"] < s["persistence"][h]["nrmsd"]["mean"], h
+    assert all("ceiling" not in (c.a, c.b) for c in res.comparisons)  # not a predictor: no paired tests
+    assert {(c.a, c.b) for c in res.comparisons} == {("persistence", "naive")}
+    write_report(res, tmp_path)
+    doc = json.loads((tmp_path / "metrics.json").read_text())
+    assert doc["results"]["ceiling"]["3"]["n"] == 120 and doc["ceiling"]["skipped_runs"] == {}
+    rows = list(csv.DictReader(open(tmp_path / "per_window.csv")))
+    assert sum(r["method"] == "ceiling" for r in rows) == 2 * 120
+    report = (tmp_path / "report.md").read_text()
+    assert "| *ceiling (noise ceiling, not a predictor)* |" in report and "independent noise draw" in report
+    assert (tmp_path / "fig_horizon.png").stat().st_size > 5_000
+
+
+def test_ceiling_is_one_without_noise(monkeypatch, tmp_path):
+    """No sensor noise at all (SNR 300 dB, no noise floor): the re-render is the recorded frame, so
+    the ceiling scores exactly 1 at every horizon; any misaligned target frame would show."""
+    monkeypatch.setattr(sonar, "NOISE_FLOOR_DB", -400.0)
+    path = tmp_path / "clean.zarr"
+    generate(path, runs=0, test_runs=1, minutes=0.5, seed=4, snr_db=300, workers=1, grid=GRID)
+    res = evaluate(open_store(path), ["persistence"], horizons=(1, 2, 5), samples=60, seed=0, ceiling=True)
+    s = res.summary()
+    for h in res.horizons:
+        assert s["ceiling"][str(h)]["n"] == 60
+        assert s["ceiling"][str(h)]["cc"]["mean"] > 0.9999 and s["ceiling"][str(h)]["nrmsd"]["mean"] < 1e-3
+        assert s["persistence"][str(h)]["cc"]["mean"] < 0.99
+
+
+def test_ceiling_is_deterministic_given_the_seed(sim):
+    frames = np.array([3, 4, 10, 40, 41, 200])
+    a = rerender(sim, "test_000", frames, seed=7)
+    np.testing.assert_array_equal(a, rerender(sim, "test_000", frames, seed=7, batch_size=4))
+    b = rerender(sim, "test_000", frames, seed=8)
+    assert np.abs(a - b).max() > 0.05  # another seed, another noise draw
+    recorded = sim.run("test_000").images[:][frames].astype(np.float32)
+    assert np.abs(a - recorded).max() > 0.05  # independent of the generator's own noise
+    r1 = evaluate(sim, ["persistence"], horizons=(2,), samples=50, seed=2, ceiling=True)
+    r2 = evaluate(sim, ["persistence"], horizons=(2,), samples=50, seed=2, ceiling=True)
+    np.testing.assert_array_equal(r1.per_window["ceiling"][2]["cc"], r2.per_window["ceiling"][2]["cc"])
+
+
+def test_runs_it_cannot_render_are_skipped_with_a_reason(mixed):
+    with pytest.raises(CeilingUnavailable, match="world cannot be rebuilt: /nowhere/gone.json"):
+        RunRenderer(mixed, "test_001")
+    res = evaluate(mixed, ["persistence"], horizons=(1,), samples=200, seed=0, ceiling=True)
+    assert set(res.ceiling_skipped) == {"test_001", "test_002"}
+    assert "an imported recording" in res.ceiling_skipped["test_002"]
+    notes = [n for n in res.notes if n.startswith("ceiling")]
+    assert len(notes) == 2 and notes[0].startswith("ceiling: run test_001 not re-rendered: world cannot be rebuilt")
+    pw = res.per_window["ceiling"][1]["cc"]
+    in_sim = np.array([r == "test_000" for r, _ in res.window_ids])
+    assert np.isfinite(pw[in_sim]).all() and np.isnan(pw[~in_sim]).all() and in_sim.any()
+    assert res.summary()["ceiling"]["1"]["n"] == in_sim.sum()
+
+
+def test_store_without_simulated_runs_omits_the_row(store, tmp_path):
+    res = evaluate(store, ["persistence"], split="test", horizons=(1,), samples=5, ceiling=True)
+    assert "ceiling" not in res.methods and "ceiling" not in res.per_window
+    assert res.notes[-2:] == ["ceiling: run test_000 not re-rendered: no simulator provenance (source kind missing)",
+                              "ceiling: no run of split 'test' can be re-rendered; the ceiling row is omitted"]
+    write_report(res, tmp_path, figures=False)
+    assert "no run of split 'test' can be re-rendered" in (tmp_path / "report.md").read_text()
+    assert evaluate(store, ["persistence"], split="test", horizons=(1,), samples=5).notes == \
+        [n for n in res.notes if not n.startswith("ceiling")]  # nothing about it unless asked
+
+
+def test_eval_cli_ceiling(sim, mixed, tmp_path):
+    r = CliRunner().invoke(app, ["eval", sim.location, "--models", "persistence", "--samples", "30",
+                                 "--horizons", "1,3", "--out", str(tmp_path / "o"), "--no-figures", "--ceiling"])
+    assert r.exit_code == 0, r.output
+    assert "noise ceiling, not a predictor" in r.output
+    assert "ceiling" in json.loads((tmp_path / "o" / "metrics.json").read_text())["results"]
+    r = CliRunner().invoke(app, ["eval", mixed.location, "--models", "persistence", "--samples", "30",
+                                 "--horizons", "1", "--out", str(tmp_path / "p"), "--no-figures", "--ceiling"])
+    assert r.exit_code == 0, r.output
+    line = "ceiling: run test_002 not re-rendered: an imported recording, not a simulated run"
+    assert line in r.output and line in (tmp_path / "p" / "report.md").read_text()
