@@ -88,14 +88,14 @@ def smoothing_sigma_bins(grid: SensorGrid, processing: Processing) -> tuple[floa
 def smooth(amplitude: np.ndarray, grid: SensorGrid, processing: Processing) -> np.ndarray:
     """Gaussian smoothing of beamformed amplitude (..., R, A), in place when it is float32.
 
-    Edges are mirrored (``imgaussfilt``'s default replicates; on a grid whose edges are +-90 deg
-    and 0.5 m the two differ by less than one bin of sigma).
+    As MATLAB's ``imgaussfilt``, which the toolbox calls: the kernel is truncated at 2 sigma
+    (filter size 2 ceil(2 sigma) + 1) and the edges are replicated.
     """
     sr, sa = smoothing_sigma_bins(grid, processing)
     out = amplitude
     for axis, s in ((-2, sr), (-1, sa)):
         if s > 0:
-            out = ndimage.gaussian_filter1d(out, s, axis=axis, mode="reflect", truncate=3.0, output=out)
+            out = ndimage.gaussian_filter1d(out, s, axis=axis, mode="nearest", truncate=2.0, output=out)
     return out
 
 

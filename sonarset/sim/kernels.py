@@ -150,9 +150,9 @@ def accumulate_psf_coherence(out, out3, out_mic, frame, r, u, amp2, r_c, range_s
             a_lo = np.searchsorted(u_c, u[n] - u3_max)
             a_hi = np.searchsorted(u_c, u[n] + u3_max, side="right")
         for a in range(n_az):
-            iu = int(np.rint((u_c[a] - u[n] + 2.0) / u_step))
-            row[a] = beam2[iu] * amp2[n]
-            row3[a] = beam3_2[iu] * amp2[n]
+            row[a] = beam2[int(np.rint((u_c[a] - u[n] + 2.0) / u_step))] * amp2[n]
+        for a in range(a_lo, a_hi):
+            row3[a] = beam3_2[int(np.rint((u_c[a] - u[n] + 2.0) / u_step))] * amp2[n]
         i0 = int(np.floor((r[n] - r_c[0]) / range_step))
         f = frame[n]
         for k in offsets:
@@ -168,6 +168,22 @@ def accumulate_psf_coherence(out, out3, out_mic, frame, r, u, amp2, r_c, range_s
                 out[f, i, a] += w * row[a]
             for a in range(a_lo, a_hi):
                 out3[f, i, a] += w * row3[a]
+
+
+@njit(cache=True, nogil=True)
+def coherence_amplitude(e, e3, e_mic, noise, has_noise, dmas3_noise, mic_noise):
+    """DMAS3 x coherence factor, in place in ``e3`` (F, R, A), from the echoes' delay-and-sum energy
+    ``e``, DMAS3 energy ``e3`` and per-microphone energy ``e_mic`` (F, R), plus the noise field
+    ``noise`` (F, R, A; read only if ``has_noise``): delay-and-sum hears it whole, DMAS3
+    ``dmas3_noise`` times weaker, one microphone ``mic_noise[f]`` (N sigma^2) on average.
+    CF <= 1 by Cauchy-Schwarz; float rounding of the tabulated PSFs can nudge it over."""
+    for f in range(e.shape[0]):
+        for i in range(e.shape[1]):
+            inv = 1.0 / max(e_mic[f, i] + mic_noise[f], 1e-30)
+            for a in range(e.shape[2]):
+                n = noise[f, i, a] if has_noise else 0.0
+                cf = min((e[f, i, a] + n) * inv, 1.0)
+                e3[f, i, a] = np.sqrt(e3[f, i, a] + dmas3_noise * n) * cf
 
 
 @njit(cache=True, nogil=True)

@@ -72,7 +72,7 @@ class ExplorationPolicy:
         # reflect at the limits so that the extremes are visited but never exceeded
         if abs(x) > lim:
             x = np.sign(x) * (2 * lim - abs(x))
-        return float(np.clip(x, -lim, lim))
+        return min(max(float(x), -lim), lim)  # np.clip on a scalar costs 30 us, as much as a ray cast
 
     def safe(self, pose: np.ndarray, v: float, w: float) -> bool:
         w_ = self.world
