@@ -291,7 +291,7 @@ def _print_notes(notes: list[str]) -> None:
 def train(
     store: str = typer.Argument(..., help="Training store (its 'train' split; 'test' is never used for training)."),
     preset: str = typer.Option("small", "--preset", help="small (trains on a CPU), paper (~9 M parameters), tiny (tests)."),
-    out_dir: Path = typer.Option(..., "--out", help="Run directory: model.safetensors + model.json, metrics.jsonl, last.*"),
+    out_dir: Path = typer.Option(..., "--out", help="Run directory: model.safetensors + model.json, metrics.jsonl, state.safetensors"),
     epochs: int = typer.Option(1000, "--epochs", min=1, help="Passes over the training windows (paper: 1000)."),
     batch_size: int = typer.Option(64, "--batch-size", min=1),
     lr: float = typer.Option(5e-5, "--lr", help="Adam learning rate (paper: 5e-5)."),
@@ -306,8 +306,20 @@ def train(
     compile_: bool = typer.Option(False, "--compile", help="torch.compile the model (GPU)."),
     test_samples: int = typer.Option(1000, "--test-samples", min=0, help="Test windows for the card's metrics (0: skip)."),
     n_val: int = typer.Option(1600, "--n-val", min=1, help="Random validation windows (paper: 1600)."),
+    prior: str = typer.Option("", "--prior", help="What the model corrects: none (paper), last (frame) or flow "
+                                                  "(its acoustic-flow warp). Default: the preset's (paper none, small flow)."),
+    loss: str = typer.Option("mse", "--loss", help="mse, l1, gdl (image-gradient difference), cc (1 - CC), or "
+                                                   "a weighted sum: mse=1,gdl=0.5."),
+    curriculum: str = typer.Option("1", "--curriculum", help="Rollout steps k of the unrolled loss: k, or "
+                                                             "step:k,... (e.g. 0:1,300:2,600:4,900:6)."),
+    pushforward: bool = typer.Option(False, "--pushforward", help="Only the last rollout step carries gradient."),
+    context_noise: float = typer.Option(0.0, "--context-noise", min=0.0, help="Std of Gaussian noise on the context frames."),
+    val_horizon: int = typer.Option(0, "--val-horizon", min=0, help="Rollout steps of the validation loss "
+                                                                     "(0: the curriculum's longest)."),
 ) -> None:
-    """Train EchoPT; the best validation weights are kept as OUT/model.safetensors with a model card."""
+    """Train EchoPT; the best validation weights are kept as OUT/model.safetensors with a model card.
+
+    Killed at any point, the same command with --resume continues exactly (OUT/state.safetensors)."""
     from sonarset.models.train import TrainConfig, add_test_metrics
     from sonarset.models.train import train as run_training
     from sonarset.store import open_store
@@ -319,7 +331,9 @@ def train(
     s = open_store(store)
     cfg = TrainConfig(preset=preset, epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
                       schedule=schedule, seed=seed, device=device, eval_every=eval_every, max_steps=max_steps,
-                      max_minutes=max_minutes, compile=compile_, test_samples=test_samples, n_val=n_val)
+                      max_minutes=max_minutes, compile=compile_, test_samples=test_samples, n_val=n_val,
+                      prior=prior, loss=loss, curriculum=curriculum, pushforward=pushforward,
+                      context_noise=context_noise, val_horizon=val_horizon)
     from rich.progress import MofNCompleteColumn, TimeElapsedColumn
 
     columns = [TextColumn("[bold]training"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),

@@ -23,11 +23,14 @@ from .echopt import EchoPT, EchoPTConfig
 PRETRAINED = Path(__file__).resolve().parent / "pretrained" / "echopt-small.safetensors"
 
 
-def save_checkpoint(path: str | os.PathLike, model: EchoPT, card: dict) -> Path:
+def save_checkpoint(path: str | os.PathLike, model: EchoPT, card: dict, after_weights=None) -> Path:
+    """Weights, then the card (``after_weights(phase)`` is called between the two: tests kill there)."""
     path = Path(path).with_suffix(".safetensors")
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
     atomic_write(path, lambda p: save_file(state, str(p), metadata={"format": "echopt", "card": path.with_suffix(".json").name}))
+    if after_weights is not None:
+        after_weights("best-weights")
     card = {**card, "config": model.cfg.to_dict(), "n_params": model.n_params()}
     atomic_text(path.with_suffix(".json"), json.dumps(card, indent=2) + "\n")
     return path

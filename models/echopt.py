@@ -13,6 +13,12 @@ Three parallel branches over n_in = 3 input frames and n_in + 1 = 4 velocity com
 The branches are depth-concatenated and a convolution stack makes the output image. Layer sizes
 follow the paper's appendix table; where the table is ambiguous the choice is noted inline. The
 paper's stride-1 "transposed" convolutions are plain convolutions here (identical function).
+
+Beyond the paper, a physics ``prior``: the network's output is a correction added to a prior
+image: ``none`` (the paper: the output is the image), ``last`` (the last input frame) or ``flow``
+(the acoustic-flow warp of the last frame along the newest command: the same SE(2) warp as the
+``flow`` baseline, with the rig the model was trained for). With a prior, the last convolution
+starts at zero, so an untrained model is exactly its prior.
 """
 
 from __future__ import annotations
@@ -46,8 +52,13 @@ class EchoPTConfig:
     head_channels: tuple[int, int] = (16, 4)  # output stack: (65 -> 16 -> 4 -> 1 for the paper)
     mlp_hidden: int = 10
     mlp_out: int = 200  # laid out as a 20 x 10 image
-    residual: bool = False  # predict a correction to the last frame (not in the paper)
+    prior: str = "none"  # none (paper) | last | flow: the image the output corrects
     dropout: float = 0.0
+    # The sensor grid's edges and the robot rig, which the flow prior needs (from the store).
+    range_edges: tuple[float, float] = (0.5, 5.0)
+    azimuth_edges: tuple[float, float] = (-math.pi / 2, math.pi / 2)
+    dt: float = 0.2
+    sensor_offset: float = 0.15
 
     @property
     def n_cmd(self) -> int:
@@ -69,6 +80,8 @@ class EchoPTConfig:
             raise GridMismatchError(f"grid {self.n_range}x{self.n_azimuth} needs more than {self.max_tokens} tokens")
         if self.d_model % self.n_heads:
             raise ValueError(f"d_model {self.d_model} is not divisible by {self.n_heads} heads")
+        if self.prior not in PRIORS:
+            raise ValueError(f"prior must be one of {', '.join(PRIORS)}, got {self.prior!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -77,7 +90,12 @@ class EchoPTConfig:
     def from_dict(cls, d: dict) -> "EchoPTConfig":
         names = {f.name for f in fields(cls)}
         kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in names}
+        if "prior" not in d and "residual" in d:  # cards before the prior option: residual = last frame
+            kw["prior"] = "last" if d["residual"] else "none"
         return cls(**kw)
+
+
+PRIORS = ("none", "last", "flow")
 
 
 PRESETS: dict[str, dict] = {
@@ -85,23 +103,35 @@ PRESETS: dict[str, dict] = {
     "paper": {},
     # Sized by measurement to train on a 2-core CPU (BENCHMARKS.md): 0.62 M parameters, ~50
     # samples/s. Full-resolution 20 x 5 convolutions cost most of the paper model's time on a CPU,
-    # so the small preset uses 5 x 3 kernels and 8 channels, and predicts a correction to the
-    # last frame (``residual``), which starts training from persistence instead of from zero.
+    # so the small preset uses 5 x 3 kernels and 8 channels, and predicts a correction to a prior
+    # (default: the acoustic-flow warp of the last frame), which starts training from that
+    # prior's accuracy instead of from zero.
     "small": dict(d_embed=120, n_layers=4, n_heads=4, d_ff=256, max_tokens=144, kernel=(5, 3),
-                  tf_channels=(4, 8), frame_channels=8, head_channels=(8, 4), residual=True),
+                  tf_channels=(4, 8), frame_channels=8, head_channels=(8, 4), prior="flow"),
     # For tests and smoke runs on tiny grids: seconds per hundred steps.
     "tiny": dict(d_embed=24, n_layers=2, n_heads=2, d_ff=32, max_tokens=64, kernel=(3, 3),
                  tf_channels=(2, 4), frame_channels=4, head_channels=(4, 2), mlp_hidden=8, mlp_out=50,
-                 residual=True),
+                 prior="flow"),
 }
 
 
 def make_config(preset: str, n_range: int = 200, n_azimuth: int = 90, **overrides) -> EchoPTConfig:
+    """A preset's config on an ``n_range`` x ``n_azimuth`` grid; ``overrides`` set any field
+    (``prior``, the grid's edges and the rig for the flow prior: ``config_for_store`` fills them)."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
     cfg = EchoPTConfig(n_range=n_range, n_azimuth=n_azimuth, **{**PRESETS[preset], **overrides})
     cfg.check()
     return cfg
+
+
+def grid_and_rig(grid, rig=None) -> dict:
+    """Config fields for a store's grid (a SensorGrid) and robot rig (a RobotRig, or None: the
+    simulator's), which the flow prior needs."""
+    out = {"range_edges": (grid.range_min_m, grid.range_max_m), "azimuth_edges": (grid.azimuth_min_rad, grid.azimuth_max_rad)}
+    if rig is not None:
+        out.update(dt=rig.frame_interval_s, sensor_offset=rig.sensor_offset_m)
+    return out
 
 
 class Block(nn.Module):
@@ -159,8 +189,16 @@ class EchoPT(nn.Module):
         h1, h2 = cfg.head_channels
         self.head = nn.Sequential(conv(c2 + 2 * fc + 1, h1, k), nn.GELU(), conv(h1, h2, k), nn.GELU(), conv(h2, 1, k))
         self.register_buffer("cmd_scale", torch.tensor([1 / V_SCALE, 1 / W_SCALE] * (cfg.n_in + 1)), persistent=False)
+        # pixel centres of the grid (range [m], azimuth [rad]) for the flow prior
+        (r0, r1), (a0, a1) = cfg.range_edges, cfg.azimuth_edges
+        dr, da = (r1 - r0) / cfg.n_range, (a1 - a0) / cfg.n_azimuth
+        self.register_buffer("r_c", r0 + (torch.arange(cfg.n_range, dtype=torch.float64) + 0.5) * dr, persistent=False)
+        self.register_buffer("th_c", a0 + (torch.arange(cfg.n_azimuth, dtype=torch.float64) + 0.5) * da, persistent=False)
         self.apply(self._init)
         nn.init.normal_(self.pos, std=0.02)
+        if cfg.prior != "none":  # an untrained model is exactly its prior
+            nn.init.zeros_(self.head[-1].weight)
+            nn.init.zeros_(self.head[-1].bias)
 
     @staticmethod
     def _init(m: nn.Module) -> None:
@@ -200,4 +238,31 @@ class EchoPT(nn.Module):
         m = self.mlp(c).view(B, 1, 2 * side, side) if 2 * side * side == cfg.mlp_out else self.mlp(c).view(B, 1, cfg.mlp_out, 1)
         m = F.interpolate(m, size=(R, A), mode="bilinear", align_corners=False)
         out = self.head(torch.cat([t, f1, f2, m], dim=1))[:, 0]
-        return out + frames[:, -1] if cfg.residual else out
+        if cfg.prior == "none":
+            return out
+        return out + (frames[:, -1] if cfg.prior == "last" else self.flow_prior(frames[:, -1], commands[:, -1]))
+
+    def flow_prior(self, last: torch.Tensor, command: torch.Tensor) -> torch.Tensor:
+        """The acoustic-flow warp of ``last`` (B, R, A) under ``command`` (B, 2): each pixel of the next
+        frame, moved back along the robot's arc over dt (sensor ``sensor_offset`` ahead of the axle),
+        sampled bilinearly (edge values outside the field of view), as ``baselines.AcousticFlow``."""
+        cfg = self.cfg
+        cmd = command.double()
+        v, w = cmd[:, 0], cmd[:, 1]
+        phi = w * cfg.dt
+        small = w.abs() < 1e-9
+        w_safe = torch.where(small, torch.ones_like(w), w)
+        dx = torch.where(small, v * cfg.dt, v / w_safe * torch.sin(phi))
+        dy = torch.where(small, torch.zeros_like(v), v / w_safe * (1 - torch.cos(phi)))
+        c, s, dx, dy = (t.float()[:, None, None] for t in (torch.cos(phi), torch.sin(phi), dx, dy))
+        r, th = self.r_c.float()[None, :, None], self.th_c.float()[None, None, :]
+        xn, yn = r * torch.cos(th) + cfg.sensor_offset, r * torch.sin(th)
+        xo = c * xn - s * yn + dx - cfg.sensor_offset
+        yo = s * xn + c * yn + dy
+        R, A = cfg.n_range, cfg.n_azimuth
+        ir = (torch.hypot(xo, yo) - self.r_c[0].float()) / float(self.r_c[1] - self.r_c[0])
+        ia = (torch.atan2(yo, xo) - self.th_c[0].float()) / float(self.th_c[1] - self.th_c[0])
+        B = last.shape[0]
+        grid = torch.stack([(2 * ia / max(A - 1, 1) - 1).expand(B, R, A), (2 * ir / max(R - 1, 1) - 1).expand(B, R, A)], -1)
+        return F.grid_sample(last[:, None].float(), grid.to(last.device), mode="bilinear", padding_mode="border",
+                             align_corners=True)[:, 0].to(last.dtype)

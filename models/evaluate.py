@@ -1,7 +1,8 @@
 """The evaluation engine: every method on the same seeded windows, the paper's metrics, statistics.
 
 ``evaluate`` is the library API behind ``sonarset eval``; ``write_report`` writes metrics.json,
-per_window.csv, report.md and the figures.
+per_window.csv, report.md and the figures. ``fade_summary`` is the "no fade" check: whether the
+rollouts keep the targets' peak pixel and echo energy at every step.
 """
 
 from __future__ import annotations
@@ -35,6 +36,20 @@ PAPER = {
 }
 METRICS = ("cc", "nrmsd")
 LOWER_IS_BETTER = {"cc": False, "nrmsd": True}
+#: Echo energy counts the pixels above this value (images are in [0, 1]): what is left of an
+#: echo, not the faint interpolation haze or residual noise a rollout can smear over the image.
+ECHO_FLOOR = 0.05
+#: "No fade": the mean prediction / target ratios of peak pixel and echo energy stay within this
+#: fraction of 1 at every rollout step.
+FADE_TOLERANCE = 0.15
+FADE_MEANING = (f"Per rollout step h (1 .. longest horizon), for each method: peak = the brightest pixel "
+                f"of the image, echo energy = the sum of the pixels above {ECHO_FLOOR} (ECHO_FLOOR), for "
+                "the prediction and for the target of each window. Ratio = mean over windows of the "
+                "prediction's value / mean over the same windows of the target's (a ratio of means, "
+                "not a mean of per-window ratios, so that windows with little echo cannot dominate); "
+                "windows whose target has no echo energy at that step are left out. 'within_15pct': "
+                f"both ratios stay within {FADE_TOLERANCE:.0%} of 1 at every step (no fade, no "
+                "brightening). The noise ceiling is not a predictor and has no entry.")
 CEILING_MEANING = ("noise ceiling: each target frame re-rendered from its run's recorded world and poses "
                    "with an independent noise draw, scored against the recorded frame; it shows how much "
                    "of a frame is predictable at all (the same scene, only the noise differs).")
@@ -56,6 +71,12 @@ class EvalResult:
     notes: list[str] = field(default_factory=list)  # one line each: what makes scores less comparable
     # ceiling=True: run -> one-line reason, for each run of the split it could not re-render
     ceiling_skipped: dict[str, str] = field(default_factory=dict)
+    # the "no fade" data, at every rollout step 1..max(horizons), per window: (N, max horizon)
+    # arrays of the peak pixel and the echo energy, per predicting method and for the targets
+    step_peak: dict[str, np.ndarray] = field(default_factory=dict)
+    step_energy: dict[str, np.ndarray] = field(default_factory=dict)
+    target_peak: np.ndarray | None = None
+    target_energy: np.ndarray | None = None
 
     @property
     def predictors(self) -> list[str]:
@@ -75,6 +96,48 @@ class EvalResult:
                 entry["n"] = int(np.isfinite(self.per_window[m][h]["cc"]).sum())
                 out[m][str(h)] = entry
         return out
+
+
+def peak_and_energy(images: np.ndarray, floor: float = ECHO_FLOOR) -> tuple[np.ndarray, np.ndarray]:
+    """The peak pixel and the echo energy (the sum of the pixels above ``floor``) of each image of
+    ``images`` (..., R, A); two arrays of shape (...)."""
+    x = np.asarray(images, dtype=np.float32)
+    peak = x.max(axis=(-2, -1)).astype(np.float64)
+    energy = np.where(x > floor, x, 0).sum(axis=(-2, -1), dtype=np.float64)
+    return peak, energy
+
+
+def _ratio_of_means(pred: np.ndarray, target: np.ndarray, keep: np.ndarray) -> float:
+    if not keep.any():
+        return float("nan")
+    return float(pred[keep].mean() / target[keep].mean())
+
+
+def fade_summary(res: EvalResult, tolerance: float = FADE_TOLERANCE) -> dict:
+    """The "no fade" check of every predicting method (the noise ceiling is none).
+
+    Returns {method: {"peak_ratio": [...], "energy_ratio": [...], "n_windows": [...],
+    "within_15pct": bool, "first_out": step or None}}, lists over rollout steps 1..max horizon.
+    Each ratio is a ratio of means over the windows whose target has echo energy at that step
+    (``FADE_MEANING``); ``within_15pct`` is True when both ratios are within ``tolerance`` of 1
+    at every step (a step with no usable window fails it); ``first_out`` is the first step where
+    one is not. Empty when the result carries no step data.
+    """
+    if res.target_peak is None or res.target_energy is None:
+        return {}
+    keep = res.target_energy > 0  # (N, H)
+    out = {}
+    for m in res.predictors:
+        if m not in res.step_peak:
+            continue
+        H = keep.shape[1]
+        peak = [_ratio_of_means(res.step_peak[m][:, h], res.target_peak[:, h], keep[:, h]) for h in range(H)]
+        energy = [_ratio_of_means(res.step_energy[m][:, h], res.target_energy[:, h], keep[:, h]) for h in range(H)]
+        ok = [bool(np.isfinite(p) and np.isfinite(e) and abs(p - 1) <= tolerance and abs(e - 1) <= tolerance)
+              for p, e in zip(peak, energy)]
+        out[m] = {"peak_ratio": peak, "energy_ratio": energy, "n_windows": [int(k) for k in keep.sum(axis=0)],
+                  "within_15pct": all(ok), "first_out": next((h + 1 for h, g in enumerate(ok) if not g), None)}
+    return out
 
 
 def _robot_geometry(store: SonarStore) -> tuple[float, float, str | None]:
@@ -141,18 +204,23 @@ def evaluate(
     ids = [(bank.run_names[j], k) for j, k in (index.locate(i) for i in range(len(index)))]
     per_window = {m: {h: {k: np.empty(len(index)) for k in METRICS} for h in horizons} for m in preds}
     seconds = dict.fromkeys(preds, 0.0)
+    step_peak = {m: np.empty((len(index), H)) for m in preds}
+    step_energy = {m: np.empty((len(index), H)) for m in preds}
+    target_peak, target_energy = np.empty((len(index), H)), np.empty((len(index), H))
     examples: dict = {"window": ids[0], "methods": {}}
     for lo in range(0, len(index), batch_size):
         sl = slice(lo, min(len(index), lo + batch_size))
         batch = gather(bank, index, np.arange(sl.start, sl.stop))  # once for every method
         if lo == 0:
             examples["frames"], examples["targets"] = batch.frames[0], batch.targets[0]
+        target_peak[sl], target_energy[sl] = peak_and_energy(batch.targets[:, :H])
         for name, predictor in preds.items():
             t0 = time.perf_counter()
             pred = rollout(predictor, batch.frames, batch.commands, H)
             for h in horizons:
                 per_window[name][h]["cc"][sl] = cc(pred[:, h - 1], batch.targets[:, h - 1])
                 per_window[name][h]["nrmsd"][sl] = nrmsd(pred[:, h - 1], batch.targets[:, h - 1])
+            step_peak[name][sl], step_energy[name][sl] = peak_and_energy(pred)
             seconds[name] += time.perf_counter() - t0
             if lo == 0:
                 examples["methods"][name] = pred[0]
@@ -170,7 +238,8 @@ def evaluate(
             seconds[CEILING] = time.perf_counter() - t0
     result = EvalResult(store.location, split, bank.run_names, list(horizons), list(per_window),
                         index.starts, ids, per_window, seconds=seconds, examples=examples, notes=notes,
-                        ceiling_skipped=skipped)
+                        ceiling_skipped=skipped, step_peak=step_peak, step_energy=step_energy,
+                        target_peak=target_peak, target_energy=target_energy)
     result.comparisons = _compare_all(result, seed)
     return result
 
@@ -244,6 +313,7 @@ def write_report(res: EvalResult, out: str | os.PathLike, *, figures: bool = Tru
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     summary = res.summary()
+    fade = fade_summary(res)
     doc = {
         "results": summary,
         "tests": [c.to_dict() for c in res.comparisons],
@@ -256,6 +326,10 @@ def write_report(res: EvalResult, out: str | os.PathLike, *, figures: bool = Tru
         "notes": res.notes,
         **({"ceiling": {"method": CEILING, "meaning": CEILING_MEANING, "skipped_runs": res.ceiling_skipped}}
            if CEILING in res.methods or res.ceiling_skipped else {}),
+        **({"fade": _json_finite(fade),
+            "fade_definition": {"echo_floor": ECHO_FLOOR, "tolerance": FADE_TOLERANCE,
+                                "steps": list(range(1, len(next(iter(fade.values()))["peak_ratio"]) + 1)),
+                                "meaning": FADE_MEANING}} if fade else {}),
         "paper": {m: {k: {str(h): v for h, v in d.items()} for k, d in t.items()} for m, t in PAPER.items()},
     }
     atomic_text(out / "metrics.json", json.dumps(doc, indent=2) + "\n")
@@ -276,6 +350,44 @@ def write_report(res: EvalResult, out: str | os.PathLike, *, figures: bool = Tru
         figs = write_figures(res, out)
     atomic_text(out / "report.md", render_report(res, figs))
     return out
+
+
+def _json_finite(x):
+    """``x`` with every non-finite float replaced by None (JSON has no NaN)."""
+    if isinstance(x, dict):
+        return {k: _json_finite(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_json_finite(v) for v in x]
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    return x
+
+
+def fade_table(res: EvalResult, fade: dict | None = None) -> str:
+    """The "no fade" table: per method, the range of its peak and echo-energy ratios over the
+    rollout steps, and the verdict."""
+    fade = fade_summary(res) if fade is None else fade
+    lines = ["| method | peak ratio min | peak ratio max | energy ratio min | energy ratio max | verdict |",
+             "|---|---|---|---|---|---|"]
+
+    def rng(v):
+        v = np.asarray(v, float)
+        v = v[np.isfinite(v)]
+        return (f"{v.min():.3f}", f"{v.max():.3f}") if len(v) else ("n/a", "n/a")
+
+    for m, f in fade.items():
+        if f["within_15pct"]:
+            verdict = f"no fade (within {FADE_TOLERANCE:.0%} at every step)"
+        else:
+            h = f["first_out"]
+            p, e = f["peak_ratio"][h - 1], f["energy_ratio"][h - 1]
+            if np.isfinite(p) and np.isfinite(e):
+                kind = "fades" if max((p, e), key=lambda r: abs(r - 1)) < 1 else "brightens"
+            else:
+                kind = "no window with echo energy"
+            verdict = f"{kind} from step {h}"
+        lines.append(f"| {m} | " + " | ".join([*rng(f["peak_ratio"]), *rng(f["energy_ratio"])]) + f" | {verdict} |")
+    return "\n".join(lines)
 
 
 def _fmt_p(p: float | None) -> str:
@@ -339,6 +451,16 @@ def render_report(res: EvalResult, figures: list[str]) -> str:
         parts.append(f"| {_hname(c.horizon)} | {c.metric} | {c.a} | {c.b} | {c.mean_diff:+.4f} | "
                      f"[{c.ci_low:+.4f}, {c.ci_high:+.4f}] | {_fmt_p(c.t_two_sample_p)} | {_fmt_p(c.t_paired_p)} | "
                      f"{_fmt_p(c.wilcoxon_p)} | {_fmt_p(c.p_holm)} | {better} |")
+    fade = fade_summary(res)
+    if fade:
+        steps = len(next(iter(fade.values()))["peak_ratio"])
+        parts += ["", "## No fade", "",
+                  f"Over the rollouts to {steps} steps: mean prediction / target ratio of the peak pixel "
+                  f"and of the echo energy (the sum of the pixels above {ECHO_FLOOR}), a ratio of means over "
+                  "the windows whose target has echo energy at that step; min and max over the steps. "
+                  f"No fade: both ratios within {FADE_TOLERANCE:.0%} of 1 at every step "
+                  "(per step in metrics.json, `fade`; the figure `fade.png`).",
+                  "", fade_table(res, fade)]
     parts += ["", "## Timing", ""]
     parts += [f"- {m}: {t:.2f} s to re-render the target frames" if m == CEILING else
               f"- {m}: {t:.2f} s for {n} windows rolled out to {max(res.horizons)} steps" for m, t in res.seconds.items()]

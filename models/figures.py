@@ -1,4 +1,5 @@
-"""Evaluation figures: the paper's Fig. 3 per method, auto-regressive strips, metrics vs horizon."""
+"""Evaluation figures: the paper's Fig. 3 per method, auto-regressive strips, metrics vs horizon,
+and the "no fade" ratios against the rollout step."""
 
 from __future__ import annotations
 
@@ -93,4 +94,38 @@ def write_figures(res, out: Path) -> list[str]:
     p = out / "fig_horizon.png"
     save_figure(fig, p, dpi=100)
     paths.append(str(p))
+
+    p = fade_figure(res, out / "fade.png")
+    if p is not None:
+        paths.append(str(p))
     return paths
+
+
+def fade_figure(res, path: Path, fade: dict | None = None) -> Path | None:
+    """The "no fade" figure: peak-pixel and echo-energy ratios (prediction / target) against the
+    rollout step, one line per method, the +-15% band shaded. None when there is nothing to draw."""
+    from .evaluate import ECHO_FLOOR, FADE_TOLERANCE, fade_summary
+
+    fade = fade_summary(res) if fade is None else fade
+    if not fade:
+        return None
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), constrained_layout=True)
+    for key, ax, title in (("peak_ratio", axes[0], "peak pixel"),
+                           ("energy_ratio", axes[1], f"echo energy (sum of pixels > {ECHO_FLOOR:g})")):
+        steps = np.arange(1, len(next(iter(fade.values()))[key]) + 1)
+        ax.axhspan(1 - FADE_TOLERANCE, 1 + FADE_TOLERANCE, color="0.85", zorder=0,
+                   label=f"within {FADE_TOLERANCE:.0%}")
+        ax.axhline(1.0, color="0.5", lw=0.8, zorder=1)
+        for m, f in fade.items():
+            ax.plot(steps, np.asarray(f[key], float), marker="o", ms=3, label=m)
+        ax.set_xlabel("rollout step (frames ahead)")
+        ax.set_ylabel("prediction / target (mean over windows)")
+        ax.set_title(title)
+        if len(steps) <= 20:
+            ax.set_xticks(steps)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle("No fade: forecasts keep the targets' peak and echo energy")
+    save_figure(fig, path, dpi=100)
+    return Path(path)

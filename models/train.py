@@ -4,9 +4,20 @@ Paper defaults: Adam, lr 5e-5, batch 64, L2 1e-4, 1600 random validation windows
 loss kept. All frames of the training runs are held in memory (on the GPU when there is one), and
 each batch is one gather from them, so the loader never starves the model.
 
-Resumable: ``last.safetensors`` (weights and Adam moments) and ``last.json`` (step, epoch, best
-loss) are written atomically every ``eval_every`` steps. The batch order is a pure function of
-(seed, epoch), so a resumed run replays exactly the steps an uninterrupted one would have taken.
+For auto-regressive use (beyond the paper): an unrolled loss over k steps, each step fed the
+model's own previous predictions, with a curriculum on k (``curriculum="0:1,400:2,800:4"``: from
+step 0 k = 1, from step 400 k = 2, ...); optionally "pushforward" (the first k - 1 steps without
+gradient, so memory stays that of one step); Gaussian noise on the measured context frames; and a
+loss choice (``mse``, ``l1``, ``gdl`` image-gradient difference, ``cc`` = 1 - correlation, or a
+weighted sum such as ``mse=1,gdl=0.5``). Validation is the mean MSE over a rollout of
+``val_horizon`` steps (1: the paper's one-step loss).
+
+Crash-safe and resumable: the whole training state (weights, Adam moments, step, best loss,
+metrics history) is one file, ``state.safetensors`` (tensors plus a JSON header), replaced
+atomically every ``eval_every`` steps; a kill at any point leaves either the previous state or the
+new one. ``metrics.jsonl`` and the best model are derived from it and rewritten on resume. The
+batch order and the augmentation noise are pure functions of (seed, epoch, step), so a resumed
+run replays exactly the steps an uninterrupted one would have taken.
 
 Distributed: started by ``torchrun`` (WORLD_SIZE > 1), every process draws the same global batch
 order and trains on its own contiguous slice of each global batch of ``batch_size`` windows, under
@@ -40,7 +51,16 @@ from sonarset.store import SonarStore
 from sonarset.windows import FrameBank, WindowIndex
 
 from .checkpoint import resolve_device, save_checkpoint
-from .echopt import EchoPT, make_config
+from .echopt import PRIORS, EchoPT, grid_and_rig, make_config
+
+STATE = "state.safetensors"
+#: Called with a phase name after each write of a checkpoint (tests kill training there).
+_AFTER_WRITE: Callable[[str], None] | None = None
+
+
+def _written(phase: str) -> None:
+    if _AFTER_WRITE is not None:
+        _AFTER_WRITE(phase)
 
 
 @dataclass
@@ -60,7 +80,71 @@ class TrainConfig:
     compile: bool = False  # torch.compile (GPU)
     bf16: bool = True  # bf16 autocast on CUDA; ignored on CPU
     test_samples: int = 1000  # one-shot + AR test metrics in the card (0 = skip)
+    prior: str = ""  # none | last | flow; "" = the preset's (paper: none, small and tiny: flow)
+    loss: str = "mse"  # mse | l1 | gdl | cc, or a weighted sum "mse=1,gdl=0.5"
+    curriculum: str = "1"  # rollout length k: "k", or "step:k,step:k,..." from those steps on
+    pushforward: bool = False  # only the last of the k steps carries gradient
+    context_noise: float = 0.0  # std of Gaussian noise added to the measured context frames
+    val_horizon: int = 0  # rollout steps of the validation loss (0 = the curriculum's longest)
     command: str = field(default_factory=lambda: " ".join(shlex.quote(a) for a in sys.argv))
+
+    def stages(self) -> list[tuple[int, int]]:
+        """The curriculum as (first step, k) pairs, sorted."""
+        try:
+            if ":" not in self.curriculum:
+                out = [(0, int(self.curriculum))]
+            else:
+                out = sorted((int(a), int(b)) for a, b in (p.split(":") for p in self.curriculum.split(",")))
+        except ValueError:
+            raise SonarSetError(f"--curriculum {self.curriculum!r}: expected k or step:k,step:k (e.g. 0:1,400:2)") from None
+        if not out or out[0][0] != 0 or any(k < 1 for _, k in out):
+            raise SonarSetError(f"--curriculum {self.curriculum!r}: must start at step 0 with k >= 1")
+        return out
+
+    def k_at(self, step: int) -> int:
+        return [k for s, k in self.stages() if s <= step][-1]
+
+    @property
+    def k_max(self) -> int:
+        return max(k for _, k in self.stages())
+
+
+LOSSES = ("mse", "l1", "gdl", "cc")
+#: Settings that must not change when a run is resumed.
+_RESUME_KEYS = ("preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps", "prior", "loss",
+                "curriculum", "pushforward", "context_noise", "val_horizon")
+
+
+def parse_loss(spec: str) -> dict[str, float]:
+    """``"mse"`` -> {"mse": 1}; ``"mse=1,gdl=0.5"`` -> {"mse": 1.0, "gdl": 0.5}."""
+    terms: dict[str, float] = {}
+    for part in spec.split(","):
+        name, _, w = part.strip().partition("=")
+        if name not in LOSSES:
+            raise SonarSetError(f"--loss {spec!r}: unknown term {name!r}; choose from {', '.join(LOSSES)}")
+        try:
+            terms[name] = float(w) if w else 1.0
+        except ValueError:
+            raise SonarSetError(f"--loss {spec!r}: weight of {name!r} is not a number") from None
+    return terms
+
+
+def image_loss(pred: torch.Tensor, target: torch.Tensor, terms: dict[str, float]) -> torch.Tensor:
+    """Weighted sum of per-pixel losses over (B, R, A) images."""
+    total = pred.new_zeros(())
+    for name, w in terms.items():
+        if name == "mse":
+            v = F.mse_loss(pred, target)
+        elif name == "l1":
+            v = F.l1_loss(pred, target)
+        elif name == "gdl":  # image-gradient difference (Mathieu et al. 2016): keeps edges sharp
+            v = (F.l1_loss(pred.diff(dim=-1), target.diff(dim=-1)) + F.l1_loss(pred.diff(dim=-2), target.diff(dim=-2))) / 2
+        else:  # 1 - CC (the paper's metric) per image
+            p = pred.flatten(1) - pred.flatten(1).mean(1, keepdim=True)
+            t = target.flatten(1) - target.flatten(1).mean(1, keepdim=True)
+            v = 1 - ((p * t).sum(1) / (p.norm(dim=1) * t.norm(dim=1) + 1e-8)).mean()
+        total = total + w * v
+    return total
 
 
 @dataclass
@@ -94,9 +178,10 @@ class _Batches:
         else:
             self.images, self.velocity = bank.images, bank.velocity
 
-    def get(self, index: WindowIndex, which: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Input frames, commands and the target frame of the windows ``index[which]``."""
-        rows = index.rows(which)
+    def get(self, index: WindowIndex, which: np.ndarray, k: int = 1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Input frames (B, n_in, R, A), commands (B, n_in + k, 2) and targets (B, k, R, A) of the
+        windows ``index[which]`` (whose horizon must be at least ``k``)."""
+        rows = index.rows(which)[:, :index.n_in + k]
         if self.gpu:
             rows_t = torch.as_tensor(rows, device=self.device)
             block, cmds = self.images[rows_t].float(), self.velocity[rows_t]
@@ -104,23 +189,50 @@ class _Batches:
             block = torch.from_numpy(self.images[rows]).float()
             cmds = torch.from_numpy(self.velocity[rows])
         n_in = index.n_in
-        return block[:, :n_in].contiguous(memory_format=torch.channels_last), cmds, block[:, n_in]
+        return block[:, :n_in], cmds, block[:, n_in:]
+
+
+def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch.Tensor, terms: dict[str, float],
+                   pushforward: bool = False, amp: bool = False) -> list[torch.Tensor]:
+    """One loss per rollout step: step h predicts target h from the last n_in frames, measured or
+    the model's own (clamped to [0, 1], as in evaluation) predictions. With ``pushforward`` all
+    steps but the last run without gradient, and only the last step's loss is returned."""
+    n_in, k = frames.shape[1], targets.shape[1]
+    buf = list(frames.unbind(1))
+    losses = []
+    for h in range(k):
+        grad = torch.is_grad_enabled() and (not pushforward or h == k - 1)
+        ctx = torch.stack(buf[h:h + n_in], 1).contiguous(memory_format=torch.channels_last)
+        with torch.set_grad_enabled(grad), torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp):
+            pred = fwd(ctx, cmds[:, h:h + n_in + 1]).float()
+        if grad or not pushforward:
+            losses.append(image_loss(pred, targets[:, h], terms))
+        buf.append(pred.clamp(0, 1))
+    return losses
 
 
 def _save_state(out: Path, model: EchoPT, opt: torch.optim.Optimizer, meta: dict) -> None:
+    """The whole training state in one file, replaced atomically: weights, Adam moments and, in
+    the header, step, best loss, config and metrics history."""
     tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     sd = opt.state_dict()
     for idx, st in sd["state"].items():
         for k, v in st.items():
             tensors[f"opt.{idx}.{k}"] = (v if torch.is_tensor(v) else torch.tensor(v)).detach().cpu().contiguous()
-    atomic_write(out / "last.safetensors", lambda p: save_file(tensors, str(p)))
     meta = {**meta, "param_groups": [{k: v for k, v in g.items() if k != "params"} for g in sd["param_groups"]]}
-    atomic_text(out / "last.json", json.dumps(meta, indent=2) + "\n")
+    atomic_write(out / STATE, lambda p: save_file(tensors, str(p), metadata={"state": json.dumps(meta)}))
 
 
 def _load_state(out: Path, model: EchoPT, opt: torch.optim.Optimizer) -> dict:
-    meta = json.loads((out / "last.json").read_text())
-    tensors = load_file(str(out / "last.safetensors"))
+    from safetensors import safe_open
+
+    path = out / STATE
+    try:
+        with safe_open(str(path), "pt") as f:
+            meta = json.loads(f.metadata()["state"])
+        tensors = load_file(str(path))
+    except Exception as exc:  # safetensors raises its own error types
+        raise SonarSetError(f"{path}: unreadable training state ({type(exc).__name__}: {exc})") from None
     model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
     sd = opt.state_dict()
     state: dict = {}
@@ -133,6 +245,10 @@ def _load_state(out: Path, model: EchoPT, opt: torch.optim.Optimizer) -> dict:
         g.update(saved)
     opt.load_state_dict(sd)
     return meta
+
+
+def _write_metrics(out: Path, history: list[dict]) -> None:
+    atomic_text(out / "metrics.jsonl", "".join(json.dumps(h) + "\n" for h in history))
 
 
 @dataclass(frozen=True)
@@ -183,16 +299,18 @@ def _init_distributed(device: str) -> tuple[_Dist, str, bool]:
 
 
 @torch.no_grad()
-def validation_loss(model: EchoPT, batches: _Batches, index: WindowIndex, batch_size: int = 128,
+def validation_loss(model: EchoPT, batches: _Batches, index: WindowIndex, horizon: int = 1, batch_size: int = 128,
                     dist: _Dist = _Dist()) -> float:
-    """Mean squared error per pixel over ``index``; each process takes every world-th batch."""
+    """Mean squared error per pixel over ``index``, averaged over a rollout of ``horizon`` steps;
+    each process takes every world-th batch."""
     model.eval()
     total, n = 0.0, 0
     starts = range(0, len(index), batch_size)
     for lo in list(starts)[dist.rank::dist.world]:
-        f, c, t = batches.get(index, np.arange(lo, min(len(index), lo + batch_size)))
-        total += float(F.mse_loss(model(f, c).float(), t, reduction="sum"))
-        n += t.numel()
+        f, c, t = batches.get(index, np.arange(lo, min(len(index), lo + batch_size)), horizon)
+        losses = rollout_losses(model, f, c, t, {"mse": 1.0})
+        total += float(sum(losses)) / horizon * len(f)
+        n += len(f)
     model.train()
     total, n = dist.all_sum(total, n)
     return total / n
@@ -203,8 +321,11 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
     out = Path(out_dir)
     if out.exists() and any(out.iterdir()) and not resume:
         raise SonarSetError(f"{out}: exists and is not empty (use --resume to continue, or another --out)")
-    if resume and not (out / "last.json").is_file():
-        raise SonarSetError(f"{out}: nothing to resume (no last.json)")
+    # --resume on a run killed before its first checkpoint (no state yet) starts it from step 0
+    cfg.stages()
+    parse_loss(cfg.loss)
+    if cfg.prior and cfg.prior not in PRIORS:
+        raise SonarSetError(f"--prior must be one of {', '.join(PRIORS)}, got {cfg.prior!r}")
     dist, device, started = _init_distributed(resolve_device(cfg.device))
     try:
         if cfg.batch_size % dist.world:
@@ -221,12 +342,17 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
 def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progress, dist: _Dist,
            device: str) -> TrainResult:
     torch.manual_seed(cfg.seed)
-    model_cfg = make_config(cfg.preset, *store.grid.shape)
+    overrides = grid_and_rig(store.grid, store.rig)
+    if cfg.prior:
+        overrides["prior"] = cfg.prior
+    model_cfg = make_config(cfg.preset, *store.grid.shape, **overrides)
     model = EchoPT(model_cfg).to(device).to(memory_format=torch.channels_last)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=cfg.weight_decay)
+    terms = parse_loss(cfg.loss)
+    val_horizon = cfg.val_horizon or cfg.k_max
 
     bank = FrameBank.from_store(store, split="train")
-    index = WindowIndex.build(bank, 3, 1)
+    index = WindowIndex.build(bank, 3, max(cfg.k_max, val_horizon))
     train_idx, val_idx = index.split(cfg.n_val, seed=cfg.seed)
     if dist.main:
         out.mkdir(parents=True, exist_ok=True)
@@ -240,16 +366,15 @@ def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progres
     eval_every = cfg.eval_every or steps_per_epoch
 
     step, best, history = 0, float("inf"), []
-    if resume:
+    if resume and (out / STATE).is_file():
         meta = _load_state(out, model, opt)
-        step, best = int(meta["step"]), float(meta["best_val_loss"])
+        step, best, history = int(meta["step"]), float(meta["best_val_loss"]), list(meta["history"])
         saved = meta["train_config"]
-        for key in ("preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps"):
-            if saved[key] != getattr(cfg, key):
-                raise SonarSetError(f"{out}: --resume with {key}={getattr(cfg, key)!r}, but the run used {saved[key]!r}")
-        if dist.main and (out / "metrics.jsonl").exists():
-            history = [json.loads(l) for l in (out / "metrics.jsonl").read_text().splitlines() if l.strip()]
-            history = [h for h in history if h["step"] <= step]
+        for key in _RESUME_KEYS:
+            if saved.get(key, getattr(TrainConfig, key, None)) != getattr(cfg, key):
+                raise SonarSetError(f"{out}: --resume with {key}={getattr(cfg, key)!r}, but the run used {saved.get(key)!r}")
+        if dist.main:  # derived from the state: whatever a kill left behind, rewrite it
+            _write_metrics(out, history)
 
     amp = device.startswith("cuda") and cfg.bf16
     fwd = model
@@ -278,12 +403,17 @@ def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progres
         order = np.random.default_rng([cfg.seed, epoch]).permutation(len(train_idx))
         for b in range(pos, steps_per_epoch):
             which = order[b * cfg.batch_size:(b + 1) * cfg.batch_size][dist.rank * local:(dist.rank + 1) * local]
-            frames, cmds, target = batches.get(train_idx, which)
+            k = cfg.k_at(step)
+            frames, cmds, targets = batches.get(train_idx, which, k)
+            if cfg.context_noise:
+                # drawn from (seed, step): a resumed run adds the same noise
+                gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
+                noise = torch.randn(frames.shape, generator=gen) * cfg.context_noise
+                frames = (frames + noise.to(frames.device)).clamp_(0, 1)
             for g in opt.param_groups:
                 g["lr"] = _lr_at(cfg, step, total_steps)
-            with torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp):
-                pred = fwd(frames, cmds)
-            loss = F.mse_loss(pred.float(), target)
+            losses = rollout_losses(fwd, frames, cmds, targets, terms, cfg.pushforward, amp)
+            loss = sum(losses) / len(losses)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -295,25 +425,31 @@ def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progres
             if dist.world > 1 and cfg.max_minutes:  # every rank must agree to stop at the same step
                 out_of_time = bool(dist.all_sum(float(bool(out_of_time)))[0])
             if step % eval_every == 0 or step == total_steps or out_of_time:
-                val = validation_loss(model, batches, val_idx, dist=dist)
+                val = validation_loss(model, batches, val_idx, val_horizon, dist=dist)
                 run_loss, run_n = dist.all_sum(run_loss, run_n)
                 rate = samples_window / (time.perf_counter() - t_window)
                 rec = {"step": step, "epoch": step / steps_per_epoch, "train_loss": run_loss / max(run_n, 1),
-                       "val_loss": val, "lr": opt.param_groups[0]["lr"], "samples_per_s": rate,
+                       "val_loss": val, "rollout_k": k, "lr": opt.param_groups[0]["lr"], "samples_per_s": rate,
                        "elapsed_s": time.perf_counter() - t_start}
                 history.append(rec)
-                if val < best:
-                    best = val
-                    if dist.main:
+                if dist.main:
+                    # Order matters for a kill at any point: the best model first (a resumed run
+                    # redoes these steps and rewrites it identically), then the state, the commit
+                    # point, then the metrics derived from it.
+                    if val < best:
                         save_checkpoint(out / "model.safetensors", model, {
                             **card_base, "epochs": step / steps_per_epoch, "steps": step, "val_loss": val,
-                            "processes": dist.world})
-                if dist.main:
-                    with open(out / "metrics.jsonl", "a") as f:
-                        f.write(json.dumps(rec) + "\n")
-                    _save_state(out, model, opt, {"step": step, "best_val_loss": best, "train_config": asdict(cfg)})
+                            "val_horizon": val_horizon, "processes": dist.world}, after_weights=_written)
+                        _written("best")
+                    best = min(best, val)
+                    _save_state(out, model, opt, {"step": step, "best_val_loss": best, "train_config": asdict(cfg),
+                                                  "history": history})
+                    _written("state")
+                    _write_metrics(out, history)
+                    _written("metrics")
                     if progress:
                         progress({**rec, "total_steps": total_steps, "best_val_loss": best})
+                best = min(best, val)
                 run_loss, run_n, t_window, samples_window = 0.0, 0, time.perf_counter(), 0
             elif progress and dist.main and step % 10 == 0:
                 progress({"step": step, "total_steps": total_steps, "train_loss": loss.item()})

@@ -135,3 +135,82 @@ def test_train_and_eval_cli(tiny_store, tmp_path):
     r = CliRunner().invoke(app, ["eval", tiny_store.location, "--models", "echopt:pretrained", "--samples", "5",
                                  "--out", str(tmp_path / "ev2")])
     assert r.exit_code == 1 and ("trained on grid" in r.output or "no EchoPT checkpoint" in r.output)
+
+
+class _Killed(Exception):
+    pass
+
+
+def _final_weights(path):
+    from safetensors.torch import load_file
+
+    return load_file(str(path / "state.safetensors"))  # weights and optimizer moments
+
+
+def test_killed_at_any_write_phase_resumes_to_the_uninterrupted_result(tiny_store, tmp_path):
+    """A kill after each write of a checkpoint (between the best weights and their card, after the
+    card, after the state, after the metrics), the first and the last time it happens: --resume
+    ends with the weights, optimizer state, best model and metrics of an uninterrupted run."""
+    import sonarset.models.train as tr
+
+    cfg = _cfg(max_steps=6, eval_every=2, curriculum="0:1,2:2", context_noise=0.02)
+    phases: list[str] = []
+    tr._AFTER_WRITE = phases.append
+    try:
+        full = train(tiny_store, tmp_path / "full", cfg)
+    finally:
+        tr._AFTER_WRITE = None
+    ref = _final_weights(tmp_path / "full")
+    best_ref = load_checkpoint(tmp_path / "full", TINY_GRID)
+    for phase in ("best-weights", "best", "state", "metrics"):
+        assert phases.count(phase) >= 1, phases
+        for nth in sorted({1, phases.count(phase)}):  # the first and the last time it happens
+            run = tmp_path / f"{phase}-{nth}"
+            seen: list[str] = []
+
+            def kill(p, phase=phase, nth=nth):
+                seen.append(p)
+                if seen.count(phase) == nth:
+                    raise _Killed(p)
+
+            tr._AFTER_WRITE = kill
+            try:
+                with pytest.raises(_Killed):
+                    train(tiny_store, run, cfg)
+            finally:
+                tr._AFTER_WRITE = None
+            with pytest.raises(SonarSetError, match="exists and is not empty"):
+                train(tiny_store, run, cfg)  # a restart without --resume never overwrites it
+            assert train(tiny_store, run, cfg, resume=True).steps == 6
+            got = _final_weights(run)
+            assert ref.keys() == got.keys() and all(torch.equal(ref[k], got[k]) for k in ref), (phase, nth)
+            best = load_checkpoint(run, TINY_GRID)
+            assert (best[1]["steps"], best[1]["val_loss"]) == (best_ref[1]["steps"], best_ref[1]["val_loss"])
+            assert all(torch.equal(x, y) for x, y in zip(best_ref[0].state_dict().values(), best[0].state_dict().values()))
+            steps = [json.loads(line)["step"] for line in (run / "metrics.jsonl").read_text().splitlines()]
+            assert steps == [r["step"] for r in full.history], (phase, nth)  # no step repeated or lost
+
+
+def test_rollout_training_options_and_priors(tiny_store, tmp_path):
+    from sonarset.models.baselines import AcousticFlow
+    from sonarset.models.echopt import grid_and_rig
+
+    # an untrained flow-prior model is exactly the flow baseline, with the store's rig
+    model = EchoPT(make_config("tiny", *TINY_GRID.shape, **grid_and_rig(TINY_GRID, tiny_store.rig))).eval()
+    rng = np.random.default_rng(0)
+    f = rng.random((4, 3, *TINY_GRID.shape)).astype(np.float32)
+    c = np.stack([rng.uniform(-0.3, 0.3, (4, 4)), rng.uniform(-1, 1, (4, 4))], -1).astype(np.float32)
+    flow = AcousticFlow(TINY_GRID, dt=tiny_store.rig.frame_interval_s, sensor_offset=tiny_store.rig.sensor_offset_m)
+    with torch.no_grad():
+        np.testing.assert_allclose(model(torch.from_numpy(f), torch.from_numpy(c)).numpy(), flow.predict(f, c), atol=1e-6)
+    # rollout, pushforward and a weighted loss train and record what they did
+    res = train(tiny_store, tmp_path / "ro", _cfg(max_steps=4, curriculum="0:1,2:3", pushforward=True,
+                                                 loss="mse=1,gdl=0.5,cc=0.1", prior="last", val_horizon=2))
+    assert [r["rollout_k"] for r in res.history] == [1, 3, 3, 3][: len(res.history)] or res.history[-1]["rollout_k"] == 3
+    _, card = load_checkpoint(tmp_path / "ro", TINY_GRID)
+    assert card["config"]["prior"] == "last" and card["val_horizon"] == 2
+    assert card["training"]["config"]["curriculum"] == "0:1,2:3"
+    for bad, msg in ((dict(curriculum="2:3"), "start at step 0"), (dict(loss="mse,fancy"), "unknown term"),
+                     (dict(prior="magic"), "--prior")):
+        with pytest.raises(SonarSetError, match=msg):
+            train(tiny_store, tmp_path / "bad", _cfg(max_steps=2, **bad))
