@@ -189,6 +189,10 @@ def evaluate(
     preds: dict[str, Predictor] = dict(predictors or {})
     for spec in model_specs:
         p = make_predictor(spec, store.grid, dt=dt, sensor_offset=offset, device=device)
+        if p.name in preds:  # several checkpoints: each under its own label (echopt RUN/model)
+            p.name = getattr(p, "label", spec)
+            if p.name in preds:
+                p.name = spec
         preds[p.name] = p
     for p in preds.values():  # a learned model meeting other images than it was trained on
         if isinstance(getattr(p, "card", None), dict):

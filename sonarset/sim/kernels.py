@@ -112,41 +112,21 @@ def reflector_echoes(sensors, seg_a, seg_b, seg_refl, circ_c, circ_r, circ_refl,
 
 
 @njit(cache=True, nogil=True)
-def accumulate_psf(out, frame, r, u, amp2, r_c, range_step, offsets, renv2, r0, r_step, u_c, beam2, u_step):
-    """out[f, i, a] += amp2 * renv2(r_c[i] - r) * beam2(u_c[a] - u) for every echo (frame f, range r,
-    u = sin azimuth): both PSFs looked up in their finely tabulated form, range only near the echo."""
-    n_range, n_az = out.shape[1], out.shape[2]
-    row = np.empty(n_az)
-    for n in range(r.shape[0]):
-        for a in range(n_az):
-            row[a] = beam2[int(np.rint((u_c[a] - u[n] + 2.0) / u_step))] * amp2[n]
-        i0 = int(np.floor((r[n] - r_c[0]) / range_step))
-        f = frame[n]
-        for k in offsets:
-            i = i0 + k
-            if i < 0 or i >= n_range:
-                continue
-            ir = int(np.rint((r_c[i] - r[n] - r0) / r_step))
-            if ir < 0 or ir >= renv2.shape[0]:
-                continue
-            w = renv2[ir]
-            for a in range(n_az):
-                out[f, i, a] += w * row[a]
-
-
-@njit(cache=True, nogil=True)
 def accumulate_psf_coherence(out, out3, out_mic, frame, r, u, amp2, r_c, range_step, offsets, renv2, r0, r_step,
                              u_c, beam2, beam3_2, u_step, u3_max):
-    """As ``accumulate_psf`` for delay-and-sum (``out``), and in the same pass the echoes' energy
-    through the DMAS3 pattern (``out3``, only within ``u3_max`` of the echo, ``u_c`` ascending) and
-    their energy at one microphone, which has no azimuth pattern (``out_mic[f, i]``): the coherence
-    factor's denominator."""
+    """out[f, i, a] += amp2 * renv2(r_c[i] - r) * beam2(u_c[a] - u) for every echo (frame f, range r,
+    u = sin azimuth): delay-and-sum, both PSFs looked up in their finely tabulated form, range only
+    near the echo. In the same pass the echoes' energy through the DMAS3 pattern (``out3``, only
+    within ``u3_max`` of the echo, ``u_c`` ascending; u3_max < 0: none) and their energy at one
+    microphone, which has no azimuth pattern (``out_mic[f, i]``): the coherence factor's denominator."""
     n_range, n_az = out.shape[1], out.shape[2]
     row = np.empty(n_az)
     row3 = np.empty(n_az)
     for n in range(r.shape[0]):
         a_lo, a_hi = 0, n_az
-        if u3_max < 2.0:
+        if u3_max < 0.0:
+            a_hi = 0
+        elif u3_max < 2.0:
             a_lo = np.searchsorted(u_c, u[n] - u3_max)
             a_hi = np.searchsorted(u_c, u[n] + u3_max, side="right")
         for a in range(n_az):

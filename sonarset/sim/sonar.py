@@ -41,7 +41,7 @@ from scipy import signal, special
 
 from ..schema import Processing, SensorGrid
 from .energyscape import dmas3_beam_table, dmas3_noise_gain, postprocess, smooth
-from .kernels import accumulate_psf, accumulate_psf_coherence, coherence_amplitude, reflector_echoes
+from .kernels import accumulate_psf_coherence, coherence_amplitude, reflector_echoes
 from .robot import sensor_pose
 from .world import World
 
@@ -248,9 +248,10 @@ class SonarModel:
         F = 1 if n_frames is None else n_frames
         e = np.zeros((F, R, A), np.float32)  # single precision: the image is float16 in the end
         if len(echoes):
-            accumulate_psf(e, echoes.frame, echoes.r, np.sin(echoes.theta), echoes.amp ** 2, self.r_c,
-                           self.grid.range_step, self._offsets, self._renv2, self._r0, self._r_step,
-                           self.u_c, self._beam2, self._u_step)
+            # delay-and-sum alone: no DMAS3 columns (u3_max < 0), the per-microphone energy discarded
+            accumulate_psf_coherence(e, e, np.zeros((F, R), np.float32), echoes.frame, echoes.r, np.sin(echoes.theta),
+                                     echoes.amp ** 2, self.r_c, self.grid.range_step, self._offsets, self._renv2,
+                                     self._r0, self._r_step, self.u_c, self._beam2, self._beam2, self._u_step, -1.0)
         return e[0] if n_frames is None else e
 
     def amplitude(self, echoes: Echoes, n_frames: int, rng: np.random.Generator | None = None,

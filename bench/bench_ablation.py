@@ -1,0 +1,90 @@
+"""Ablation at equal CPU budget: prior `last` vs `flow`, one-step vs rollout training (issue 12).
+
+    sonarset generate lab.zarr --seed 0                      # the paper's dataset, default images
+    python bench/bench_ablation.py lab.zarr --out ablation --minutes 7
+
+Trains EchoPT-small four times on the same training windows, each for the same wall time on the
+same machine (run nothing else meanwhile): {prior last, prior flow} x {one-step loss, rollout
+loss with a curriculum on k and noise on the context frames}. Then scores the four best-validation
+models with the baselines on the same 1000 test windows (the store's test run), at one-shot and
+AR-3/5/10, and prints one table: CC and NRMSD per horizon, training steps and minutes. Every run is
+a normal training directory: `--resume` continues it, `sonarset eval` scores it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+from sonarset import open_store
+from sonarset.models.evaluate import evaluate, write_report
+from sonarset.models.train import TrainConfig, train
+
+#: The recipes: what differs between them. Everything else is shared (COMMON).
+RECIPES = {
+    "last-1step": dict(prior="last"),
+    "flow-1step": dict(prior="flow"),
+    "last-rollout": dict(prior="last", curriculum="0:1,100:2,200:3,300:4", context_noise=0.01),
+    "flow-rollout": dict(prior="flow", curriculum="0:1,100:2,200:3,300:4", context_noise=0.01),
+}
+COMMON = dict(preset="small", batch_size=32, lr=3e-4, schedule="none", n_val=256, eval_every=50, val_horizon=4,
+              test_samples=0, device="cpu")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("store")
+    ap.add_argument("--out", default="ablation")
+    ap.add_argument("--minutes", type=float, default=7.0, help="training wall time per recipe")
+    ap.add_argument("--samples", type=int, default=1000, help="test windows")
+    ap.add_argument("--recipes", default=",".join(RECIPES))
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default); 1 keeps the "
+                                                          "budget equal when something else uses the other core")
+    args = ap.parse_args()
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    store = open_store(args.store)
+    out = Path(args.out)
+    print(f"# bench_ablation  {platform.node()}  {os.cpu_count()} cores  {time.strftime('%Y-%m-%d %H:%M')}  "
+          f"{args.minutes:g} min per recipe, seed {args.seed}, {args.threads or 'default'} torch threads", flush=True)
+    trained = {}
+    for name in args.recipes.split(","):
+        run = out / f"{name}-s{args.seed}"
+        cfg = TrainConfig(**{**COMMON, **RECIPES[name]}, seed=args.seed, max_minutes=args.minutes,
+                          command=f"bench/bench_ablation.py {name}")
+        t0 = time.perf_counter()
+        res = train(store, run, cfg, resume=run.exists())
+        minutes = (time.perf_counter() - t0) / 60
+        trained[name] = (run, res.steps, minutes)
+        print(f"{name}: {res.steps} steps, {res.epochs_done:.3f} epochs, {minutes:.1f} min, best val "
+              f"{res.best_val_loss:.5f}", flush=True)
+    from sonarset.models.echopt_predictor import load_echopt_predictor
+
+    learned = {}
+    for name, (run, _, _) in trained.items():
+        learned[name] = load_echopt_predictor(str(run), store.grid)
+        learned[name].name = name
+    res = evaluate(store, ["persistence", "naive", "flow"], predictors=learned, samples=args.samples, seed=0)
+    write_report(res, out / f"eval-s{args.seed}")
+    s = res.summary()
+    print("| method | steps | train min | CC 1 / 3 / 5 / 10 | NRMSD 1 / 3 / 5 / 10 |")
+    print("|---|---|---|---|---|")
+    rows = {}
+    for m in res.methods:
+        cc = " / ".join(f"{s[m][str(h)]['cc']['mean']:.3f}" for h in res.horizons)
+        nr = " / ".join(f"{s[m][str(h)]['nrmsd']['mean']:.3f}" for h in res.horizons)
+        steps, mins = (trained[m][1], f"{trained[m][2]:.1f}") if m in trained else ("", "")
+        rows[m] = {"steps": steps, "minutes": mins, **{h: s[m][str(h)] for h in res.horizons}}
+        print(f"| {m} | {steps} | {mins} | {cc} | {nr} |", flush=True)
+    (out / f"ablation-s{args.seed}.json").write_text(json.dumps(rows, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
