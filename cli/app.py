@@ -296,6 +296,8 @@ def train(
     batch_size: int = typer.Option(64, "--batch-size", min=1),
     lr: float = typer.Option(5e-5, "--lr", help="Adam learning rate (paper: 5e-5)."),
     weight_decay: float = typer.Option(1e-4, "--weight-decay", help="L2 regularisation (paper: 1e-4)."),
+    optimizer: str = typer.Option("adam", "--optimizer", help="adam (paper: L2 in the gradient) or adamw "
+                                                              "(decoupled decay; use it with a prior)."),
     schedule: str = typer.Option("none", "--schedule", help="none (paper) or cosine."),
     seed: int = typer.Option(0, "--seed"),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda."),
@@ -332,7 +334,7 @@ def train(
     cfg = TrainConfig(preset=preset, epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
                       schedule=schedule, seed=seed, device=device, eval_every=eval_every, max_steps=max_steps,
                       max_minutes=max_minutes, compile=compile_, test_samples=test_samples, n_val=n_val,
-                      prior=prior, loss=loss, curriculum=curriculum, pushforward=pushforward,
+                      prior=prior, loss=loss, curriculum=curriculum, pushforward=pushforward, optimizer=optimizer,
                       context_noise=context_noise, val_horizon=val_horizon)
     from rich.progress import MofNCompleteColumn, TimeElapsedColumn
 

@@ -103,7 +103,7 @@ def peak_and_energy(images: np.ndarray, floor: float = ECHO_FLOOR) -> tuple[np.n
     ``images`` (..., R, A); two arrays of shape (...)."""
     x = np.asarray(images, dtype=np.float32)
     peak = x.max(axis=(-2, -1)).astype(np.float64)
-    energy = np.where(x > floor, x, 0).sum(axis=(-2, -1), dtype=np.float64)
+    energy = x.sum(axis=(-2, -1), where=x > floor, dtype=np.float64)  # a byte mask, no float copy
     return peak, energy
 
 
@@ -224,8 +224,8 @@ def evaluate(
             for h in horizons:
                 per_window[name][h]["cc"][sl] = cc(pred[:, h - 1], batch.targets[:, h - 1])
                 per_window[name][h]["nrmsd"][sl] = nrmsd(pred[:, h - 1], batch.targets[:, h - 1])
-            step_peak[name][sl], step_energy[name][sl] = peak_and_energy(pred)
             seconds[name] += time.perf_counter() - t0
+            step_peak[name][sl], step_energy[name][sl] = peak_and_energy(pred)
             if lo == 0:
                 examples["methods"][name] = pred[0]
             if progress:
@@ -463,7 +463,8 @@ def render_report(res: EvalResult, figures: list[str]) -> str:
                   f"and of the echo energy (the sum of the pixels above {ECHO_FLOOR}), a ratio of means over "
                   "the windows whose target has echo energy at that step; min and max over the steps. "
                   f"No fade: both ratios within {FADE_TOLERANCE:.0%} of 1 at every step "
-                  "(per step in metrics.json, `fade`; the figure `fade.png`).",
+                  "(per step in metrics.json, `fade`" +
+                  ("; the figure `fade.png`)." if any(Path(f).name == "fade.png" for f in figures) else ")."),
                   "", fade_table(res, fade)]
     parts += ["", "## Timing", ""]
     parts += [f"- {m}: {t:.2f} s to re-render the target frames" if m == CEILING else
