@@ -171,9 +171,9 @@ def test_eval_is_quiet_when_model_and_store_agree(tmp_path, ertis_model):
 
 
 def test_old_cards_mean_raw_images():
-    from sonarset.models.cards import card_processing, card_rig, read_card, training_notices
+    from sonarset.models.cards import card_processing, card_rig, training_notices
 
-    card = read_card("pretrained")
+    card = {"format": "echopt-card/1", "preset": "small", "config": {"residual": True}}  # before format 1.1
     assert "processing" not in card and card_processing(card) == Processing.raw() and card_rig(card) is None
     assert training_notices("echopt-small", card, Processing.raw(), SIM_RIG) == []
     note, = training_notices("echopt-small", card, Processing(profile="unknown"))
