@@ -100,16 +100,14 @@ def smooth(amplitude: np.ndarray, grid: SensorGrid, processing: Processing) -> n
 
 
 def postprocess(amplitude: np.ndarray, grid: SensorGrid, processing: Processing, full_scale: float,
-                out: np.ndarray | None = None, smoothed: bool = False) -> np.ndarray:
+                out: np.ndarray | None = None) -> np.ndarray:
     """Pixels in [0, 1] from beamformed envelope amplitude (..., R, A).
 
     ``full_scale`` is the amplitude that maps to 0 dB (the sensor's strongest echo, after the same
-    beamformer and smoothing). ``amplitude`` (float32) is overwritten; ``smoothed`` says the
-    smoothing was already applied.
+    beamformer and smoothing). ``amplitude`` (float32) is overwritten.
     """
     a = np.asarray(amplitude, np.float32)
-    if not smoothed:
-        a = smooth(a, grid, processing)
+    a = smooth(a, grid, processing)
     if processing.azimuth_mean_factor:
         a -= np.float32(processing.azimuth_mean_factor) * a.mean(axis=-1, keepdims=True)
     if processing.clip_at_zero:
