@@ -37,6 +37,9 @@ def experiment_slip(
     trials: int = typer.Option(20, "--trials", min=1, help="Random trajectories for the ROC analysis."),
     seed: int = typer.Option(0, "--seed", help="Master seed: trajectories, slip periods, sensor noise."),
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Processes (default: all cores)."),
+    processing: Optional[str] = typer.Option(None, "--processing",
+                                             help="Images to simulate: ertis or raw. Default: those the EchoPT "
+                                                  "model was trained on (its card); a different profile is refused."),
     device: str = typer.Option("cpu", "--device", help="Device for EchoPT: cpu, cuda, auto."),
 ) -> None:
     """Wheel-slip detection (paper Fig. 5) and its ROC AUC over random trajectories."""
@@ -44,7 +47,7 @@ def experiment_slip(
 
     models = [*_specs(baselines), _echopt_spec(model)]
     with progress_bar() as bar:
-        res = run_slip_experiment(models, trials=trials, seed=seed, workers=workers, device=device,
+        res = run_slip_experiment(models, trials=trials, seed=seed, workers=workers, device=device, processing=processing,
                                   progress=_count_progress(bar, "trajectories"))
     write_slip_report(res, out_dir)
     table = Table("predictor", "horizon", "AUC both (eps)", "AUC one (eps)", "AUC both (ratio)", "AUC one (ratio)")
@@ -68,6 +71,9 @@ def experiment_control(
     seed: int = typer.Option(0, "--seed", help="Master seed: spawn poses, burst schedules, sensor noise."),
     max_time: float = typer.Option(120.0, "--max-time", min=1.0, help="Seconds before a run times out."),
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Processes (default: all cores)."),
+    processing: Optional[str] = typer.Option(None, "--processing",
+                                             help="Images to simulate: ertis or raw. Default: those the EchoPT "
+                                                  "model was trained on (its card); a different profile is refused."),
     device: str = typer.Option("cpu", "--device", help="Device for EchoPT: cpu, cuda, auto."),
 ) -> None:
     """Corridor control through noise bursts (paper Fig. 6): clean, bursts, bursts bridged by EchoPT."""
@@ -75,7 +81,7 @@ def experiment_control(
 
     models = [_echopt_spec(model), *_specs(compare)]
     with progress_bar() as bar:
-        res = run_control_experiment(models, runs=runs, seed=seed, workers=workers, device=device,
+        res = run_control_experiment(models, runs=runs, seed=seed, workers=workers, device=device, processing=processing,
                                      max_time_s=max_time, progress=_count_progress(bar, "runs"))
     write_control_report(res, out_dir)
     table = Table("condition", "success", "collision", "timeout", "travel time [s]", "midline dev. [m]")

@@ -132,14 +132,22 @@ class SubsumptionController:
 class BurstDetector:
     """Flags frames swamped by broadband noise from the image alone.
 
-    Real echoes are sparse in an energyscape: a handful of reflectors spread by the PSF. A noise
-    burst lifts the whole image. A frame whose fraction of pixels above ``level`` exceeds
-    ``max_fraction`` is a burst. Clean simulated frames in the lab and corridor worlds stay under
-    10% at level 0.5 (the densest: facing a wall at close range); a -80 dB burst fills ~100%.
+    Echoes arrive from reflectors, at a few discrete ranges; broadband noise arrives all the time,
+    so it reaches every range bin. A frame in which more than ``max_coverage`` of the range bins hold
+    a pixel above ``level`` is a burst. The feature survives the energyscape post-processing: the
+    'ertis' profile subtracts 1.5x each range row's azimuth mean, which turns a burst's uniform
+    level into a few bright blobs (~8% of the pixels above 0.5, so a pixel count misses it), but
+    every row keeps its blobs. Measured on 1000 random poses per world (``bench/bench_burst.py``):
+    clean frames cover at most 0.03 / 0.10 (corridor, raw / ertis) and 0.21 / 0.40 (lab, facing
+    cluttered walls) of the range bins; -80 dB bursts cover 0.89-1.0 (ertis) and 1.0 (raw).
     """
 
     level: float = 0.5
-    max_fraction: float = 0.4
+    max_coverage: float = 0.6
+
+    def coverage(self, image: np.ndarray) -> float:
+        """Fraction of range bins (rows) with a pixel above ``level``."""
+        return float((np.asarray(image) > self.level).any(axis=-1).mean())
 
     def __call__(self, image: np.ndarray) -> bool:
-        return bool((np.asarray(image) > self.level).mean() > self.max_fraction)
+        return self.coverage(image) > self.max_coverage

@@ -14,7 +14,7 @@ from sonarset.models.echopt import EchoPT, make_config
 from sonarset.models.experiments.common import predictor
 from sonarset.models.experiments.control import BurstSchedule, Episode, run_control_experiment, run_episode
 from sonarset.models.experiments.slip import (
-    SlipPeriod, SlipTrial, frame_labels, run_slip_experiment, slip_signal, write_slip_report,
+    SlipPeriod, SlipTrial, frame_labels, run_slip_experiment, slip_signals, write_slip_report,
 )
 from sonarset.schema import Processing, SensorGrid
 from sonarset.sim.robot import apply_slip, integrate
@@ -26,8 +26,8 @@ SMALL = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=50, azimuth_min_rad
                    azimuth_max_rad=math.pi / 2, n_azimuth=30)
 
 
-# The controller and the burst detector are calibrated on raw images (sonarset.control).
-RAW = Processing.raw()
+RAW, ERTIS = Processing.raw(), Processing.ertis()
+BOTH = pytest.mark.parametrize("processing", [RAW, ERTIS], ids=["raw", "ertis"])
 
 
 def test_slip_raises_the_flow_detector_signal():
@@ -52,15 +52,35 @@ def test_slip_raises_the_flow_detector_signal():
         poses[k] = pose
     assert np.ptp(poses[stall, 0]) < 1e-9  # the robot did not move, the commands say it did
     images, _ = SonarModel(GRID, processing=RAW).render_batch(world, poses, np.random.default_rng(0))
+    flow = slip_signals(predictor("flow", GRID), images, commands, (1, 3))
+    still = slip_signals(predictor("persistence", GRID), images, commands, (1, 3))
     for h in (1, 3):
-        eps = slip_signal(predictor("flow", GRID), images, commands, h)
-        base = slip_signal(predictor("persistence", GRID), images, commands, h)
+        eps, base = flow[h], still[h]
         lab = frame_labels(slip, h)
         assert lab["both"].sum() == 15 + h - 1 and not (lab["both"] & lab["clean"]).any()
         assert np.isnan(eps[:2 + h]).all() and (eps[2 + h:] > 0).all()
         ratio = eps / base
         assert np.nanmean(ratio[lab["both"]]) > 1.4 * np.nanmean(ratio[lab["clean"]])
         assert np.nanmedian(ratio[lab["both"]]) > np.nanmax(ratio[lab["clean"]])
+
+
+def test_one_rollout_serves_every_horizon():
+    """slip_signals takes horizon h from step h of one rollout; it must equal a rollout to h alone."""
+    from sonarset.metrics import slip_error
+    from sonarset.models.baselines import rollout
+
+    world, rng = lab_world(4), np.random.default_rng(2)
+    poses = np.array([world.sample_spawn(rng) for _ in range(14)])
+    images, _ = SonarModel(SMALL, processing=ERTIS).render_batch(world, poses, rng)
+    commands = rng.uniform(-0.3, 0.3, (14, 2)).astype(np.float32)
+    flow = predictor("flow", SMALL)
+    got = slip_signals(flow, images, commands, (1, 2, 4), batch=5)
+    for h in (1, 2, 4):
+        t = np.arange(2 + h, 14)
+        i = t - 2 - h
+        ref = rollout(flow, images[i[:, None] + np.arange(3)], commands[i[:, None] + np.arange(3 + h)], h)[:, -1]
+        assert np.isnan(got[h][:2 + h]).all()
+        np.testing.assert_allclose(got[h][t], slip_error(ref, images[t]), rtol=1e-5)
 
 
 def test_slip_labels_follow_the_horizon():
@@ -89,31 +109,37 @@ def test_slip_experiment_end_to_end_with_a_tiny_echopt(tmp_path):
     assert "| echopt | AR-5 |" in (tmp_path / "out" / "report.md").read_text()
 
 
-def test_burst_detector_finds_injected_bursts_and_leaves_clean_frames():
-    model, world = SonarModel(GRID, processing=RAW), lab_world(11)
+@BOTH
+@pytest.mark.parametrize("world", [lab_world(11), corridor_world()], ids=["lab", "corridor"])
+def test_burst_detector_finds_injected_bursts_and_leaves_clean_frames(processing, world):
+    model = SonarModel(GRID, processing=processing)
     rng = np.random.default_rng(1)
     poses = np.array([world.sample_spawn(rng) for _ in range(40)])
     clean, _ = model.render_batch(world, poses, rng)
     burst, _ = model.render_batch(world, poses, rng, snr_db=np.full(len(poses), -80.0))
     detect = BurstDetector()
-    assert not any(detect(f) for f in clean)
-    assert all(detect(f) for f in burst)
+    assert max(detect.coverage(f) for f in clean) < 0.45  # a margin below the 0.6 threshold
+    assert min(detect.coverage(f) for f in burst) > 0.8
+    if processing.profile == "ertis":  # the post-processing leaves few bright pixels in a burst
+        assert np.mean([(f > 0.5).mean() for f in burst]) < 0.2
     on = BurstSchedule().frames(np.random.default_rng(0), 5000)
     assert 0.25 < on.mean() < 0.35  # about 30% of the time, in bursts of 1.2 s
     starts = np.flatnonzero(np.diff(on.astype(int)) == 1) + 1
     assert all(on[s:s + 6].all() for s in starts[:-1])
 
 
-def test_controller_reaches_the_waypoint_in_the_clean_corridor():
-    r = run_episode(Episode(0, 123, "clean", GRID))
+@BOTH
+def test_controller_reaches_the_waypoint_in_the_clean_corridor(processing):
+    r = run_episode(Episode(0, 123, "clean", GRID, processing=processing))
     assert r["outcome"] == "success" and r["travel_time_s"] < 60
     assert r["midline_deviation_m"] < 0.1 and r["layers"]["corridor"] > 0
     world = corridor_world()
     assert np.hypot(*(r["pose"][-1, :2] - world.waypoint)) < 0.4
 
 
-def test_controller_steers_away_from_the_nearer_row_and_stops_before_a_pole():
-    world, model = corridor_world(), SonarModel(GRID, processing=RAW)
+@BOTH
+def test_controller_steers_away_from_the_nearer_row_and_stops_before_a_pole(processing):
+    world, model = corridor_world(), SonarModel(GRID, processing=processing)
     ctrl = SubsumptionController(GRID, world.waypoint)
     left = ctrl(model.render(world, np.array([3.0, 0.35, 0.0]), None), np.array([3.0, 0.35, 0.0]))
     assert left.layer == "corridor" and left.w < -0.1  # closer to the left row: turn right
@@ -123,10 +149,11 @@ def test_controller_steers_away_from_the_nearer_row_and_stops_before_a_pole():
     assert stop.layer == "avoid" and stop.v == 0 and abs(stop.w) > 0
 
 
-def test_bursts_stall_the_controller_and_a_predictor_bridges_them():
+@BOTH
+def test_bursts_stall_the_controller_and_a_predictor_bridges_them(processing):
     seed = 7
-    bursty = run_episode(Episode(0, seed, "bursts", GRID, max_time_s=40))
-    bridged = run_episode(Episode(0, seed, "bursts+flow", GRID, max_time_s=40))
+    bursty = run_episode(Episode(0, seed, "bursts", GRID, max_time_s=40, processing=processing))
+    bridged = run_episode(Episode(0, seed, "bursts+flow", GRID, max_time_s=40, processing=processing))
     assert bursty["burst"].any() and bursty["flagged"].sum() >= 0.9 * bursty["burst"].sum()
     assert bursty["layers"]["avoid"] > 0  # a burst fills the frontal region: the robot stops and turns
     assert not bursty["predicted"].any()
@@ -157,7 +184,8 @@ def test_control_experiment_is_deterministic_across_workers():
     a = run_control_experiment(["flow"], runs=2, seed=5, max_time_s=10, workers=1)
     b = run_control_experiment(["flow"], runs=2, seed=5, max_time_s=10, workers=2)
     for c in a.episodes:
-        for x, y in zip(a.episodes[c], b.episodes[c]):
+        assert len(a.episodes[c]) == len(b.episodes[c]) == 2
+        for x, y in zip(a.episodes[c], b.episodes[c], strict=True):
             np.testing.assert_array_equal(x["pose"], y["pose"])
             assert x["outcome"] == y["outcome"]
 
@@ -171,7 +199,19 @@ def test_experiments_simulate_the_images_their_models_were_trained_on(tmp_path):
                                {"grid": SMALL.model_dump(), "preset": "tiny", "processing": processing.model_dump()})
 
     raw, ertis = ckpt("raw", Processing.raw()), ckpt("ertis", Processing.ertis())
-    assert experiment_processing(["flow"]) == Processing.raw()
+    assert experiment_processing(["flow"]) == Processing.ertis()  # the simulator's default
+    assert experiment_processing(["flow"], "raw") == Processing.raw()
     assert experiment_processing(["flow", f"echopt:{ertis}"]) == Processing.ertis()
+    assert experiment_processing([f"echopt:{raw}"], "raw") == Processing.raw()
     with pytest.raises(SonarSetError, match="different images"):
         experiment_processing([f"echopt:{raw}", f"echopt:{ertis}"])
+    with pytest.raises(SonarSetError, match="trained on raw images, not ertis"):
+        experiment_processing([f"echopt:{raw}"], "ertis")
+    with pytest.raises(SonarSetError, match="unknown processing profile"):
+        experiment_processing(["flow"], "dmas")
+    full = save_checkpoint(tmp_path / "full", EchoPT(make_config("tiny", *GRID.shape, max_tokens=256)),
+                           {"grid": GRID.model_dump(), "preset": "tiny", "processing": Processing.raw().model_dump()})
+    r = CliRunner().invoke(app, ["experiment", "slip", "--model", str(full), "--processing", "ertis", "--trials", "1",
+                                 "--out", str(tmp_path / "refused")])
+    assert r.exit_code == 1 and "not ertis" in r.output and "Traceback" not in r.output
+    assert not (tmp_path / "refused").exists()

@@ -29,25 +29,36 @@ def predictor(spec: str, grid: SensorGrid, device: str = "cpu"):
     return _PREDICTORS[key]
 
 
-def experiment_processing(models) -> Processing:
+def experiment_processing(models, requested: Processing | str | None = None) -> Processing:
     """The images an experiment simulates: those its learned models were trained on (their cards).
 
-    Models trained on different images cannot share one experiment. Without a learned model the
-    experiments simulate 'raw' images, on which the controller's thresholds and the burst detector
-    are calibrated (``sonarset.control``).
+    ``requested`` (a profile name or settings) is checked against the cards: a model is never fed
+    images unlike its training images, so a mismatch is refused, as are models trained on different
+    images in one experiment. Without a learned model, the request or the simulator's default
+    (``ertis``); the controller and the burst detector work on both profiles (``sonarset.control``).
     """
     from ..cards import card_processing, read_card
 
+    if isinstance(requested, str):
+        try:
+            requested = Processing.named(requested)
+        except ValueError as e:
+            raise SonarSetError(f"--processing: {e}") from None
     found: dict[str, Processing] = {}
     for spec in models:
         kind, _, path = spec.partition(":")
         if kind == "echopt":
             found[spec] = card_processing(read_card(path or "pretrained"))
-    distinct = {p.model_dump_json(exclude={"profile"}) for p in found.values()}
-    if len(distinct) > 1:
+    trained = next(iter(found.values()), None)
+    if any(not p.same_images(trained) for p in found.values()):
         listed = ", ".join(f"{k}: {p.profile}" for k, p in found.items())
         raise SonarSetError(f"the models were trained on different images ({listed}); run them in separate experiments")
-    return next(iter(found.values())) if found else Processing.raw()
+    if trained is None:
+        return requested or Processing.ertis()
+    if requested is not None and not requested.same_images(trained):
+        raise SonarSetError(f"{', '.join(found)} was trained on {trained.profile} images, not {requested.profile}; "
+                            f"drop --processing or pass a model trained on {requested.profile} images")
+    return trained
 
 
 def _init_worker() -> None:

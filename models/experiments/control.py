@@ -73,7 +73,7 @@ class Episode:
     bursts: BurstSchedule = BurstSchedule()
     gains: ControllerGains = ControllerGains()
     device: str = "cpu"
-    processing: Processing = Processing.raw()  # the controller's thresholds are calibrated on raw images
+    processing: Processing = field(default_factory=Processing.ertis)  # the simulator's default images
 
 
 def run_episode(ep: Episode, world: World | None = None) -> dict:
@@ -139,7 +139,7 @@ class ControlResult:
     detector: dict = field(default_factory=dict)
     gains: dict = field(default_factory=dict)
     seconds: float = 0.0
-    processing: Processing = field(default_factory=Processing.raw)  # the images simulated
+    processing: Processing = field(default_factory=Processing.ertis)  # the images simulated
 
 
 def condition_name(spec: str) -> str:
@@ -149,13 +149,17 @@ def condition_name(spec: str) -> str:
 
 def run_control_experiment(models: list[str] | tuple[str, ...] = ("echopt:pretrained",), runs: int = 50, seed: int = 0,
                            grid: SensorGrid | None = None, workers: int | None = None, device: str = "cpu",
-                           max_time_s: float = 120.0, progress: Callable[[int, int], None] | None = None) -> ControlResult:
-    """``runs`` runs in each condition: clean, bursts, and bursts bridged by each model in ``models``."""
+                           max_time_s: float = 120.0, progress: Callable[[int, int], None] | None = None,
+                           processing: Processing | str | None = None) -> ControlResult:
+    """``runs`` runs in each condition: clean, bursts, and bursts bridged by each model in ``models``.
+
+    The images are those the models were trained on; ``processing`` only checks that (see
+    :func:`~.common.experiment_processing`)."""
     grid = grid or SensorGrid.default()
     t0 = time.perf_counter()
     for m in models:
         predictor(m, grid, device)  # fail fast on a bad model
-    processing = experiment_processing(models)
+    processing = experiment_processing(models, processing)
     conditions = [*CONDITIONS, *(f"bursts+{m}" for m in models)]
     seeds = spawn_seeds(seed, runs)  # run i uses the same spawn, bursts and noise seed in every condition
     eps = [Episode(i, s, c, grid, max_time_s=max_time_s, device=device, processing=processing)
@@ -256,7 +260,7 @@ def write_control_report(res: ControlResult, out: str | os.PathLike) -> Path:
         lines.append(f"| {c['a']} vs {c['b']} | {c['metric']} | {c['n_pairs']} | {c['mean_diff']:+.3f} | "
                      f"{_fmt_p(c['p_holm'])} |")
     det = res.detector
-    lines += ["", "Burst detector (fraction of pixels above 0.5 > 40%): "
+    lines += ["", f"Burst detector (range bins with a pixel above {BurstDetector.level} > {BurstDetector.max_coverage:.0%}): "
               + "; ".join(f"{c}: recall {d['recall']:.3f}, precision {d['precision']:.3f} over {d['frames']} frames"
                           for c, d in det.items() if isinstance(d, dict))
               + (f"; false alarms on clean frames {det['false_positive_rate_clean']:.4f}"

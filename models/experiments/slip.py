@@ -105,23 +105,33 @@ def simulate_trial(trial: SlipTrial, grid: SensorGrid, snr_db: float = 5.0, proc
         v, w = policy(pose)
         pose = integrate(pose, *apply_slip(v, w, tuple(slip[k])), DT)
         commands[k], poses[k] = (v, w), pose
-    model = SonarModel(grid, snr_db=snr_db, processing=processing or Processing.raw())
+    model = SonarModel(grid, snr_db=snr_db, processing=processing or Processing.ertis())
     images, _ = model.render_batch(world, poses, np.random.default_rng(noise_ss))
     return {"images": images, "commands": commands, "slip": slip, "pose": poses}
 
 
-def slip_signal(pred, images: np.ndarray, commands: np.ndarray, horizon: int, batch: int = 64) -> np.ndarray:
-    """eps(t) for every frame t that has ``horizon`` steps of prediction behind it (NaN before)."""
-    T = len(images)
-    eps = np.full(T, np.nan)
-    targets = np.arange(N_IN - 1 + horizon, T)
-    for lo in range(0, len(targets), batch):
-        t = targets[lo:lo + batch]
-        i = t - (N_IN - 1) - horizon  # window start: inputs i..i+2, commands i..t
+def slip_signals(pred, images: np.ndarray, commands: np.ndarray, horizons=HORIZONS, batch: int = 64) -> dict[int, np.ndarray]:
+    """eps(t) per horizon H: for every frame t with H steps of prediction behind it (NaN before).
+
+    Step h of an auto-regressive rollout from window i is the horizon-h forecast of frame
+    i + n_in - 1 + h, so one rollout to the largest horizon serves every horizon: 5 model steps per
+    window instead of 1 + 3 + 5. Rollouts that run past the last frame are fed zero commands there;
+    a step reads only the commands up to its own, so the forecasts that are kept never see them.
+    """
+    T, H = len(images), max(horizons)
+    eps = {h: np.full(T, np.nan) for h in horizons}
+    starts = np.arange(0, T - N_IN)  # every window with at least one target
+    padded = np.concatenate([commands, np.zeros((H, *commands.shape[1:]), commands.dtype)])
+    for lo in range(0, len(starts), batch):
+        i = starts[lo:lo + batch]
         frames = images[i[:, None] + np.arange(N_IN)]
-        cmds = commands[i[:, None] + np.arange(N_IN + horizon)]
-        p = rollout(pred, frames, cmds, horizon)[:, -1]
-        eps[t] = slip_error(p, images[t])
+        cmds = padded[i[:, None] + np.arange(N_IN + H)]
+        steps = rollout(pred, frames, cmds, H)
+        for h in horizons:
+            t = i + N_IN - 1 + h
+            ok = t < T
+            if ok.any():
+                eps[h][t[ok]] = slip_error(steps[ok, h - 1], images[t[ok]])
     return eps
 
 
@@ -156,20 +166,21 @@ class _Task:
     snr_db: float
     device: str
     keep_signals: bool
-    processing: Processing = field(default_factory=Processing.raw)
+    processing: Processing = field(default_factory=Processing.ertis)
 
 
 def _run_trial(task: _Task) -> dict:
     data = simulate_trial(task.trial, task.grid, task.snr_db, task.processing)
     out = {"trial": asdict(task.trial), "auc": {}, "signals": {}}
     still = predictor("persistence", task.grid)
-    for h in HORIZONS:
-        lab = frame_labels(data["slip"], h)
-        base = slip_signal(still, data["images"], data["commands"], h)
-        for spec in task.models:
-            pred = predictor(spec, task.grid, task.device)
-            eps = slip_signal(pred, data["images"], data["commands"], h)
-            for det, signal in (("eps", eps), ("ratio", eps / base)):
+    labels = {h: frame_labels(data["slip"], h) for h in HORIZONS}
+    base = slip_signals(still, data["images"], data["commands"])
+    for spec in task.models:
+        pred = predictor(spec, task.grid, task.device)
+        eps = slip_signals(pred, data["images"], data["commands"])
+        for h in HORIZONS:
+            lab = labels[h]
+            for det, signal in (("eps", eps[h]), ("ratio", eps[h] / base[h])):
                 for kind in KINDS:
                     out["auc"][f"{pred.name}|{h}|{kind}|{det}"] = auc(signal[lab[kind]], signal[lab["clean"]])
                 if task.keep_signals:
@@ -189,17 +200,21 @@ class SlipResult:
     summary: list[dict] = field(default_factory=list)
     comparisons: list[dict] = field(default_factory=list)
     seconds: float = 0.0
-    processing: Processing = field(default_factory=Processing.raw)  # the images simulated
+    processing: Processing = field(default_factory=Processing.ertis)  # the images simulated
 
 
 def run_slip_experiment(models: list[str], trials: int = 30, seed: int = 0, grid: SensorGrid | None = None,
                         snr_db: float = 5.0, workers: int | None = None, device: str = "cpu",
-                        progress: Callable[[int, int], None] | None = None) -> SlipResult:
-    """The paper trajectory (seeded by ``seed``) plus ``trials`` random trajectories, every model on each."""
+                        progress: Callable[[int, int], None] | None = None,
+                        processing: Processing | str | None = None) -> SlipResult:
+    """The paper trajectory (seeded by ``seed``) plus ``trials`` random trajectories, every model on each.
+
+    The images are those the models were trained on; ``processing`` only checks that (see
+    :func:`~.common.experiment_processing`)."""
     grid = grid or SensorGrid.default()
     t0 = time.perf_counter()
     names = [predictor(m, grid, device).name for m in models]  # fail fast on a bad model
-    processing = experiment_processing(models)
+    processing = experiment_processing(models, processing)
     seeds = spawn_seeds(seed, trials + 1)
     tasks = [_Task(paper_trial(seeds[0]), grid, tuple(models), snr_db, device, True, processing)]
     tasks += [_Task(random_trial(s), grid, tuple(models), snr_db, device, False, processing) for s in seeds[1:]]
