@@ -318,6 +318,8 @@ def train(
     context_noise: float = typer.Option(0.0, "--context-noise", min=0.0, help="Std of Gaussian noise on the context frames."),
     val_horizon: int = typer.Option(0, "--val-horizon", min=0, help="Rollout steps of the validation loss "
                                                                      "(0: the curriculum's longest)."),
+    init: str = typer.Option("", "--init", help="Fine-tune: start from this checkpoint's weights (pretrained or a "
+                                                 "path; same preset, prior, grid and images); the optimizer starts fresh."),
 ) -> None:
     """Train EchoPT; the best validation weights are kept as OUT/model.safetensors with a model card.
 
@@ -335,7 +337,7 @@ def train(
                       schedule=schedule, seed=seed, device=device, eval_every=eval_every, max_steps=max_steps,
                       max_minutes=max_minutes, compile=compile_, test_samples=test_samples, n_val=n_val,
                       prior=prior, loss=loss, curriculum=curriculum, pushforward=pushforward, optimizer=optimizer,
-                      context_noise=context_noise, val_horizon=val_horizon)
+                      context_noise=context_noise, val_horizon=val_horizon, init=init)
     from rich.progress import MofNCompleteColumn, TimeElapsedColumn
 
     columns = [TextColumn("[bold]training"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),

@@ -50,7 +50,7 @@ from sonarset.errors import SonarSetError
 from sonarset.store import SonarStore
 from sonarset.windows import FrameBank, WindowIndex
 
-from .checkpoint import resolve_device, save_checkpoint
+from .checkpoint import load_checkpoint, resolve_device, save_checkpoint
 from .echopt import PRIORS, EchoPT, grid_and_rig, make_config
 
 STATE = "state.safetensors"
@@ -91,6 +91,7 @@ class TrainConfig:
     pushforward: bool = False  # only the last of the k steps carries gradient
     context_noise: float = 0.0  # std of Gaussian noise added to the measured context frames
     val_horizon: int = 0  # rollout steps of the validation loss (0 = the curriculum's longest)
+    init: str = ""  # fine-tune: start from this checkpoint's weights (same preset, prior, grid, images)
     command: str = field(default_factory=lambda: " ".join(shlex.quote(a) for a in sys.argv))
 
     def stages(self) -> list[tuple[int, int]]:
@@ -117,7 +118,7 @@ class TrainConfig:
 LOSSES = ("mse", "l1", "gdl", "cc")
 #: Settings that must not change when a run is resumed.
 _RESUME_KEYS = ("preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps", "prior", "loss",
-                "curriculum", "pushforward", "context_noise", "val_horizon", "optimizer", "weight_decay")
+                "curriculum", "pushforward", "context_noise", "val_horizon", "optimizer", "weight_decay", "init")
 
 
 def parse_loss(spec: str) -> dict[str, float]:
@@ -344,6 +345,22 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
             torch.distributed.destroy_process_group()
 
 
+def _init_from(model: EchoPT, spec: str, store: SonarStore) -> None:
+    """Copy a trained model's weights into ``model``, which must be the same network on the same grid,
+    trained on the same images (a fine-tune continues a model; it cannot change what it is)."""
+    from .cards import card_processing
+
+    trained, card = load_checkpoint(spec, store.grid)
+    if trained.cfg != model.cfg:
+        diff = ", ".join(f"{k}: {getattr(trained.cfg, k)!r} vs {getattr(model.cfg, k)!r}"
+                         for k in model.cfg.__dataclass_fields__ if getattr(trained.cfg, k) != getattr(model.cfg, k))
+        raise SonarSetError(f"--init {spec}: another network than --preset/--prior make here ({diff})")
+    if not card_processing(card).same_images(store.processing):
+        raise SonarSetError(f"--init {spec}: trained on {card_processing(card).profile} images, "
+                            f"{store.location} has {store.processing.profile}")
+    model.load_state_dict(trained.state_dict())
+
+
 def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progress, dist: _Dist,
            device: str) -> TrainResult:
     torch.manual_seed(cfg.seed)
@@ -351,7 +368,10 @@ def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progres
     if cfg.prior:
         overrides["prior"] = cfg.prior
     model_cfg = make_config(cfg.preset, *store.grid.shape, **overrides)
-    model = EchoPT(model_cfg).to(device).to(memory_format=torch.channels_last)
+    model = EchoPT(model_cfg)
+    if cfg.init:
+        _init_from(model, cfg.init, store)
+    model = model.to(device).to(memory_format=torch.channels_last)
     if cfg.optimizer not in ("adam", "adamw"):
         raise SonarSetError(f"--optimizer must be adam or adamw, got {cfg.optimizer!r}")
     opt_cls = torch.optim.AdamW if cfg.optimizer == "adamw" else torch.optim.Adam

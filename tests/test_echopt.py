@@ -214,3 +214,20 @@ def test_rollout_training_options_and_priors(tiny_store, tmp_path):
                      (dict(prior="magic"), "--prior")):
         with pytest.raises(SonarSetError, match=msg):
             train(tiny_store, tmp_path / "bad", _cfg(max_steps=2, **bad))
+
+
+def test_init_fine_tunes_from_a_checkpoint_and_refuses_another_network(tiny_store, tmp_path):
+    base = train(tiny_store, tmp_path / "base", _cfg(max_steps=3))
+    assert base.steps == 3
+    start, _ = load_checkpoint(tmp_path / "base", TINY_GRID)
+    # zero steps of fine-tuning leave the weights as they were: --init loads them all
+    tuned = train(tiny_store, tmp_path / "tuned", _cfg(max_steps=1, lr=1e-12, init=str(tmp_path / "base")))
+    assert tuned.steps == 1
+    after, card = load_checkpoint(tmp_path / "tuned", TINY_GRID)
+    for (k, a), (_, b) in zip(start.state_dict().items(), after.state_dict().items(), strict=True):
+        assert torch.allclose(a, b, atol=1e-6), k
+    assert card["training"]["config"]["init"] == str(tmp_path / "base")
+    with pytest.raises(SonarSetError, match="another network.*prior"):
+        train(tiny_store, tmp_path / "other", _cfg(max_steps=1, prior="last", init=str(tmp_path / "base")))
+    with pytest.raises(SonarSetError, match="no EchoPT checkpoint"):
+        train(tiny_store, tmp_path / "missing", _cfg(max_steps=1, init=str(tmp_path / "nowhere")))

@@ -30,13 +30,15 @@ RAW, ERTIS = Processing.raw(), Processing.ertis()
 BOTH = pytest.mark.parametrize("processing", [RAW, ERTIS], ids=["raw", "ertis"])
 
 
-def test_slip_raises_the_flow_detector_signal():
+@BOTH
+def test_slip_raises_the_flow_detector_signal(processing):
     """A robot commanded straight towards a hall's end wall whose wheels stall for 3 s: flow's forecast keeps
     moving the scene, the measurement does not. The forecast then loses to "nothing moved"
     (persistence), and the detector signal eps(flow) / eps(persistence) rises during the stall.
 
-    The paper's eps alone does not rise here (it falls slightly; report and docs say why), so the
-    test holds it only to staying finite and positive."""
+    On ertis images the paper's eps rises too (x1.7). On raw images it does not (x1.03-1.05: the
+    noise floor's speckle dominates it; report and docs say why), so there the test holds it only
+    to staying finite and positive."""
     spec = WorldSpec(name="hall", walls=[WallSpec(start=(-1, -1.2), end=(8, -1.2)), WallSpec(start=(-1, 1.4), end=(8, 1.4)),
                                          WallSpec(start=(6.5, -1.2), end=(6.5, 1.4))],
                      circles=[CircleSpec(centre=(float(x), y), radius=0.1) for x in (2.0, 3.5, 5.0) for y in (-0.6, 0.7)],
@@ -51,7 +53,7 @@ def test_slip_raises_the_flow_detector_signal():
         pose = integrate(pose, *apply_slip(*commands[k], tuple(slip[k])), 0.2)
         poses[k] = pose
     assert np.ptp(poses[stall, 0]) < 1e-9  # the robot did not move, the commands say it did
-    images, _ = SonarModel(GRID, processing=RAW).render_batch(world, poses, np.random.default_rng(0))
+    images, _ = SonarModel(GRID, processing=processing).render_batch(world, poses, np.random.default_rng(0))
     flow = slip_signals(predictor("flow", GRID), images, commands, (1, 3))
     still = slip_signals(predictor("persistence", GRID), images, commands, (1, 3))
     for h in (1, 3):
@@ -62,6 +64,8 @@ def test_slip_raises_the_flow_detector_signal():
         ratio = eps / base
         assert np.nanmean(ratio[lab["both"]]) > 1.4 * np.nanmean(ratio[lab["clean"]])
         assert np.nanmedian(ratio[lab["both"]]) > np.nanmax(ratio[lab["clean"]])
+        if processing.profile == "ertis":
+            assert np.nanmean(eps[lab["both"]]) > 1.4 * np.nanmean(eps[lab["clean"]])
 
 
 def test_one_rollout_serves_every_horizon():

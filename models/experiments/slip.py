@@ -12,12 +12,13 @@ trajectories with random slip periods: per trajectory the ROC AUC of a detector 
 frames reached through slip (per slip kind) from slip-free frames, then the mean AUC over
 trajectories with a bootstrap CI and paired Wilcoxon tests between predictors (Holm-corrected).
 
-Two detector signals are scored. ``eps`` is the paper's. In our simulator eps mostly measures how
-much the scene changes between frames (log-domain speckle of the noise floor and the residual of
-imperfect motion compensation both grow with motion), so a stalled robot, whose scene stops
-changing, *lowers* it: its AUC for both-wheel slip falls below 0.5 for every predictor.
-``ratio`` = eps(predictor) / eps(persistence) removes that: it asks whether the motion-compensated
-forecast beats "nothing moved", which it should exactly when the robot moved as commanded.
+Two detector signals are scored. ``eps`` is the paper's. ``ratio`` = eps(predictor) /
+eps(persistence) asks whether the motion-compensated forecast beats "nothing moved", which it
+should exactly when the robot moved as commanded; it divides out how much the scene changes
+between frames. On the default ``ertis`` images both detect slip. On ``raw`` images (format 1.0's
+delay-and-sum energy) eps does not: there it mostly measures the log-domain speckle of the noise
+floor and the residual of imperfect motion compensation, both of which grow with motion, so a
+stalled robot, whose scene stops changing, *lowers* it (AUC 0.24-0.61, BENCHMARKS.md).
 """
 
 from __future__ import annotations
