@@ -62,7 +62,7 @@ def info(
     """Summarise a store: format version, grid, runs, frames and size."""
     from sonarset.store import open_store
 
-    s = open_store(store)
+    s = open_store(store, check=True)
     runs = [s.run(n) for n in s.runs()]
     incomplete = [n for n in s.runs(include_incomplete=True) if n not in s.runs()]
     g = s.grid
@@ -73,7 +73,7 @@ def info(
         "rig": s.rig.model_dump(mode="json") if s.rig is not None else None,
         "rig_recorded": s.attrs.rig is not None,
         "runs": [{"name": r.name, "split": r.split, "frames": r.n_frames,
-                  "duration_s": float(r.time[-1] - r.time[0]) if r.n_frames > 1 else 0.0,
+                  "duration_s": float(r.read_time()[-1] - r.read_time()[0]),
                   "image_dtype": str(r.images.dtype),
                   "optional": [k for k in ("pose", "snr_db", "slip") if r.has(k)]} for r in runs],
         "incomplete_runs": incomplete, "frames": sum(r.n_frames for r in runs), "bytes": s.nbytes_stored(),
@@ -223,7 +223,7 @@ def show(
     from sonarset.sim.world import load_world
     from sonarset.store import open_store
 
-    s = open_store(store)
+    s = open_store(store, check=True)
     name = run or (s.runs() or [None])[0]
     if name is None:
         fail(f"{store}: no complete runs")
@@ -270,7 +270,7 @@ def eval_(
     from sonarset.models.evaluate import evaluate, results_table, write_report
 
     specs = [m.strip() for m in models.split(",") if m.strip()]
-    s = open_store(store)
+    s = open_store(store, check=True)
     with progress_bar() as bar:
         progress = per_name_progress(bar)
         res = evaluate(s, specs, horizons=tuple(_int_list(horizons, "--horizons")), samples=samples,
@@ -279,6 +279,10 @@ def eval_(
     _print_notes(res.notes)
     out.print(results_table(res, with_paper=False))
     out.print(f"{len(res.window_ids)} windows of split {split!r}; report: {out_dir / 'report.md'}")
+
+
+def _mean(entry: dict) -> str:
+    return "undefined" if entry["mean"] is None else f"{entry['mean']:.3f}"
 
 
 def _print_notes(notes: list[str]) -> None:
@@ -332,7 +336,7 @@ def train(
         fail(f"--schedule must be none or cosine, got {schedule!r}", 2)
     if preset not in ("small", "paper", "tiny"):
         fail(f"--preset must be small, paper or tiny, got {preset!r}", 2)
-    s = open_store(store)
+    s = open_store(store, check=True)
     cfg = TrainConfig(preset=preset, epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
                       schedule=schedule, seed=seed, device=device, eval_every=eval_every, max_steps=max_steps,
                       max_minutes=max_minutes, compile=compile_, test_samples=test_samples, n_val=n_val,
@@ -364,7 +368,7 @@ def train(
         r = test["results"]
         for m in ("flow", "echopt"):
             one = r[m]["1"]
-            out.print(f"test one-shot {m}: CC {one['cc']['mean']:.3f}, NRMSD {one['nrmsd']['mean']:.3f}")
+            out.print(f"test one-shot {m}: CC {_mean(one['cc'])}, NRMSD {_mean(one['nrmsd'])}")
 
 
 @app.command()

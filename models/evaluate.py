@@ -20,7 +20,8 @@ import numpy as np
 
 from sonarset.atomic import atomic_text, atomic_write
 from sonarset.ceiling import CEILING
-from sonarset.errors import SonarSetError
+from sonarset.arrays import FRAME_INTERVAL_TOLERANCE
+from sonarset.errors import FormatError, SonarSetError
 from sonarset.metrics import cc, nrmsd
 from sonarset.stats import Comparison, compare, holm
 from sonarset.store import SonarStore
@@ -91,8 +92,9 @@ class EvalResult:
                 entry = {}
                 for k in METRICS:
                     x = self.per_window[m][h][k]
-                    x = x[np.isfinite(x)]
-                    entry[k] = {"mean": float(x.mean()), "std": float(x.std(ddof=1)) if len(x) > 1 else 0.0}
+                    x = x[np.isfinite(x)]  # undefined windows: counted in the notes, never silently
+                    entry[k] = ({"mean": float(x.mean()), "std": float(x.std(ddof=1)) if len(x) > 1 else 0.0}
+                                if len(x) else {"mean": None, "std": None})
                 entry["n"] = int(np.isfinite(self.per_window[m][h]["cc"]).sum())
                 out[m][str(h)] = entry
         return out
@@ -140,15 +142,67 @@ def fade_summary(res: EvalResult, tolerance: float = FADE_TOLERANCE) -> dict:
     return out
 
 
-def _robot_geometry(store: SonarStore) -> tuple[float, float, str | None]:
-    """(dt, sensor offset, note) from the store's robot rig; without one, the frame rate and offset 0,
-    and a note saying so."""
+def _robot_geometry(store: SonarStore, bank: FrameBank) -> tuple[float, float, str | None]:
+    """(dt, sensor offset, note) for the baselines.
+
+    dt is the median spacing of the evaluated runs' time stamps, which the spec makes normative;
+    the declared interval (the rig's, else 1 / frame rate) must agree with it within
+    FRAME_INTERVAL_TOLERANCE, or the store is refused: naive and flow would warp every frame by
+    the wrong step, silently. Without a rig the sensor is assumed on the wheel axle, with a note.
+    """
     rig = store.rig
+    declared = rig.frame_interval_s if rig is not None else 1.0 / store.attrs.frame_rate_hz
+    measured = bank.frame_interval_s
+    if measured is not None and abs(measured - declared) > FRAME_INTERVAL_TOLERANCE * declared:
+        what = "rig.frame_interval_s" if rig is not None else f"frame_rate_hz {store.attrs.frame_rate_hz:g}"
+        raise FormatError(f"{store.location}: the time stamps of runs {', '.join(bank.run_names)} are "
+                          f"{measured:.6g} s apart (median), but the store declares {declared:g} s frames "
+                          f"({what}); fix the store's frame rate or its time stamps")
+    dt = measured if measured is not None else declared
     if rig is not None:
-        return rig.frame_interval_s, rig.sensor_offset_m, None
-    dt = 1.0 / store.attrs.frame_rate_hz
-    return dt, 0.0, (f"note: the store records no robot rig: naive and flow assume {dt:g} s frames "
-                     "(its frame rate) and the sensor on the wheel axle")
+        return dt, rig.sensor_offset_m, None
+    return dt, 0.0, (f"note: the store records no robot rig: naive and flow use the time stamps' {dt:.6g} s "
+                     "frames and assume the sensor on the wheel axle")
+
+
+def undefined_counts(res: "EvalResult") -> dict[str, dict[int, dict[str, int]]]:
+    """Per method, horizon and metric: how many windows have no value (NaN), e.g. CC of a
+    constant target or prediction, NRMSD of an all-zero target. Only non-zero entries."""
+    out: dict = {}
+    for m in res.methods:
+        for h in res.horizons:
+            for k in METRICS:
+                x = res.per_window[m][h][k]
+                skipped = np.zeros(len(x), bool)
+                if m == CEILING and res.ceiling_skipped:  # runs not re-rendered are not "undefined"
+                    skipped = np.isin([r for r, _ in res.window_ids], list(res.ceiling_skipped))
+                n = int(np.sum(~np.isfinite(x) & ~skipped))
+                if n:
+                    out.setdefault(m, {}).setdefault(h, {})[k] = n
+    return out
+
+
+def _undefined_notes(res: "EvalResult") -> list[str]:
+    """One line per metric saying for how many windows it is undefined, and why."""
+    counts = undefined_counts(res)
+    n = len(res.window_ids)
+    notes = []
+    why = {"cc": "CC is undefined where the target frame or the prediction is constant",
+           "nrmsd": "NRMSD is undefined where the target frame is all zero"}
+    for k in METRICS:
+        parts = []
+        for h in res.horizons:
+            per = {m: counts.get(m, {}).get(h, {}).get(k, 0) for m in res.methods}
+            if not any(per.values()):
+                continue
+            if len(set(per.values())) == 1:
+                parts.append(f"{next(iter(per.values()))} of {n} windows at {_hname(h)}")
+            else:
+                parts.append(f"at {_hname(h)} " + ", ".join(f"{m} {c}" for m, c in per.items() if c) + f" of {n} windows")
+        if parts:
+            notes.append(f"note: {why[k]}: {'; '.join(parts)}; those windows are left out of its means, "
+                         "stds and tests")
+    return notes
 
 
 def evaluate(
@@ -184,7 +238,7 @@ def evaluate(
     if not horizons or horizons[0] < 1:
         raise SonarSetError("horizons must be positive integers")
     bank = FrameBank.from_store(store, split=split, image_dtype=np.float32)
-    dt, offset, note = _robot_geometry(store)
+    dt, offset, note = _robot_geometry(store, bank)
     notes = [note] if note else []
     preds: dict[str, Predictor] = dict(predictors or {})
     for spec in model_specs:
@@ -244,6 +298,7 @@ def evaluate(
                         index.starts, ids, per_window, seconds=seconds, examples=examples, notes=notes,
                         ceiling_skipped=skipped, step_peak=step_peak, step_energy=step_energy,
                         target_peak=target_peak, target_energy=target_energy)
+    result.notes += _undefined_notes(result)
     result.comparisons = _compare_all(result, seed)
     return result
 
@@ -328,6 +383,7 @@ def write_report(res: EvalResult, out: str | os.PathLike, *, figures: bool = Tru
                     "ids": [[r, k] for r, k in res.window_ids]},
         "seconds": res.seconds,
         "notes": res.notes,
+        "undefined_windows": {m: {str(h): v for h, v in d.items()} for m, d in undefined_counts(res).items()},
         **({"ceiling": {"method": CEILING, "meaning": CEILING_MEANING, "skipped_runs": res.ceiling_skipped}}
            if CEILING in res.methods or res.ceiling_skipped else {}),
         **({"fade": _json_finite(fade),
@@ -406,8 +462,7 @@ def results_table(res: EvalResult, with_paper: bool = True) -> str:
            " | ".join(f"NRMSD {_hname(h)}" for h in res.horizons) + " |"
     lines = [head, "|---" * (1 + 2 * len(res.horizons)) + "|"]
     for m in res.methods:
-        cells = [f"{s[m][str(h)]['cc']['mean']:.3f} ({s[m][str(h)]['cc']['std']:.3f})" for h in res.horizons]
-        cells += [f"{s[m][str(h)]['nrmsd']['mean']:.3f} ({s[m][str(h)]['nrmsd']['std']:.3f})" for h in res.horizons]
+        cells = [_cell(s[m][str(h)][k]) for k in METRICS for h in res.horizons]
         label = f"*{m} (noise ceiling, not a predictor)*" if m == CEILING else m
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
         if with_paper and m in PAPER:
@@ -416,6 +471,12 @@ def results_table(res: EvalResult, with_paper: bool = True) -> str:
             cells += [f"{p['nrmsd'].get(h, float('nan')):.2f}" if h in p["nrmsd"] else "-" for h in res.horizons]
             lines.append(f"| *{m} (paper)* | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _cell(entry: dict) -> str:
+    if entry["mean"] is None:
+        return "undefined"
+    return f"{entry['mean']:.3f} ({entry['std']:.3f})"
 
 
 def _hname(h: int) -> str:

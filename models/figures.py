@@ -81,9 +81,11 @@ def write_figures(res, out: Path) -> list[str]:
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), constrained_layout=True)
     for k, ax in zip(("cc", "nrmsd"), axes):
         for m in res.methods:
-            mean = [s[m][str(h)][k]["mean"] for h in res.horizons]
+            # None: undefined at that horizon (constant frames); a gap in the line, not a zero
+            mean = [np.nan if s[m][str(h)][k]["mean"] is None else s[m][str(h)][k]["mean"] for h in res.horizons]
             n = [s[m][str(h)]["n"] for h in res.horizons]
-            sem = [s[m][str(h)][k]["std"] / np.sqrt(max(1, nn)) for h, nn in zip(res.horizons, n)]
+            sem = [np.nan if s[m][str(h)][k]["std"] is None else s[m][str(h)][k]["std"] / np.sqrt(max(1, nn))
+                   for h, nn in zip(res.horizons, n)]
             style = {"color": "0.3", "ls": "--", "label": "noise ceiling"} if m == "ceiling" else {"label": m}
             ax.errorbar(res.horizons, mean, yerr=1.96 * np.array(sem), marker="o", capsize=3, **style)
         ax.set_xlabel("horizon H (frames ahead)")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Mapping
 
@@ -66,6 +67,72 @@ def in_unit_interval(images: np.ndarray) -> bool:
     if bits.max() <= one:
         return True
     return not bool(np.any((bits > one) & (bits != negzero)))
+
+
+#: How far the median spacing of a run's time stamps may stray from the declared frame interval
+#: (relative). Clock jitter and the odd dropped frame stay well inside it; the mistakes it exists
+#: for (a 10 Hz recording declared 5 Hz, milliseconds declared as seconds) are factors of 2 to 1000.
+FRAME_INTERVAL_TOLERANCE = 0.05
+
+
+def median_interval(time: np.ndarray) -> float | None:
+    """The median spacing of time stamps, seconds; None for fewer than two."""
+    t = np.asarray(time, dtype=np.float64)
+    return float(np.median(np.diff(t))) if t.size > 1 else None
+
+
+def frame_interval_problem(time: np.ndarray, frame_rate_hz: float) -> str | None:
+    """A line when the time stamps' median spacing disagrees with ``frame_rate_hz``, else None."""
+    dt = median_interval(time)
+    if dt is None or not math.isfinite(dt) or frame_rate_hz <= 0:
+        return None
+    nominal = 1.0 / frame_rate_hz
+    if abs(dt - nominal) <= FRAME_INTERVAL_TOLERANCE * nominal:
+        return None
+    ratio = dt / nominal
+    hint = ""
+    if 500 <= ratio <= 2000:
+        hint = "; milliseconds declared as seconds?"
+    elif 5e-4 <= ratio <= 2e-3:
+        hint = "; seconds declared as milliseconds?"
+    else:
+        hint = f"; is the recording at {1 / dt:.3g} Hz?" if dt > 0 else ""
+    return (f"time stamps are {dt:.6g} s apart (median), but the store declares frame_rate_hz "
+            f"{frame_rate_hz:g} ({nominal:g} s frames, tolerance {FRAME_INTERVAL_TOLERANCE:.0%}){hint}")
+
+
+def array_meta_problems(key: str, dtype: str, dims: tuple[str, ...] | None, shape: tuple[int, ...],
+                        expected: tuple[int, ...]) -> list[str]:
+    """Every problem of array ``key``'s metadata against the spec (FORMAT.md §2), one line each."""
+    spec = ARRAYS[key]
+    out = []
+    if dtype not in spec.dtypes:
+        out.append(f"dtype {dtype} not allowed (expected {' or '.join(spec.dtypes)})")
+    if tuple(dims or ()) != spec.dims:
+        out.append(f"dimension_names {list(dims) if dims else None} must be {list(spec.dims)}")
+    if tuple(shape) != tuple(expected):
+        out.append(f"shape {tuple(shape)} does not match {tuple(expected)}")
+    return out
+
+
+def value_problem(key: str, block: np.ndarray, first_frame: int = 0) -> tuple[int, str] | None:
+    """(frame, line) of the first value of ``block`` (array ``key``, frames from ``first_frame``)
+    that the spec forbids, else None: images must be finite and in [0, 1], every other array
+    finite (FORMAT.md §2, Values)."""
+    if block.size == 0:
+        return None
+    if key == "images":
+        if in_unit_interval(block):
+            return None
+    elif np.isfinite(block).all():
+        return None
+    frames = block.reshape(block.shape[0], -1) if block.ndim > 1 else block[:, None]
+    finite = np.isfinite(frames)
+    if not finite.all():
+        k = first_frame + int(np.flatnonzero(~finite.all(axis=1))[0])
+        return k, f"NaN or infinite values (first at frame {k})"
+    k = first_frame + int(np.flatnonzero(((frames < 0) | (frames > 1)).any(axis=1))[0])
+    return k, f"values outside [0, 1] ({float(frames.min()):g}..{float(frames.max()):g}; first at frame {k})"
 
 
 def check_run_arrays(grid: SensorGrid, arrays: Mapping[str, np.ndarray]) -> list[str]:

@@ -69,8 +69,9 @@ def show_run(store, run_name: str, frame: int, out: str | os.PathLike, world=Non
         from .errors import SonarSetError
 
         raise SonarSetError(f"frame {frame} outside 0..{run.n_frames - 1} of run {run_name}")
-    image = run.images[frame].astype(np.float32)
-    pose = run["pose"][:] if run.has("pose") else None
+    # checked reads: a corrupt chunk or forbidden value is refused, not drawn
+    image = run.read("images", frame, frame + 1)[0].astype(np.float32)
+    pose = run.read("pose") if run.has("pose") else None
     n = 3 if (world is not None or pose is not None) else 2
     fig, axes = plt.subplots(1, n, figsize=(5.2 * n, 4.8), constrained_layout=True)
     axes = list(np.atleast_1d(axes))
@@ -82,8 +83,8 @@ def show_run(store, run_name: str, frame: int, out: str | os.PathLike, world=Non
             ax.plot(pose[:, 0], pose[:, 1], lw=0.8)
             ax.set_aspect("equal")
         ax.set_title(f"{run_name}: trajectory ({run.n_frames} frames)")
-    t = float(run.time[frame])
-    v = run.velocity[frame]
+    t = float(run.read_time()[frame])
+    v = run.read("velocity", frame, frame + 1)[0]
     im = draw_energyscape(axes[0], image, store.grid, f"frame {frame}, t = {t:.1f} s, v = {v[0]:+.2f} m/s, ω = {v[1]:+.2f} rad/s")
     draw_fan(axes[1], image, store.grid)
     axes[1].set_title("polar fan (sensor frame)")

@@ -12,7 +12,7 @@ import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Iterable, Iterator, Mapping
 
 import numpy as np
 import zarr
@@ -25,7 +25,11 @@ from . import __version__
 # ("zarr.<id>.partial"); it is not a node, zarr skips it, and the warning is noise.
 warnings.filterwarnings("ignore", message=r"Object at .*\.partial is not recognized", category=UserWarning)
 from .errors import FormatError, GridMismatchError, InputValidationError, SonarSetError
-from .arrays import ARRAYS, OPTIONAL_ARRAYS, check_run_arrays, expected_shape
+from .arrays import (
+    ARRAYS, OPTIONAL_ARRAYS, array_meta_problems, check_run_arrays, expected_shape, frame_interval_problem,
+    value_problem,
+)
+from .integrity import ChunkChecker, chunk_coords
 from .schema import (
     FORMAT_VERSION, NAMESPACE, RUN_NAME_RE, SUPPORTED_MAJOR, Processing, RobotRig, RunAttrs, SensorGrid,
     StoreAttrs, parse_version, pydantic_problems,
@@ -105,13 +109,36 @@ class SonarStore:
         try:
             raw = self.group[name].attrs.get(NAMESPACE)
             return RunAttrs.model_validate(raw)
-        except (ValidationError, KeyError, TypeError):
+        except Exception:  # unparseable metadata or invalid attributes: not a usable run
             return None
+
+    def _group_names(self) -> list[str]:
+        """The child groups of the root, sorted.
+
+        zarr lists children by parsing every child's metadata, so one broken ``zarr.json`` makes
+        the whole listing raise. A reader then refuses the store, naming that child; a writer
+        (``r+``) skips it, so that it can still replace or add runs.
+        """
+        try:
+            return sorted(self.group.group_keys())
+        except Exception:
+            pass
+        names = []
+        for name in _child_names(self.group):
+            try:
+                node = self.group[name]
+            except Exception as exc:
+                if self.mode == "r":
+                    raise FormatError(f"{self.location}/{name}: unreadable zarr metadata ({_one_line(exc)})") from None
+                continue
+            if isinstance(node, zarr.Group):
+                names.append(name)
+        return names
 
     def runs(self, split: str | None = None, include_incomplete: bool = False) -> list[str]:
         """Names of the runs (complete ones unless asked), sorted, optionally of one split."""
         names = []
-        for name in sorted(self.group.group_keys()):
+        for name in self._group_names():
             attrs = self._run_attrs(name)
             if attrs is None or not (attrs.complete or include_incomplete):
                 continue
@@ -127,7 +154,7 @@ class SonarStore:
         return out
 
     def run(self, name: str) -> "Run":
-        if name not in self.group.group_keys():
+        if name not in self._group_names():
             raise SonarSetError(f"{self.location}: no run named {name!r} (runs: {', '.join(self.runs()) or 'none'})")
         attrs = self._run_attrs(name)
         if attrs is None:
@@ -135,6 +162,35 @@ class SonarStore:
         if not attrs.complete:
             raise FormatError(f"{self.location}/{name}: run is incomplete (its writer did not finish)")
         return Run(self, name, attrs)
+
+    def check(self, runs: Iterable[str] | None = None, *, chunks: bool = True) -> "SonarStore":
+        """The quick structural checks a reader makes before it trusts the store; returns self.
+
+        Every run group's metadata must parse and its attributes validate (incomplete runs are
+        skipped, as readers ignore them); each complete run (or each of ``runs``) must hold its
+        arrays with the spec's dtypes, shapes and dimension names, coordinates matching the grid,
+        and, with ``chunks``, every chunk present and as long as its header says. Raises
+        FormatError naming the run, array and chunk of the first problem. Values are checked as
+        they are loaded (``Run.read``).
+        """
+        rig = self.attrs.rig
+        if rig is not None and abs(rig.frame_interval_s * self.attrs.frame_rate_hz - 1.0) > 1e-6:
+            raise FormatError(f"{self.location}: rig.frame_interval_s {rig.frame_interval_s:g} s disagrees with "
+                              f"frame_rate_hz {self.attrs.frame_rate_hz:g}")
+        for name in self._group_names():
+            try:
+                raw = self.group[name].attrs.get(NAMESPACE)
+            except Exception as exc:
+                raise FormatError(f"{self.location}/{name}: unreadable zarr metadata ({_one_line(exc)})") from None
+            if not isinstance(raw, dict):
+                raise FormatError(f"{self.location}/{name}: run attribute {NAMESPACE!r} is missing")
+            try:
+                RunAttrs.model_validate(raw)
+            except ValidationError as exc:
+                raise FormatError(f"{self.location}/{name}: {pydantic_problems(exc, f'{NAMESPACE}.')[0]}") from None
+        for name in (self.runs() if runs is None else runs):
+            self.run(name).check(chunks=chunks)
+        return self
 
     def __iter__(self) -> Iterator["Run"]:
         return (self.run(n) for n in self.runs())
@@ -248,6 +304,7 @@ def open_store(
     storage_options: dict | None = None,
     consolidated: bool | None = None,
     cache_bytes: int | None = None,
+    check: bool = False,
 ) -> SonarStore:
     """Open a SonarSet store from a local path or any fsspec URL (``s3://``, ``https://``,
     ``memory://``...).
@@ -259,6 +316,9 @@ def open_store(
     A URL opened for reading goes through an in-memory LRU chunk cache of ``cache_bytes``
     (default 512 MiB, ``0`` for none; ``sonarset.cache``), so chunks are fetched once, not once
     per window.
+
+    ``check=True`` (what ``eval``, ``train``, ``info`` and ``show`` use) also runs
+    :meth:`SonarStore.check`: a store that fails it raises FormatError here.
     """
     if mode not in ("r", "r+"):
         raise ValueError("mode must be 'r' or 'r+' (use create_store to make a new store)")
@@ -291,9 +351,12 @@ def open_store(
         group = _open_group(target, mode, storage_options, consolidated)
     except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError) as exc:
         raise FormatError(f"{loc}: not a zarr store ({type(exc).__name__})") from None
-    except (ValueError, TypeError) as exc:
-        raise FormatError(f"{loc}: cannot open as a zarr v3 group: {exc}") from None
-    return SonarStore(group, loc, mode)
+    except OSError:
+        raise
+    except Exception as exc:  # zarr's metadata errors are ValueError, TypeError, its own classes...
+        raise FormatError(f"{loc}: cannot open as a zarr v3 group: {_one_line(exc)}") from None
+    store = SonarStore(group, loc, mode)
+    return store.check() if check else store
 
 
 def create_store(
@@ -517,11 +580,24 @@ class RunData:
 
 
 class Run:
-    """A complete run group, read lazily: ``run['images'][100:200]`` reads only those chunks."""
+    """A complete run group, read lazily: ``run['images'][100:200]`` reads only those chunks.
+
+    ``run.read(key, start, stop)`` is the checked read that the tools use: it refuses a missing,
+    truncated or undecodable chunk and values the spec forbids, with a FormatError naming the
+    run, the array and the chunk, instead of handing back fill values or garbage.
+    """
 
     def __init__(self, store: SonarStore, name: str, attrs: RunAttrs):
         self.store, self.name, self.attrs = store, name, attrs
-        self.group = store.group[name]
+        self.where = f"{store.location}/{name}"
+        try:
+            self.group = store.group[name]
+        except Exception as exc:
+            raise FormatError(f"{self.where}: unreadable zarr metadata ({_one_line(exc)})") from None
+        self._members: set[str] | None = None
+        self._arrays: dict[str, zarr.Array] = {}
+        self._checkers: dict[str, ChunkChecker] = {}
+        self._time: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -531,15 +607,49 @@ class Run:
     def split(self) -> str:
         return self.attrs.split
 
+    def _member_names(self) -> set[str]:
+        if self._members is None:
+            try:
+                self._members = set(self.group.array_keys())
+            except Exception:  # a member's metadata is unreadable: array() names it
+                self._members = set(_child_names(self.group))
+        return self._members
+
     def has(self, key: str) -> bool:
-        return key in self.group.array_keys()
+        return key in self._member_names()
+
+    def array(self, key: str) -> zarr.Array:
+        """Array ``key`` after its metadata was checked against the spec (dtype, shape, dimension
+        names); FormatError if it is missing, unreadable or does not conform."""
+        if key in self._arrays:
+            return self._arrays[key]
+        if key not in ARRAYS:
+            raise KeyError(key)
+        where = f"{self.where}/{key}"
+        if not self.has(key):
+            raise FormatError(f"{self.where}: has no {key!r} array")
+        try:
+            arr = self.group[key]
+        except Exception as exc:
+            raise FormatError(f"{where}: unreadable zarr metadata ({_one_line(exc)})") from None
+        if not isinstance(arr, zarr.Array):
+            raise FormatError(f"{where}: is a group, not an array")
+        try:
+            dims = tuple(arr.metadata.dimension_names or ())
+            problems = array_meta_problems(key, str(arr.dtype), dims, tuple(arr.shape),
+                                           expected_shape(key, self.n_frames, self.store.grid.shape))
+        except Exception as exc:  # metadata zarr accepted but we cannot interpret
+            raise FormatError(f"{where}: unusable zarr metadata ({_one_line(exc)})") from None
+        if problems:
+            raise FormatError(f"{where}: {problems[0]} (n_frames={self.n_frames}, grid "
+                              f"{self.store.grid.shape[0]}x{self.store.grid.shape[1]})")
+        self._arrays[key] = arr
+        return arr
 
     def __getitem__(self, key: str) -> zarr.Array:
         if key not in ARRAYS:
             raise KeyError(key)
-        if not self.has(key):
-            raise SonarSetError(f"{self.store.location}/{self.name}: has no {key!r} array")
-        return self.group[key]
+        return self.array(key)
 
     @property
     def images(self) -> zarr.Array:
@@ -553,13 +663,94 @@ class Run:
     def time(self) -> zarr.Array:
         return self["time"]
 
+    def _checker(self, key: str) -> ChunkChecker:
+        if key not in self._checkers:
+            self._checkers[key] = ChunkChecker(self.array(key))
+        return self._checkers[key]
+
+    def check(self, chunks: bool = True) -> None:
+        """Structural checks of this run (see ``SonarStore.check``); FormatError on the first problem."""
+        keys = [k for k, spec in ARRAYS.items() if spec.required or self.has(k)]
+        for key in keys:
+            self.array(key)
+        grid = self.store.grid
+        for key, centres in (("range", grid.range_centres()), ("azimuth", grid.azimuth_centres())):
+            values = self.read(key)
+            tol = 1e-6 * max(1.0, float(np.max(np.abs(centres))))
+            if not np.allclose(values, centres, rtol=0, atol=tol):
+                raise FormatError(f"{self.where}/{key}: coordinates do not match the store grid "
+                                  f"(got {values[0]:.6g}..{values[-1]:.6g}, grid {centres[0]:.6g}..{centres[-1]:.6g})")
+        if chunks:
+            for key in keys:
+                bad = self._checker(key).first_problem()
+                if bad is not None:
+                    raise FormatError(f"{self.where}/{key}: chunk {bad[0]} {bad[1]}")
+
+    def read(self, key: str, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """Frames ``start .. stop-1`` of array ``key`` (all of a coordinate array), checked.
+
+        The chunks read must be present and as long as their headers say, must decode, and the
+        values must be what the spec allows (images finite and in [0, 1], the rest finite; a
+        whole ``time`` array also strictly increasing and spaced as the declared frame rate).
+        """
+        arr = self.array(key)
+        n = arr.shape[0]
+        stop = n if stop is None else min(int(stop), n)
+        start = max(0, int(start))
+        where = f"{self.where}/{key}"
+        bad = self._checker(key).first_problem(start, stop)
+        if bad is not None:
+            raise FormatError(f"{where}: chunk {bad[0]} {bad[1]}")
+        try:
+            block = arr[start:stop]
+        except Exception as exc:
+            raise self._decode_error(key, start, stop, exc) from None
+        problem = value_problem(key, block, start)
+        if problem is not None:
+            frame, line = problem
+            raise FormatError(f"{where}: {line}{self._chunk_of(key, frame)}")
+        if key == "time" and start == 0 and stop == n:
+            bad_steps = np.flatnonzero(np.diff(block) <= 0)
+            if bad_steps.size:
+                raise FormatError(f"{where}: not strictly increasing (first at frame {int(bad_steps[0]) + 1})")
+            line = frame_interval_problem(block, self.store.attrs.frame_rate_hz)
+            if line is not None:
+                raise FormatError(f"{where}: {line}")
+        return block
+
+    def read_time(self) -> np.ndarray:
+        """The whole ``time`` array, checked (``read``), kept after the first call."""
+        if self._time is None:
+            self._time = self.read("time")
+        return self._time
+
+    def _chunk_of(self, key: str, frame: int) -> str:
+        arr = self.array(key)
+        chunks = arr.metadata.chunk_grid.chunk_shape
+        if any(c < s for c, s in zip(chunks[1:], arr.shape[1:])):
+            return ""  # chunked along other axes too: the frame alone says where
+        return f" (chunk {arr.metadata.encode_chunk_key((frame // chunks[0],) + (0,) * (arr.ndim - 1))})"
+
+    def _decode_error(self, key: str, start: int, stop: int, exc: Exception) -> FormatError:
+        """The error for a read that failed: it names the first chunk that fails on its own."""
+        arr = self.array(key)
+        chunks = arr.metadata.chunk_grid.chunk_shape
+        for coords in chunk_coords(arr, start, stop):
+            sel = tuple(slice(c * cs, min((c + 1) * cs, n)) for c, cs, n in zip(coords, chunks, arr.shape))
+            try:
+                arr[sel]
+            except Exception as one:
+                return FormatError(f"{self.where}/{key}: chunk {arr.metadata.encode_chunk_key(coords)} cannot be "
+                                   f"decoded ({_one_line(one)})")
+        return FormatError(f"{self.where}/{key}: frames {start}..{stop - 1} cannot be read ({_one_line(exc)})")
+
     def load(self, image_dtype: str | np.dtype | None = None) -> RunData:
-        """Read the whole run into memory (decoding each chunk once)."""
-        images = self.images[:]
+        """Read the whole run into memory (decoding each chunk once), checked as ``read`` does."""
+        images = self.read("images")
         if image_dtype is not None:
             images = images.astype(image_dtype, copy=False)
-        opt = {k: (self.group[k][:] if self.has(k) else None) for k in OPTIONAL_ARRAYS}
-        return RunData(self.name, self.split, images, self.velocity[:], self.time[:], **opt)
+        opt = {k: (self.read(k) if self.has(k) else None) for k in OPTIONAL_ARRAYS}
+        return RunData(self.name, self.split, images, self.read("velocity"), self.read_time(), **opt)
 
     def to_xarray(self):
         """The run as a lazy ``xarray.Dataset`` with dims (time, range, azimuth)."""
@@ -571,3 +762,29 @@ class Run:
 
     def __repr__(self) -> str:
         return f"Run({self.name!r}, split={self.split!r}, frames={self.n_frames})"
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    if len(text) > 200:
+        text = text[:197] + "..."
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def _child_names(group: zarr.Group) -> list[str]:
+    """Names of a group's children as stored (those with a ``zarr.json``), without parsing them."""
+    from zarr.core.sync import sync
+
+    store, base = group.store, group.path
+
+    async def listing() -> list[str]:
+        return [name async for name in store.list_dir(base)]
+
+    prefix = f"{base}/" if base else ""
+    names = []
+    for name in sorted(sync(listing())):
+        if name == "zarr.json" or name.endswith(".partial"):
+            continue
+        if sync(store.exists(f"{prefix}{name}/zarr.json")):
+            names.append(name)
+    return names

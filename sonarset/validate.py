@@ -6,13 +6,12 @@ so that ``sonarset validate`` can print them all, one line each.
 
 from __future__ import annotations
 
-import itertools
 import json
 import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable
 
 import numpy as np
 import zarr
@@ -20,7 +19,8 @@ from pydantic import ValidationError
 
 from .errors import SonarSetError
 from .schema import NAMESPACE, RUN_NAME_RE, SUPPORTED_MAJOR, RunAttrs, StoreAttrs, parse_version, pydantic_problems
-from .arrays import ARRAYS, expected_shape
+from .arrays import ARRAYS, array_meta_problems, expected_shape, frame_interval_problem
+from .integrity import ChunkChecker, chunk_coords
 from .store import _is_url, open_store
 
 
@@ -57,16 +57,52 @@ def validate_store(location: str | os.PathLike, *, check_data: bool = True,
         return [Problem(loc, f"cannot be opened as a zarr v3 group ({type(exc).__name__}: {exc})")]
 
     root = store.group
-    problems += _check_store_attrs(loc, store.attrs)
-    names = sorted(root.group_keys())
-    if not names:
+    problems += _guarded(loc, lambda: _check_store_attrs(loc, store.attrs))
+    names, listing = _run_groups(loc, root)
+    problems += listing
+    if not names and not listing:
         return problems + [Problem(loc, "empty store: no run groups")]
     for name in names:
-        problems += _check_run(store, name, check_data, progress)
-    problems += _check_consolidated(loc, root, names)
-    if not store.runs() and not problems:
-        problems.append(Problem(loc, "no complete run"))
+        problems += _guarded(f"{loc}/{name}", lambda: _check_run(store, name, check_data, progress))
+    problems += _guarded(loc, lambda: _check_consolidated(loc, root, names))
+    if not problems:
+        problems += _guarded(loc, lambda: [] if store.runs() else [Problem(loc, "no complete run")])
     return problems
+
+
+def _guarded(where: str, check: Callable[[], list[Problem]]) -> list[Problem]:
+    """Run one check; an exception it raises is a finding about the store, never a crash."""
+    try:
+        return check()
+    except Exception as exc:  # zarr and numpy raise many types on broken metadata or chunks
+        return [Problem(where, f"cannot be checked: {_one_line(exc)}")]
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    text = text if len(text) <= 200 else text[:197] + "..."
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def _run_groups(loc: str, root: zarr.Group) -> tuple[list[str], list[Problem]]:
+    """The root's child groups, and a problem for each child whose metadata zarr cannot parse
+    (zarr's own listing fails as a whole on one broken child)."""
+    try:
+        return sorted(root.group_keys()), []
+    except Exception:
+        pass
+    from .store import _child_names
+
+    names, problems = [], []
+    for name in _child_names(root):
+        try:
+            node = root[name]
+        except Exception as exc:
+            problems.append(Problem(f"{loc}/{name}", f"unreadable zarr metadata ({_one_line(exc)})"))
+            continue
+        if isinstance(node, zarr.Group):
+            names.append(name)
+    return names, problems
 
 
 def _check_local_root(path: Path) -> Problem | None:
@@ -133,35 +169,46 @@ def _check_run(store, name: str, check_data: bool, progress: ProgressFn | None) 
 
     grid = store.grid
     T = attrs.n_frames
-    present = set(group.array_keys())
+    try:
+        present = set(group.array_keys())
+    except Exception:  # one member's metadata is unreadable: open each below to say which
+        from .store import _child_names
+
+        present = set(_child_names(group))
     arrays: dict[str, zarr.Array] = {}
     for key, spec in ARRAYS.items():
         if key not in present:
             if spec.required:
                 out.append(Problem(where, f"missing required array {key!r}"))
             continue
-        arr = group[key]
         aw = f"{where}/{key}"
-        ok = True
-        if str(arr.dtype) not in spec.dtypes:
-            out.append(Problem(aw, f"dtype {arr.dtype} not allowed (expected {' or '.join(spec.dtypes)})"))
-            ok = False
-        dims = tuple(arr.metadata.dimension_names or ())
-        if dims != spec.dims:
-            out.append(Problem(aw, f"dimension_names {list(dims) or None} must be {list(spec.dims)}"))
+        try:
+            arr = group[key]
+            if not isinstance(arr, zarr.Array):
+                out.append(Problem(aw, "is a group, not an array"))
+                continue
+            dims = tuple(arr.metadata.dimension_names or ())
+            dtype, shape = str(arr.dtype), tuple(arr.shape)
+        except Exception as exc:
+            out.append(Problem(aw, f"unreadable zarr metadata ({_one_line(exc)})"))
+            continue
         expected = expected_shape(key, T, grid.shape)
-        if arr.shape != expected:
-            out.append(Problem(aw, f"shape {arr.shape} does not match {expected} "
-                                   f"(n_frames={T}, grid {grid.shape[0]}x{grid.shape[1]})"))
-            ok = False
-        if ok:
+        found = array_meta_problems(key, dtype, dims, shape, expected)
+        out += [Problem(aw, f"{line} (n_frames={T}, grid {grid.shape[0]}x{grid.shape[1]})" if line.startswith("shape")
+                        else line) for line in found]
+        if not any(line.startswith(("dtype", "shape")) for line in found):
             arrays[key] = arr
     for key, centres in (("range", grid.range_centres()), ("azimuth", grid.azimuth_centres())):
         if key in arrays:
+            arr = arrays.pop(key)
+            damaged = _damaged_chunks(f"{where}/{key}", arr)
+            if damaged:
+                out += damaged
+                continue
             try:
-                values = arrays.pop(key)[:]
+                values = arr[:]
             except Exception as exc:
-                out.append(Problem(f"{where}/{key}", f"unreadable ({type(exc).__name__})"))
+                out.append(Problem(f"{where}/{key}", f"unreadable ({_one_line(exc)})"))
                 continue
             tol = 1e-6 * max(1.0, float(np.max(np.abs(centres))))
             if not np.allclose(values, centres, rtol=0, atol=tol):
@@ -171,31 +218,38 @@ def _check_run(store, name: str, check_data: bool, progress: ProgressFn | None) 
                                    f"grid {centres[0]:.6g}..{centres[-1]:.6g} {unit})"))
     if check_data:
         for key, arr in arrays.items():
-            out += _check_data(f"{where}/{key}", key, arr, progress)
+            out += _guarded(f"{where}/{key}", lambda: _check_data(f"{where}/{key}", key, arr, progress,
+                                                               store.attrs.frame_rate_hz))
     return out
 
 
-def _storage_chunk_keys(arr: zarr.Array) -> Iterable[tuple[tuple[int, ...], str]]:
-    chunk_shape = arr.metadata.chunk_grid.chunk_shape  # outer (shard) chunks when sharded
-    grid = [range(math.ceil(s / c)) for s, c in zip(arr.shape, chunk_shape)]
-    for coords in itertools.product(*grid):
-        yield coords, arr.metadata.encode_chunk_key(coords)
-
-
-def _missing_chunks(arr: zarr.Array) -> list[str]:
-    from zarr.core.sync import sync
-
-    if arr.nchunks_initialized >= arr.nchunks:
-        return []
-    store, base = arr.store_path.store, arr.store_path.path
-    return [key for _, key in _storage_chunk_keys(arr) if not sync(store.exists(f"{base}/{key}"))]
-
-
-def _check_data(aw: str, key: str, arr: zarr.Array, progress: ProgressFn | None) -> list[Problem]:
-    out: list[Problem] = []
-    missing = _missing_chunks(arr)
+def _damaged_chunks(aw: str, arr: zarr.Array) -> list[Problem]:
+    """Chunks missing from storage, and the first whose size disagrees with its header or shape
+    (zarr would decode it from memory past its end); at most one line each."""
+    checker = ChunkChecker(arr)
+    missing, damaged = [], None
+    for coords in chunk_coords(arr):
+        problem = checker.problem(coords)
+        if problem is None:
+            continue
+        if checker.is_missing(problem):
+            missing.append(checker.key(coords))
+        elif damaged is None:
+            damaged = (checker.key(coords), problem)
+    out = []
     if missing:
         out.append(Problem(aw, f"{len(missing)} chunk(s) missing from storage (deleted?), first: {missing[0]}"))
+    if damaged is not None:
+        out.append(Problem(aw, f"chunk {damaged[0]} {damaged[1]}"))
+    return out
+
+
+def _check_data(aw: str, key: str, arr: zarr.Array, progress: ProgressFn | None,
+                frame_rate_hz: float) -> list[Problem]:
+    out = _damaged_chunks(aw, arr)
+    missing = any("chunk(s) missing from storage" in p.message for p in out)
+    if len(out) > int(missing):
+        return out  # a chunk that lies about its size decodes to garbage: its values say nothing
     step = arr.metadata.chunk_grid.chunk_shape[0]
     T = arr.shape[0]
     bad_finite = bad_range = None
@@ -228,25 +282,45 @@ def _check_data(aw: str, key: str, arr: zarr.Array, progress: ProgressFn | None)
         out.append(Problem(aw, f"NaN or infinite values (first at frame {bad_finite})"))
     if bad_range is not None:
         out.append(Problem(aw, f"values outside [0, 1] ({bad_range[0]:g}..{bad_range[1]:g})"))
+    if key == "time" and not out:
+        line = frame_interval_problem(arr[:], frame_rate_hz)
+        if line is not None:
+            out.append(Problem(aw, line))
     return out
 
 
 def _check_consolidated(loc: str, root: zarr.Group, names: list[str]) -> list[Problem]:
-    """Consolidated metadata is optional, but when present it must match the store."""
+    """Consolidated metadata is optional, but when present it must match the store node for node:
+    a URL reader trusts it instead of listing, so a run or array it lacks cannot be read there."""
+    from zarr.core.buffer import default_buffer_prototype
+    from zarr.core.sync import sync
+
+    raw = sync(root.store.get(f"{root.path}/zarr.json" if root.path else "zarr.json", prototype=default_buffer_prototype()))
+    doc = json.loads(raw.to_bytes()) if raw is not None else None
+    if not isinstance(doc, dict) or doc.get("consolidated_metadata") is None:
+        return []
+    fix = "run `sonarset validate --consolidate`"
     try:
         cons = zarr.open_group(root.store, mode="r", use_consolidated=True)
-    except Exception:
+        listed = cons.metadata.consolidated_metadata.flattened_metadata
+    except Exception as exc:
+        return [Problem(loc, f"consolidated metadata is unreadable ({_one_line(exc)}); {fix}")]
+    actual = {key: node.metadata for key, node in root.members(max_depth=None)}
+
+    def plain(meta) -> dict:
+        d = meta.to_dict()
+        d.pop("consolidated_metadata", None)  # nested snapshots are compared node by node
+        return d
+
+    lacks = sorted(set(actual) - set(listed))
+    extra = sorted(set(listed) - set(actual))
+    differ = sorted(k for k in set(actual) & set(listed) if plain(actual[k]) != plain(listed[k]))
+    if not (lacks or extra or differ):
         return []
-    meta = cons.metadata.consolidated_metadata
-    if meta is None:
-        return []
-    listed = {k for k, v in meta.metadata.items() if "/" not in k and v.node_type == "group"}
-    actual = {n: (root[n].attrs.get(NAMESPACE) or {}).get("complete") for n in names}
-    stale = set(actual) != listed or any(
-        (meta.metadata[n].attributes.get(NAMESPACE) or {}).get("complete") != c
-        for n, c in actual.items() if n in meta.metadata
-    )
-    if stale:
-        return [Problem(loc, "consolidated metadata is stale (lists other runs than the store holds); "
-                             "run `sonarset validate --consolidate`")]
-    return []
+    if lacks:
+        detail = f"it lacks {lacks[0]}" + (f" and {len(lacks) - 1} more node(s)" if len(lacks) > 1 else "")
+    elif extra:
+        detail = f"it lists {extra[0]}, which the store does not hold"
+    else:
+        detail = f"its copy of {differ[0]}'s metadata differs from the store's"
+    return [Problem(loc, f"consolidated metadata is stale ({detail}; readers of URLs trust it); {fix}")]

@@ -33,6 +33,8 @@ class FrameBank:
     run_offsets: np.ndarray  # (n_runs + 1,) int64: run j is frames run_offsets[j]:run_offsets[j+1]
     run_names: list[str]
     grid: SensorGrid
+    # median spacing of the runs' time stamps, seconds (None: unknown, or no run of 2+ frames)
+    frame_interval_s: float | None = None
 
     @classmethod
     def from_store(
@@ -49,25 +51,29 @@ class FrameBank:
             what = f"split {split!r}" if split else "the store"
             raise SonarSetError(f"{store.location}: no complete runs in {what} (splits: "
                                 f"{', '.join(sorted(store.splits())) or 'none'})")
-        sizes = [store.run(n).n_frames for n in names]
+        run_objs = [store.run(n) for n in names]
+        sizes = [r.n_frames for r in run_objs]
         offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-        first = store.run(names[0]).images
-        dtype = np.dtype(image_dtype) if image_dtype is not None else first.dtype
+        dtype = np.dtype(image_dtype) if image_dtype is not None else run_objs[0].array("images").dtype
         images = np.empty((int(offsets[-1]), *store.grid.shape), dtype=dtype)
         velocity = np.empty((int(offsets[-1]), 2), dtype=np.float32)
-        for j, name in enumerate(names):
-            run = store.run(name)
+        spacings = []
+        for j, run in enumerate(run_objs):
             lo, hi = int(offsets[j]), int(offsets[j + 1])
             # Read slabs of many chunks: zarr overlaps their I/O and decoding (2x faster than
-            # chunk by chunk) while the temporary copy stays small.
-            step = run.images.chunks[0] * 16
+            # chunk by chunk) while the temporary copy stays small. ``read`` checks each slab's
+            # chunks and values: a broken store stops here, not as silent zeros in a metric.
+            step = run.array("images").chunks[0] * 16
             for s in range(0, hi - lo, step):
                 e = min(hi - lo, s + step)
-                images[lo + s:lo + e] = run.images[s:e]
+                images[lo + s:lo + e] = run.read("images", s, e)
                 if progress is not None:
-                    progress(name, e, hi - lo)
-            velocity[lo:hi] = run.velocity[:]
-        return cls(images, velocity, offsets, names, store.grid)
+                    progress(run.name, e, hi - lo)
+            velocity[lo:hi] = run.read("velocity")
+            spacings.append(np.diff(run.read_time()))
+        gaps = np.concatenate(spacings)
+        interval = float(np.median(gaps)) if gaps.size else None
+        return cls(images, velocity, offsets, names, store.grid, interval)
 
     @classmethod
     def from_arrays(cls, runs: Sequence[tuple[np.ndarray, np.ndarray]], grid: SensorGrid,

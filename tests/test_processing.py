@@ -44,7 +44,7 @@ def test_rig_is_unknown_without_simulator_provenance(tmp_path, store):
 def test_1_1_round_trip(tmp_path):
     rig = RobotRig(frame_interval_s=0.1, sensor_offset_m=0.05, wheel_base_m=0.4, v_max_m_s=0.5, omega_max_rad_s=2.0)
     s = create_store(tmp_path / "s.zarr", TINY, processing=Processing.ertis(), rig=rig, frame_rate_hz=10.0)
-    s.write_run("run_000", **make_run(6))
+    s.write_run("run_000", **{**make_run(6), "time": np.arange(6) * 0.1})  # a 10 Hz store has 10 Hz stamps
     doc = json.loads((tmp_path / "s.zarr" / "zarr.json").read_text())["attributes"]["sonarset"]
     assert doc["format_version"] == "1.1" and doc["processing"]["beamformer"] == "dmas3-cf"
     assert doc["rig"]["wheel_base_m"] == 0.4
