@@ -8,18 +8,19 @@ Cosys-Lab toolbox's ``calculateDMASCF``: delay-and-sum (in the frequency domain,
 signal), and DMAS3 with a coherence factor (in the time domain, on the steered channel signals).
 Nothing here shares code with the fast model's PSF tables except the sweep definition and the
 microphone positions; the post-processing of the envelope image (``energyscape.postprocess``) is
-an image operation that both use.
+an image operation that both use. The beamforming is ``beamform``'s exact path, shared with
+``sonarset import-raw``; ``microphone_signals`` renders the same echoes as time-domain recordings.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from scipy import fft as sfft
-from scipy import signal
 
 from ..schema import SensorGrid
-from .energyscape import BEAMFORMERS, dmas3
-from .sonar import C_SOUND, Echoes, envelope_lowpass, microphone_y, sweep
+from .beamform import band_bins, band_envelope, range_samples, steering, sweep_norm
+from .energyscape import BEAMFORMERS
+from .sonar import C_SOUND, Echoes, microphone_y, sweep
 
 FS_REF = 200e3  # Hz: above Nyquist for the 50 kHz top of the sweep
 
@@ -41,51 +42,63 @@ def reference_amplitude(echoes: Echoes, grid: SensorGrid, beamformer: str = "das
     than half a wavelength apart, so their coherent sum would be an artefact of the sampling). By
     default the reference does the same in expectation: each echo gets an independent random phase
     and the energy is averaged over ``realizations``. ``coherent=True`` keeps all phases at zero.
+    The beamforming is ``beamform``'s exact path, which ``sonarset import-raw`` checks itself against.
+    """
+    if beamformer not in BEAMFORMERS:
+        raise ValueError(f"beamformer must be one of {', '.join(BEAMFORMERS)}, got {beamformer!r}")
+    y = microphone_y()
+    s = sweep(fs)
+    n_fft = sfft.next_fast_len(2 * _n_signal(grid, fs))
+    band, f = band_bins(n_fft, fs, (15e3, 60e3))  # the sweep has no energy elsewhere
+    S = sfft.rfft(s, n_fft)[band]
+    steer = steering(f, y[None, :] * np.sin(grid.azimuth_centres())[:, None])  # (F, A, M)
+    norm = sweep_norm(s, fs)
+    t_idx = range_samples(grid, fs, n_fft)
+    X = _echo_spectra(echoes, f, y, 1 if coherent else max(1, realizations), coherent, seed)
+    Y = X * (np.abs(S) ** 2)[None, None, :]  # sweep spectrum times its matched filter
+    env = band_envelope(Y, steer, band, n_fft, fs, t_idx, beamformer)
+    amp = np.maximum(env[:, :, t_idx], 0) / norm  # (K, A, R)
+    return np.sqrt((amp ** 2).mean(0).T)
+
+
+def microphone_signals(echoes: Echoes, grid: SensorGrid, *, fs: float = FS_REF, coherent: bool = False,
+                       seed: int = 0, realizations: int = 1, snr_db: float | None = None) -> np.ndarray:
+    """The 32 eRTIS microphone signals (K, 32, n) float32 of ``echoes``, one measurement per
+    realization: each echo is the emitted sweep (``sonar.sweep``) with amplitude ``echoes.amp``,
+    delayed by its two-way travel time (sample 0 is the start of the emission), long enough for the
+    grid's farthest range. Echo phases as ``reference_amplitude`` draws them (``seed``).
+
+    ``snr_db``: white Gaussian noise at each microphone, this many dB below the strongest echo's
+    amplitude (the simulator's SNR definition, DESIGN.md §3).
     """
     y = microphone_y()
     s = sweep(fs)
-    n_sig = int(np.ceil((2 * grid.range_max_m / C_SOUND + 0.004) * fs)) + len(s)
+    n_sig = _n_signal(grid, fs)
     n_fft = sfft.next_fast_len(2 * n_sig)
-    f_all = sfft.rfftfreq(n_fft, 1 / fs)
-    band = np.flatnonzero((f_all > 15e3) & (f_all < 60e3))  # the sweep has no energy elsewhere
-    f = f_all[band]
-    S = sfft.rfft(s, n_fft)[band]
+    band, f = band_bins(n_fft, fs, (15e3, 60e3))
+    X = _echo_spectra(echoes, f, y, max(1, realizations), coherent, seed)
+    full = np.zeros((*X.shape[:2], n_fft // 2 + 1), complex)
+    full[:, :, band] = X * sfft.rfft(s, n_fft)[band]
+    out = sfft.irfft(full, n_fft, axis=2)[:, :, :n_sig].astype(np.float32)
+    if snr_db is not None and len(echoes):
+        sigma = float(echoes.amp.max()) * 10 ** (-snr_db / 20)
+        rng = np.random.default_rng([seed, 1])
+        out += rng.normal(0, sigma, out.shape).astype(np.float32)
+    return out
+
+
+def _n_signal(grid: SensorGrid, fs: float) -> int:
+    return int(np.ceil((2 * grid.range_max_m / C_SOUND + 0.004) * fs)) + len(sweep(fs))
+
+
+def _echo_spectra(echoes: Echoes, f: np.ndarray, y: np.ndarray, n_real: int, coherent: bool, seed: int) -> np.ndarray:
+    """(K, M, F) spectra of the echoes' delays at each microphone, weighted by amplitude and phase."""
     # Each echo reaches mic m after r (out) + r - y_m sin(theta) (back, far field across the array).
     tau = (2 * echoes.r[:, None] - y[None, :] * np.sin(echoes.theta)[:, None]) / C_SOUND  # (N, M)
-    u = np.sin(grid.azimuth_centres())
-    # Delay-and-sum steering: undo each microphone's lead y_m sin(theta) / c, for every look direction.
-    steer = np.exp(-2j * np.pi * f[:, None, None] * (y[None, None, :] * u[None, :, None]) / C_SOUND)  # (F, A, M)
-    norm = envelope_lowpass(np.abs(signal.hilbert(signal.correlate(s, s))), fs).max()
-    t_idx = np.clip(np.rint(2 * grid.range_centres() / C_SOUND * fs).astype(int), 0, n_fft - 1)
     rng = np.random.default_rng(seed)
-    n_real = 1 if coherent else max(1, realizations)
     phase = np.zeros((1, len(echoes))) if coherent else rng.uniform(0, 2 * np.pi, (n_real, len(echoes)))
     weights = echoes.amp[None, :] * np.exp(1j * phase)  # (K, N): one row per realization
-    X = np.empty((n_real, len(y), len(f)), complex)
+    X = np.empty((len(weights), len(y), len(f)), complex)
     for m in range(len(y)):  # per microphone, to bound memory: (N, F) phase terms at a time
         X[:, m] = weights @ np.exp(-2j * np.pi * tau[:, m, None] * f[None, :])
-    Y = X * (np.abs(S) ** 2)[None, None, :]  # sweep spectrum times its matched filter
-    if beamformer not in BEAMFORMERS:
-        raise ValueError(f"beamformer must be one of {', '.join(BEAMFORMERS)}, got {beamformer!r}")
-    if beamformer == "das":
-        Z = np.einsum("fam,kmf->kaf", steer, Y) / len(y)
-        # Analytic signal: positive frequencies doubled, inverse FFT, magnitude = envelope.
-        full = np.zeros((n_real, len(u), n_fft), complex)
-        full[:, :, band] = 2 * Z
-        env = envelope_lowpass(np.abs(sfft.ifft(full, axis=2)), fs, axis=2)
-    else:
-        env = np.empty((n_real, len(u), n_fft))
-        # Only the samples of the grid's ranges (with a margin for the filters' edges) are processed.
-        t0 = max(0, int(t_idx.min()) - int(0.002 * fs))
-        t1 = min(n_fft, int(t_idx.max()) + int(0.002 * fs))
-        env[:] = 0
-        for a in range(len(u)):
-            # The channels steered towards azimuth a, as analytic signals (K, M, T).
-            full = np.zeros((n_real, len(y), n_fft), complex)
-            full[:, :, band] = 2 * Y * steer[:, a, :].T[None]
-            z = sfft.ifft(full, axis=2)[:, :, t0:t1]
-            out = dmas3(z.real, axis=1)
-            out *= np.abs(z.sum(1)) ** 2 / (len(y) * (np.abs(z) ** 2).sum(1) + 1e-300)  # coherence factor
-            env[:, a, t0:t1] = envelope_lowpass(np.abs(signal.hilbert(out, axis=-1)), fs, axis=-1)
-    amp = np.maximum(env[:, :, t_idx], 0) / norm  # (K, A, R)
-    return np.sqrt((amp ** 2).mean(0).T)
+    return X
