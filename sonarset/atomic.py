@@ -32,3 +32,101 @@ def save_figure(fig, path: str | os.PathLike, dpi: int = 100) -> Path:
         return atomic_write(path, lambda p: fig.savefig(p, dpi=dpi, format=path.suffix.lstrip(".") or "png"))
     finally:
         plt.close(fig)
+
+
+# ---- directories built aside ------------------------------------------------------------------
+# A store (or a run) is built in a hidden directory beside its destination and renamed into place,
+# so a reader, or a writer killed at any moment, never leaves a half-made one where it belongs.
+# The directory's name carries the host and process id: a later writer removes leftovers of dead
+# processes on this host and leaves a live writer's alone.
+
+def _aside_prefix(dest: Path) -> str:
+    return f".{dest.name}."
+
+
+def aside_dir(dest: str | os.PathLike) -> Path:
+    """A new, empty hidden directory beside ``dest`` (same file system, so a rename can move it)."""
+    import socket
+    import tempfile
+
+    dest = Path(dest)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_asides(dest)
+    host = "".join(c if c.isalnum() or c == "-" else "_" for c in socket.gethostname())[:40] or "host"
+    return Path(tempfile.mkdtemp(prefix=f"{_aside_prefix(dest)}{host}-{os.getpid()}-", suffix=".tmp", dir=dest.parent))
+
+
+def remove_stale_asides(dest: str | os.PathLike) -> list[Path]:
+    """Remove the aside directories of ``dest`` left by killed processes of this host."""
+    import re
+    import shutil
+    import socket
+
+    dest = Path(dest)
+    host = "".join(c if c.isalnum() or c == "-" else "_" for c in socket.gethostname())[:40] or "host"
+    pattern = re.compile(re.escape(_aside_prefix(dest)) + re.escape(host) + r"-(\d+)-[^/]*\.tmp")
+    removed = []
+    try:
+        entries = list(dest.parent.iterdir())
+    except OSError:
+        return removed
+    for entry in entries:
+        m = pattern.fullmatch(entry.name)
+        if m is None or not entry.is_dir() or _alive(int(m.group(1))):
+            continue
+        shutil.rmtree(entry, ignore_errors=True)
+        removed.append(entry)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
+
+
+def exchange(a: str | os.PathLike, b: str | os.PathLike) -> None:
+    """Swap the directories ``a`` and ``b`` in one atomic step: a reader sees either, never neither.
+
+    Linux's ``renameat2(RENAME_EXCHANGE)`` does it; where the kernel, the C library or the file
+    system lacks it, two renames do, and on failure of the second the first is undone (a kill
+    between them leaves the old directory at ``a``).
+    """
+    a, b = os.fsencode(os.fspath(a)), os.fsencode(os.fspath(b))
+    if _renameat2_exchange(a, b):
+        return
+    hold = a + b".old"
+    os.rename(b, hold)
+    try:
+        os.rename(a, b)
+    except BaseException:
+        os.rename(hold, b)
+        raise
+    os.rename(hold, a)
+
+
+def _renameat2_exchange(a: bytes, b: bytes) -> bool:
+    import ctypes
+    import errno
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).renameat2  # glibc >= 2.28
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    if fn(at_fdcwd, a, at_fdcwd, b, rename_exchange) == 0:
+        return True
+    code = ctypes.get_errno()
+    if code in (errno.ENOSYS, errno.EINVAL, errno.EOPNOTSUPP, errno.ENOTSUP):
+        return False
+    raise OSError(code, os.strerror(code), os.fsdecode(b))

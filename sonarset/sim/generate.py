@@ -11,16 +11,19 @@ from __future__ import annotations
 import concurrent.futures as cf
 import multiprocessing as mp
 import os
+import shutil
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Callable, Iterator
 
 import numpy as np
 
 from .. import __version__
 from ..errors import SonarSetError
+from ..atomic import aside_dir, remove_stale_asides
 from ..perf import keep_freed_memory
 from ..schema import Processing, RobotRig, SensorGrid
-from ..store import DEFAULT_CHUNK_FRAMES, open_or_create_store, open_store
+from ..store import DEFAULT_CHUNK_FRAMES, _is_url, create_store, open_or_create_store, open_store
 from .robot import SENSOR_OFFSET, V_MAX, W_MAX, WHEEL_BASE, ExplorationPolicy, apply_slip, integrate
 from .sonar import SonarModel, check_psf
 from .world import load_world
@@ -131,6 +134,12 @@ def simulate_blocks(plan: RunPlan, grid: SensorGrid, block: int = DEFAULT_CHUNK_
 def _write_run(location: str, plan: RunPlan, grid: SensorGrid, queue=None, storage_options: dict | None = None,
                spare_core=None) -> str:
     store = open_store(location, "r+", storage_options=storage_options)
+    # Whatever a killed writer left of this run goes, including a group folder whose zarr.json was
+    # never renamed into place (zarr does not see it as a node, so the writer would not replace it)
+    # and the zarr.<id>.partial temp files of its last writes.
+    from zarr.core.sync import sync
+
+    sync(store.group.store.delete_dir(plan.name))
     with store.run_writer(plan.name, plan.n_frames, split=plan.split, source=plan.source(),
                           optional=("pose", "snr_db", "slip"), consolidate=False) as w, \
             cf.ThreadPoolExecutor(1) as writer:
@@ -189,6 +198,8 @@ def generate(
         raise SonarSetError(f"--psf: {exc}") from None
     plans = plan_runs(runs, test_runs, minutes, seed, world, snr_db, psf, processing)
     loc = os.fspath(out)
+    if not _is_url(loc):
+        _prepare_local(Path(loc), grid, processing)
     store = open_or_create_store(loc, grid, description=f"simulated by sonarset {__version__}",
                                  storage_options=storage_options, processing=processing, rig=simulator_rig())
     todo = []
@@ -224,6 +235,35 @@ def generate(
                         os.environ.pop(k, None)
     store.consolidate()
     return [p.name for p in todo]
+
+
+def _prepare_local(dest: Path, grid: SensorGrid, processing: Processing) -> None:
+    """Clear what a killed generate left at ``dest``'s root, and create the store if it is missing.
+
+    The store is created aside and renamed into place: a kill during its first metadata writes
+    leaves no folder without ``zarr.json`` that the same command would then refuse.
+    """
+    remove_stale_asides(dest)
+    if dest.is_dir():
+        # zarr writes each file as zarr.<id>.partial, then renames it; a kill in between leaves
+        # the temp file. At the root only this process writes (workers write their run groups).
+        for debris in dest.glob("zarr.*.partial"):
+            debris.unlink(missing_ok=True)
+    if (dest / "zarr.json").exists():
+        return
+    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
+        raise SonarSetError(f"{dest}: exists and is not a SonarSet store (no zarr.json); choose another output")
+    tmp = aside_dir(dest)
+    try:
+        create_store(tmp / "store.zarr", grid, description=f"simulated by sonarset {__version__}",
+                     processing=processing, rig=simulator_rig())
+        try:
+            os.replace(tmp / "store.zarr", dest)  # onto nothing or an empty directory
+        except OSError:
+            if not (dest / "zarr.json").exists():  # else another process created it first
+                raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
