@@ -37,8 +37,12 @@ ProgressFn = Callable[[str, int, int], None]
 
 
 def validate_store(location: str | os.PathLike, *, check_data: bool = True,
-                   progress: ProgressFn | None = None) -> list[Problem]:
-    """All problems of the store at ``location``; an empty list means it is valid."""
+                   progress: ProgressFn | None = None, plausibility: bool = True) -> list[Problem]:
+    """All problems of the store at ``location``; an empty list means it is valid.
+
+    ``plausibility`` adds the rules of ``sonarset.plausibility`` (values no in-air sonar records),
+    as ``Implausible`` problems.
+    """
     loc = os.fspath(location)
     local = not _is_url(loc)
     problems: list[Problem] = []
@@ -65,9 +69,17 @@ def validate_store(location: str | os.PathLike, *, check_data: bool = True,
     for name in names:
         problems += _guarded(f"{loc}/{name}", lambda: _check_run(store, name, check_data, progress))
     problems += _guarded(loc, lambda: _check_consolidated(loc, root, names))
+    if plausibility:
+        problems += _guarded(loc, lambda: _plausibility(store, check_data))
     if not problems:
         problems += _guarded(loc, lambda: [] if store.runs() else [Problem(loc, "no complete run")])
     return problems
+
+
+def _plausibility(store, check_data: bool) -> list[Problem]:
+    from .plausibility import store_problems  # imports Problem from this module
+
+    return store_problems(store, check_data)
 
 
 def _guarded(where: str, check: Callable[[], list[Problem]]) -> list[Problem]:
