@@ -112,6 +112,29 @@ def range_samples(grid: SensorGrid, fs: float, n: int, c: float = C_SOUND, start
     return np.clip(np.rint((2 * grid.range_centres() / c - start_s) * fs).astype(int), 0, n - 1)
 
 
+def range_edges(grid: SensorGrid, fs: float, n: int | None = None, c: float = C_SOUND,
+                start_s: float = 0.0) -> np.ndarray:
+    """Sample index of each range bin edge (R + 1,), at least one sample apart, within 0..n-1."""
+    r = grid.range_min_m + np.arange(grid.n_range + 1) * grid.range_step
+    t = np.rint((2 * r / c - start_s) * fs).astype(np.int64)
+    if n is not None:
+        t = np.clip(t, 0, n - 1)
+    t[1:] = np.maximum.accumulate(np.maximum(t[1:], t[:-1] + 1))
+    return t
+
+
+def bin_average(env: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Amplitude (R, A) float32 of envelopes (A, n): the RMS over each range bin's samples
+    ``edges[i]:edges[i+1]``, negative lobes of the low-pass clipped first. Each bin holds the
+    energy averaged over its width, as the fast model's range PSF does (a 2 cm PSF point-sampled
+    on coarser bins would miss the echoes between bin centres)."""
+    env = np.maximum(env, 0)
+    csum = np.zeros((env.shape[0], env.shape[1] + 1))
+    np.cumsum(env * env, axis=1, out=csum[:, 1:])
+    e = (csum[:, edges[1:]] - csum[:, edges[:-1]]) / np.diff(edges)
+    return np.ascontiguousarray(np.sqrt(np.maximum(e, 0)).T, dtype=np.float32)
+
+
 def das_envelope(Y: np.ndarray, steer: np.ndarray, band: np.ndarray, n_fft: int, fs: float) -> np.ndarray:
     """Delay-and-sum envelope (K, A, n_fft) of matched-filtered channel spectra Y (K, M, F), in the
     frequency domain: the analytic signal is the doubled positive band, inverse-transformed."""
@@ -250,12 +273,15 @@ class SignalBeamformer:
         az = self.grid.azimuth_centres()
         self.proj = steering_projection(np.asarray(self.positions, float), az)
         delay_up = np.rint(self.proj / self.c * fs_up).astype(np.int64)  # (A, M) upsampled samples
-        t_idx = np.rint((2 * self.grid.range_centres() / self.c - self.start_s) * self.fs_out).astype(np.int64)
+        # Range bin edges in output samples: each bin holds the envelope's energy averaged over its
+        # width, as the fast model's range PSF is (a 2 cm PSF point-sampled on coarser bins would
+        # miss echoes between bin centres).
+        t_edge = range_edges(self.grid, self.fs_out, None, self.c, self.start_s)
         margin = int(MARGIN_S * self.fs_out)
-        self.j0 = max(0, int(t_idx.min()) - margin)
-        j1 = int(t_idx.max()) + margin + 1
+        self.j0 = max(0, int(t_edge.min()) - margin)
+        j1 = int(t_edge.max()) + margin + 1
         self.n_out = j1 - self.j0
-        self.t_rel = t_idx - self.j0  # range bins in the output window
+        self.edges = t_edge - self.j0
         # Upsampled window: output sample j of azimuth a reads (j0 + j) * stride - delay.
         self.w0 = self.j0 * self.stride - int(delay_up.max())
         w1 = (j1 - 1) * self.stride - int(delay_up.min()) + 1
@@ -324,8 +350,7 @@ class SignalBeamformer:
 
     def amplitude(self, sig: np.ndarray) -> np.ndarray:
         """Envelope amplitude (R, A) float32 of one measurement's signals (M, n_samples)."""
-        env = self.envelope(sig)
-        return np.ascontiguousarray(np.maximum(env[:, self.t_rel], 0).T, dtype=np.float32)
+        return bin_average(self.envelope(sig), self.edges)
 
     def exact_amplitude(self, sig: np.ndarray) -> np.ndarray:
         """The same from the exact path (frequency-domain steering at the recording's rate): slow,
@@ -337,8 +362,8 @@ class SignalBeamformer:
         Y = X * np.conj(sfft.rfft(self.sweep, n_fft)[band])
         t_idx = range_samples(self.grid, fs, n_fft, self.c, self.start_s)
         env = band_envelope(Y, steering(f, self.proj, self.c), band, n_fft, fs, t_idx, self.beamformer)
-        norm = sweep_norm(self.sweep, fs)
-        return np.maximum(env[0][:, t_idx], 0).T.astype(np.float32) / np.float32(norm)
+        edges = range_edges(self.grid, fs, n_fft, self.c, self.start_s)
+        return bin_average(env[0] / sweep_norm(self.sweep, fs), edges)
 
 
 def sweep_band(sweep: np.ndarray, fs: float) -> tuple[float, float]:

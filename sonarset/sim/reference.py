@@ -20,7 +20,7 @@ from scipy import fft as sfft
 from ..schema import SensorGrid
 from .beamform import band_bins, band_envelope, range_samples, steering, sweep_norm
 from .energyscape import BEAMFORMERS
-from .sonar import C_SOUND, Echoes, microphone_y, sweep
+from .sonar import C_SOUND, F_HI, F_LO, SWEEP_S, Echoes, microphone_y, sweep
 
 FS_REF = 200e3  # Hz: above Nyquist for the 50 kHz top of the sweep
 
@@ -74,7 +74,7 @@ def microphone_signals(echoes: Echoes, grid: SensorGrid, *, fs: float = FS_REF, 
     y = microphone_y()
     s = sweep(fs)
     n_sig = _n_signal(grid, fs)
-    n_fft = sfft.next_fast_len(2 * n_sig)
+    n_fft = sfft.next_fast_len(n_sig, real=True)  # every echo ends inside n_sig: nothing wraps
     band, f = band_bins(n_fft, fs, (15e3, 60e3))
     X = _echo_spectra(echoes, f, y, max(1, realizations), coherent, seed)
     full = np.zeros((*X.shape[:2], n_fft // 2 + 1), complex)
@@ -102,3 +102,53 @@ def _echo_spectra(echoes: Echoes, f: np.ndarray, y: np.ndarray, n_real: int, coh
     for m in range(len(y)):  # per microphone, to bound memory: (N, F) phase terms at a time
         X[:, m] = weights @ np.exp(-2j * np.pi * tau[:, m, None] * f[None, :])
     return X
+
+
+def write_raw_recording(run, out_dir, *, frames: slice | None = None, fs: float = FS_REF, seed: int = 0,
+                        snr_db: float | None = None, name: str | None = None) -> "Path":
+    """Render the scene of a simulated run (its world and poses) as a raw recording that
+    ``sonarset import-raw`` reads: a directory of ``.npy`` files (``signals`` written frame by frame
+    into a memory map, ``velocity``, ``time``, ``pose``) with its ``recording.json``.
+
+    Each frame is one realization of ``microphone_signals`` (random echo phases seeded by ``seed``
+    and the frame index; microphone noise at ``snr_db`` when given).
+    """
+    import json
+    from pathlib import Path
+
+    from .robot import sensor_pose
+    from .sonar import visible_echoes
+    from .world import load_world
+
+    src = run.attrs.source
+    if src.get("kind") != "simulator":
+        raise ValueError(f"run {run.name!r} was not simulated: no world to render")
+    grid = run.store.grid
+    world = load_world(src["world"], int(src["world_seed"]))
+    sl = frames or slice(None)
+    pose = run["pose"][sl]
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    n = _n_signal(grid, fs)
+    sig = np.lib.format.open_memmap(out / "signals.npy", "w+", np.float32, (len(pose), len(microphone_y()), n))
+    start = sl.start or 0
+    for k, p in enumerate(pose):
+        echoes = visible_echoes(world, sensor_pose(p), grid.range_max_m + 0.1)
+        sig[k] = microphone_signals(echoes, grid, fs=fs, seed=seed * 1_000_003 + start + k, snr_db=snr_db)[0]
+    sig.flush()
+    del sig
+    np.save(out / "velocity.npy", run["velocity"][sl])
+    np.save(out / "time.npy", run["time"][sl])
+    np.save(out / "pose.npy", pose)
+    g = grid
+    meta = {"name": name or run.name, "split": run.split, "sample_rate_hz": fs, "speed_of_sound_m_s": C_SOUND,
+            "sweep": {"f_start_hz": F_LO, "f_end_hz": F_HI, "duration_s": SWEEP_S, "window": "hann"},
+            "microphones": "ertis32",
+            "grid": {"range_min": g.range_min_m, "range_max": g.range_max_m, "n_range": g.n_range,
+                     "azimuth_min": g.azimuth_min_rad, "azimuth_max": g.azimuth_max_rad, "n_azimuth": g.n_azimuth},
+            "source": {"rendered_from": f"{run.store.location}/{run.name}", "seed": seed,
+                       "snr_db": snr_db}}
+    if run.store.rig is not None:
+        meta["rig"] = run.store.rig.model_dump(mode="json")
+    (out / "recording.json").write_text(json.dumps(meta, indent=2))
+    return out
