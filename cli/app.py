@@ -105,6 +105,8 @@ def validate(
     quick: bool = typer.Option(False, "--quick", help="Check metadata only; do not read the data chunks."),
     consolidate: bool = typer.Option(False, "--consolidate",
                                      help="Rewrite stale consolidated metadata, then validate."),
+    allow_implausible: bool = typer.Option(False, "--allow-implausible",
+                                           help="Report implausible values (unit mistakes?) as warnings, not errors."),
 ) -> None:
     """Check a store against the SonarSet spec: exit 0 if valid, 1 with one line per problem."""
     from sonarset.validate import validate_store
@@ -120,11 +122,20 @@ def validate(
             bar.update(task, description=where.rsplit("/", 2)[-2], completed=done, total=total)
 
         problems = validate_store(store, check_data=not quick, progress=progress)
+    from sonarset.plausibility import Implausible
+
+    allowed = [p for p in problems if allow_implausible and isinstance(p, Implausible)]
+    problems = [p for p in problems if not (allow_implausible and isinstance(p, Implausible))]
+    for p in allowed:
+        err.print(f"[yellow]warning:[/] {p}", highlight=False, soft_wrap=True)
     if problems:
         for p in problems:
-            err.print(f"[bold red]invalid:[/] {p}", highlight=False, soft_wrap=True)
+            label = "implausible" if isinstance(p, Implausible) else "invalid"
+            err.print(f"[bold red]{label}:[/] {p}", highlight=False, soft_wrap=True)
+        if any(isinstance(p, Implausible) for p in problems):
+            err.print("note: if the implausible values are right, pass --allow-implausible", highlight=False)
         raise typer.Exit(1)
-    out.print(f"{store}: valid SonarSet store")
+    out.print(f"{store}: valid SonarSet store" + (f" ({len(allowed)} implausible value(s) allowed)" if allowed else ""))
 
 
 @app.command("import")
@@ -135,12 +146,19 @@ def import_(
     meta: Optional[Path] = typer.Option(None, "--meta", help="Metadata JSON (default: SRC.json / SRC/recording.json)."),
     name: Optional[str] = typer.Option(None, "--name", help="Run name (default: metadata name or file stem)."),
     split: Optional[str] = typer.Option(None, "--split", help="Split of the run (default: metadata split)."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a run of the same name."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a run of the same name (only once the new one is complete)."),
+    allow_implausible: bool = typer.Option(False, "--allow-implausible",
+                                           help="Import values the plausibility checks question (unit mistakes?); "
+                                                "each is printed as a warning."),
 ) -> None:
     """Validate an external recording completely, then write it as one run of a store."""
     from sonarset.importer import import_recording
 
-    run = import_recording(src, out_store, meta_path=meta, name=name, split=split, overwrite=overwrite)
+    def warn(line: str) -> None:
+        err.print(f"[yellow]warning:[/] {line}", highlight=False, soft_wrap=True)
+
+    run = import_recording(src, out_store, meta_path=meta, name=name, split=split, overwrite=overwrite,
+                           allow_implausible=allow_implausible, warn=warn)
     out.print(f"imported {src} -> {out_store}/{run.name} ({run.n_frames} frames, split {run.split})")
 
 

@@ -1,44 +1,56 @@
 """Import external recordings (``.npz``, or a directory of ``.npy`` files) into a SonarSet store.
 
 Everything is read and checked before anything is written; every problem found is reported,
-one line each. A new store is built beside its destination and renamed into place, so an
-import that fails or is killed never leaves a partial store behind.
+one line each. Only regular files are opened (a FIFO or a device would block or never end). The
+run is built aside and moved in whole: a new store is built beside its destination and renamed
+into place; a run for an existing local store is built in a store beside it and renamed into
+the store, or swapped in atomically for the run it replaces. An import that fails (a full disk)
+or is killed therefore never leaves a partial run behind, and never loses the run it replaces.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
 import shutil
-import tempfile
+import stat
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from pydantic import ValidationError
 
+from . import plausibility as plaus
+from .atomic import aside_dir, exchange
 from .errors import InputValidationError, SonarSetError
-from .schema import Processing, RecordingMeta, SensorGrid, pydantic_problems
+from .schema import RUN_NAME_RE, SPLIT_RE, Processing, RecordingMeta, RobotRig, SensorGrid, pydantic_problems
 from .store import Run, _is_url, create_store, open_or_create_store, open_store
 
 ARRAY_KEYS = ("images", "velocity", "time", "range", "azimuth", "pose", "snr_db", "slip")
 REQUIRED_KEYS = ("images", "velocity", "time")
 SIDECAR_NAME = "recording.json"
 
-_RANGE = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
-_ANGLE = {"rad": 1.0, "deg": math.pi / 180}
-_LINV = {"m/s": 1.0, "cm/s": 1e-2, "mm/s": 1e-3}
-_ANGV = {"rad/s": 1.0, "deg/s": math.pi / 180}
-_TIME = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+_RANGE = plaus.UNIT_SCALES["range"]
+_ANGLE = plaus.UNIT_SCALES["azimuth"]
+_LINV = plaus.UNIT_SCALES["linear_velocity"]
+_ANGV = plaus.UNIT_SCALES["angular_velocity"]
+_TIME = plaus.UNIT_SCALES["time"]
 
-# Plausibility limits for a ground robot with an in-air sonar; values beyond them almost always
-# mean a unit was declared wrongly (cm as m, degrees as radians).
-MAX_RANGE_M = 100.0
-MAX_SPEED_M_S = 10.0
-MAX_TURN_RAD_S = 20.0
+# Kept here for the importers that share them (sonarset.rawimport); the rules are in plausibility.
+MAX_RANGE_M = plaus.MAX_RANGE_M
+MAX_SPEED_M_S = plaus.MAX_SPEED_M_S
+MAX_TURN_RAD_S = plaus.MAX_TURN_RAD_S
+
+#: A metadata file is a few kilobytes; anything this large is not one (and would be read whole).
+MAX_METADATA_BYTES = 16 * 2**20
+#: Metadata nests a few levels (units, grid, rig, source); deeper documents are refused before
+#: they reach code that recurses (pydantic, the JSON encoder writing zarr.json, every reader).
+MAX_METADATA_DEPTH = 32
+IMPLAUSIBLE_NOTE = " (--allow-implausible to import it as is)"
 
 
 @dataclass
@@ -49,6 +61,8 @@ class Recording:
     meta: RecordingMeta
     grid: SensorGrid
     arrays: dict[str, np.ndarray] = field(default_factory=dict)
+    #: Plausibility findings let through by ``allow_implausible``.
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def n_frames(self) -> int:
@@ -62,6 +76,10 @@ def _read_arrays(src: Path) -> tuple[dict[str, Any], dict | None, list[str]]:
     embedded: dict | None = None
     if src.is_dir():
         for path in sorted(src.glob("*.npy")):
+            irregular = regular_file_problem(path)
+            if irregular:
+                problems.append(f"{path.name}: {irregular}")
+                continue
             try:
                 arrays[path.stem] = np.load(path, allow_pickle=False, mmap_mode="r")
             except Exception as exc:
@@ -83,9 +101,7 @@ def _read_arrays(src: Path) -> tuple[dict[str, Any], dict | None, list[str]]:
     if "metadata" in arrays:
         raw = arrays.pop("metadata")
         try:
-            embedded = json.loads(str(raw[()] if getattr(raw, "ndim", 1) == 0 else raw))
-            if not isinstance(embedded, dict):
-                raise ValueError("not a JSON object")
+            embedded = parse_metadata(str(raw[()] if getattr(raw, "ndim", 1) == 0 else raw))
         except (ValueError, TypeError) as exc:
             problems.append(f"array 'metadata': must hold a JSON object string ({_why(exc)})")
             embedded = None
@@ -97,38 +113,94 @@ def _why(exc: Exception) -> str:
     return text[:160]
 
 
+def regular_file_problem(path: Path) -> str | None:
+    """Why ``path`` must not be opened (a FIFO would block, a device never end), else None."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or exc})"
+    if stat.S_ISREG(mode):
+        return None
+    kind = ("a directory" if stat.S_ISDIR(mode) else "a FIFO (named pipe)" if stat.S_ISFIFO(mode)
+            else "a socket" if stat.S_ISSOCK(mode) else "a character device" if stat.S_ISCHR(mode)
+            else "a block device" if stat.S_ISBLK(mode) else "not a plain file")
+    return f"not a regular file ({kind}); only regular files are imported"
+
+
+def parse_metadata(text: str) -> dict:
+    """A metadata JSON object: strict JSON (no NaN, no Infinity), at most MAX_METADATA_DEPTH deep."""
+    def constant(name: str):
+        raise ValueError(f"{name} is not valid JSON")
+
+    def number(token: str) -> float:
+        value = float(token)
+        if not math.isfinite(value):
+            raise ValueError(f"number {token[:20]} is out of range")
+        return value
+
+    try:
+        doc = json.loads(text, parse_constant=constant, parse_float=number)
+    except RecursionError:
+        raise ValueError(f"nested too deeply (at most {MAX_METADATA_DEPTH} levels)") from None
+    if not isinstance(doc, dict):
+        raise ValueError("top level must be a JSON object")
+    stack = [(doc, 1)]
+    while stack:
+        node, depth = stack.pop()
+        if depth > MAX_METADATA_DEPTH:
+            raise ValueError(f"nested too deeply (at most {MAX_METADATA_DEPTH} levels)")
+        children = node.values() if isinstance(node, dict) else node
+        stack += [(c, depth + 1) for c in children if isinstance(c, (dict, list))]
+    return doc
+
+
 def _sidecar_for(src: Path) -> Path:
     return src / SIDECAR_NAME if src.is_dir() else src.with_suffix(".json")
 
 
-def load_recording(src: str | os.PathLike, meta_path: str | os.PathLike | None = None) -> Recording:
-    """Read and validate a recording; raise InputValidationError listing every problem."""
+def load_recording(src: str | os.PathLike, meta_path: str | os.PathLike | None = None, *,
+                   rig: RobotRig | None = None, frame_interval_s: float | None = None,
+                   allow_implausible: bool = False) -> Recording:
+    """Read and validate a recording; raise InputValidationError listing every problem.
+
+    Besides the format, the values must be plausible (``sonarset.plausibility``) against ``rig``
+    and ``frame_interval_s`` (the destination store's; default: the sidecar's rig). With
+    ``allow_implausible`` those findings become the recording's ``warnings``; time stamps that
+    disagree with a declared frame rate stay errors, since readers refuse such a run.
+    """
     src = Path(src)
     where = str(src)
     if not src.exists():
         raise InputValidationError(where, ["no such file or directory"])
+    if not src.is_dir():
+        irregular = regular_file_problem(src)
+        if irregular:
+            raise InputValidationError(where, [irregular])
     arrays, embedded, problems = _read_arrays(src)
     if problems and not arrays:
         raise InputValidationError(where, problems)  # nothing readable: further checks only echo it
+    implausible: list[str] = []
 
     meta_doc: dict | None = None
     sidecar = Path(meta_path) if meta_path is not None else _sidecar_for(src)
-    if meta_path is not None and not sidecar.is_file():
+    if sidecar.exists() or sidecar.is_symlink():
+        meta_doc = _read_sidecar(sidecar, problems)
+    elif meta_path is not None:
         problems.append(f"{sidecar}: metadata file not found")
-    elif sidecar.is_file():
-        try:
-            meta_doc = json.loads(sidecar.read_text())
-            if not isinstance(meta_doc, dict):
-                raise ValueError("top level must be a JSON object")
-        except (OSError, UnicodeDecodeError, ValueError) as exc:
-            problems.append(f"{sidecar.name}: invalid JSON ({_why(exc)})")
-            meta_doc = None
+    if meta_doc is not None and embedded:
+        # The sidecar completes and overrides the file's own metadata; a key both set differently
+        # is reported, naming both, rather than silently decided.
+        implausible += plaus.metadata_conflicts(meta_doc, embedded, sidecar.name, src.name)
+        meta_doc = plaus.merge_metadata(embedded, meta_doc)
     if meta_doc is None:
         meta_doc = embedded or {}
     try:
         meta = RecordingMeta.model_validate(meta_doc)
     except ValidationError as exc:
         problems += pydantic_problems(exc, "metadata.")
+        meta = None
+    except RecursionError:
+        problems.append(f"metadata: nested too deeply (at most {MAX_METADATA_DEPTH} levels)")
         meta = None
 
     for key in arrays:
@@ -151,7 +223,7 @@ def load_recording(src: str | os.PathLike, meta_path: str | os.PathLike | None =
             continue
         conv[key] = arr
     if meta is None:
-        raise InputValidationError(where, problems)
+        raise InputValidationError(where, problems + implausible)
 
     u = meta.units
     shapes_ok = _check_shapes(conv, problems)
@@ -163,13 +235,7 @@ def load_recording(src: str | os.PathLike, meta_path: str | os.PathLike | None =
     if "velocity" in conv and conv["velocity"].ndim == 2 and conv["velocity"].shape[-1] == 2:
         v = conv["velocity"].astype(np.float64)
         v = v * np.array([_LINV[u.linear_velocity], _ANGV[u.angular_velocity]])
-        if v.size:
-            if np.abs(v[:, 0]).max() > MAX_SPEED_M_S:
-                problems.append(f"velocity: linear speed up to {np.abs(v[:, 0]).max():.3g} m/s is implausible "
-                                f"(declared units.linear_velocity={u.linear_velocity!r})")
-            if np.abs(v[:, 1]).max() > MAX_TURN_RAD_S:
-                problems.append(f"velocity: turn rate up to {np.abs(v[:, 1]).max():.3g} rad/s is implausible "
-                                f"(declared units.angular_velocity={u.angular_velocity!r}; degrees?)")
+        implausible += plaus.command_problems(v, rig or meta.rig, u)
         out["velocity"] = v
     if "time" in conv and conv["time"].ndim == 1:
         t = conv["time"].astype(np.float64) * _TIME[u.time]
@@ -192,6 +258,15 @@ def load_recording(src: str | os.PathLike, meta_path: str | os.PathLike | None =
             out[key] = out[key].astype(np.float32)
 
     grid = _resolve_grid(meta, conv, images, problems)
+    if grid is not None:
+        implausible += plaus.grid_problems(grid, u)
+        if "time" in out:
+            interval = frame_interval_s or (meta.rig.frame_interval_s if meta.rig is not None else None)
+            by = "store" if frame_interval_s else "sidecar's rig"
+            found = plaus.time_problems(out["time"], interval, grid.range_max_m, u, declared_by=by)
+            # Against a declared rate it is a format error (readers refuse the run); without one,
+            # the new store takes its rate from the times, and only physics can object.
+            (problems if interval else implausible).extend(found)
     if images is not None and images.ndim == 3:
         img = _encode_images(images, meta, problems)
         if img is not None:
@@ -208,9 +283,26 @@ def load_recording(src: str | os.PathLike, meta_path: str | os.PathLike | None =
                     out[key] = out[key][:-1]
                 elif key in ("images", "time", "pose", "snr_db", "slip"):
                     out[key] = out[key][1:]
+    if not allow_implausible:
+        problems += [line + IMPLAUSIBLE_NOTE for line in implausible]
     if problems or grid is None:
         raise InputValidationError(where, problems or ["no sensor grid"])
-    return Recording(where, meta, grid, out)
+    return Recording(where, meta, grid, out, warnings=implausible)
+
+
+def _read_sidecar(path: Path, problems: list[str]) -> dict | None:
+    irregular = regular_file_problem(path)
+    if irregular:
+        problems.append(f"{path.name}: {irregular}")
+        return None
+    try:
+        if path.stat().st_size > MAX_METADATA_BYTES:
+            raise ValueError(f"{path.stat().st_size} bytes, more than a metadata file holds "
+                             f"({MAX_METADATA_BYTES // 2**20} MiB)")
+        return parse_metadata(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        problems.append(f"{path.name}: invalid JSON ({_why(exc)})")
+        return None
 
 
 def _check_shapes(conv: dict[str, np.ndarray], problems: list[str]) -> bool:
@@ -271,9 +363,6 @@ def _resolve_grid(meta: RecordingMeta, conv: dict[str, np.ndarray], images, prob
     if grid is None and meta.grid is None and "range" not in conv:
         problems.append("no sensor grid: give metadata 'grid' or 'range' and 'azimuth' arrays")
     if grid is not None:
-        if grid.range_max_m > MAX_RANGE_M:
-            problems.append(f"grid: range up to {grid.range_max_m:g} m is implausible for in-air sonar "
-                            f"(declared units.range={meta.units.range!r})")
         if images is not None and images.ndim == 3 and images.shape[1:] != grid.shape:
             problems.append(f"images: frame shape {images.shape[1:]} does not match the grid {grid.shape}")
     return grid
@@ -313,6 +402,16 @@ def _encode_images(images: np.ndarray, meta: RecordingMeta, problems: list[str])
     return np.clip((db + dr) / dr, 0.0, 1.0).astype(np.float32)
 
 
+def check_run_options(name: str | None, split: str | None) -> None:
+    """One-line errors for a bad ``--name`` or ``--split``, before any file is read."""
+    if name is not None and not RUN_NAME_RE.match(name):
+        raise SonarSetError(f"--name {name!r}: a run name is 1-128 letters, digits, '_', '.' or '-', "
+                            "starting with a letter or digit")
+    if split is not None and not SPLIT_RE.match(split):
+        raise SonarSetError(f"--split {split!r}: a split is 1-32 lower-case letters, digits, '_' or '-', "
+                            "starting with a letter (e.g. 'train', 'val', 'test')")
+
+
 def import_recording(
     src: str | os.PathLike,
     out: str | os.PathLike,
@@ -321,40 +420,134 @@ def import_recording(
     name: str | None = None,
     split: str | None = None,
     overwrite: bool = False,
+    allow_implausible: bool = False,
+    warn: Callable[[str], None] | None = None,
 ) -> Run:
     """Validate ``src`` completely, then write it as one run of the store ``out``.
 
     ``out`` is created when missing (atomically: built aside, then renamed) or must already be a
     store with the same grid. The run is named ``name``, else metadata ``name``, else the stem.
     The sidecar's ``processing`` and ``rig`` are recorded in a new store (processing default:
-    profile 'unknown'); an existing store must match those the sidecar declares.
+    profile 'unknown'; frame rate: the rig's, else the recording's median time step); an existing
+    store must match those the sidecar declares, and its rig and frame rate are what the values
+    are checked against. ``allow_implausible`` imports values the plausibility rules question,
+    passing each finding to ``warn``.
+
+    A run for an existing local store is built in a store beside it and moved in: renamed, or
+    swapped atomically for the run it replaces (``overwrite``). Until then the store is untouched;
+    a failure, a full disk included, leaves it as it was.
     """
-    rec = load_recording(src, meta_path)
+    check_run_options(name, split)
+    out_s = os.fspath(out)
+    existing = None
+    if _is_url(out_s) or (Path(out_s) / "zarr.json").exists():
+        existing = open_store(out_s, "r")
+    rec = load_recording(src, meta_path, rig=existing.rig if existing is not None else None,
+                         frame_interval_s=1 / existing.attrs.frame_rate_hz if existing is not None else None,
+                         allow_implausible=allow_implausible)
+    for line in rec.warnings:
+        if warn is not None:
+            warn(f"{src}: {line}")
     run_name = name or rec.meta.name or Path(src).stem
-    run_split = split or rec.meta.split
+    if not RUN_NAME_RE.match(run_name):
+        raise SonarSetError(f"{src}: {run_name!r} is not a valid run name; pass --name")
+    run_split = split if split is not None else rec.meta.split
     source = {"kind": "import", "file": Path(src).name, "source": rec.meta.source,
               "image_encoding": rec.meta.image_encoding, "velocity_alignment": rec.meta.velocity_alignment}
     opt = {k: rec.arrays.get(k) for k in ("pose", "snr_db", "slip")}
-    out_s = os.fspath(out)
-    if _is_url(out_s) or (Path(out_s) / "zarr.json").exists():
+
+    def write(store) -> None:
+        store.write_run(run_name, rec.arrays["images"], rec.arrays["velocity"], rec.arrays["time"],
+                        split=run_split, source=source, consolidate=False, **opt)
+
+    if existing is not None:
         store = open_or_create_store(out_s, rec.grid, processing=rec.meta.processing, rig=rec.meta.rig)
         if run_name in store.runs() and not overwrite:
             raise SonarSetError(f"{out_s}: run {run_name!r} already exists (use --overwrite or --name)")
-        return store.write_run(run_name, rec.arrays["images"], rec.arrays["velocity"], rec.arrays["time"],
-                               split=run_split, source=source, overwrite=overwrite, **opt)
+        if _is_url(out_s):  # object stores have no rename: the run writer keeps it invisible until complete
+            with _no_space(out_s, run_name):
+                store.write_run(run_name, rec.arrays["images"], rec.arrays["velocity"], rec.arrays["time"],
+                                split=run_split, source=source, overwrite=overwrite, **opt)
+            return store.run(run_name)
+        _move_run_in(store, run_name, write)
+        return open_store(out_s).run(run_name)
+
     dest = Path(out_s)
-    if dest.exists() and (dest.is_file() or any(dest.iterdir())):
+    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
         raise SonarSetError(f"{out_s}: exists and is not a SonarSet store")
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent))
+    rig = rec.meta.rig
+    tmp = aside_dir(dest)
     try:
-        store = create_store(tmp / "store.zarr", rec.grid, rig=rec.meta.rig,
-                             processing=rec.meta.processing or Processing(profile="unknown"))
-        store.write_run(run_name, rec.arrays["images"], rec.arrays["velocity"], rec.arrays["time"],
-                        split=run_split, source=source, **opt)
+        with _no_space(out_s, run_name):
+            store = create_store(tmp / "store.zarr", rec.grid, rig=rig, frame_rate_hz=_frame_rate(rec, rig),
+                                 processing=rec.meta.processing or Processing(profile="unknown"))
+            write(store)
+            store.consolidate()
         if dest.exists():
             dest.rmdir()  # an empty directory, checked above
         os.replace(tmp / "store.zarr", dest)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return open_store(dest).run(run_name)
+
+
+def _frame_rate(rec: Recording, rig: RobotRig | None) -> float:
+    if rig is not None:
+        return 1.0 / rig.frame_interval_s
+    t = rec.arrays["time"]
+    if t.size > 1:
+        dt = float(np.median(np.diff(t)))
+        if dt > 0:
+            return float(f"{1.0 / dt:.3g}")  # nominal: jitter must not give 4.9975 Hz
+    return 1.0 / RobotRig().frame_interval_s
+
+
+def _move_run_in(store, run_name: str, write: Callable) -> None:
+    """Build the run in a store beside ``store``, then rename it in, or swap it for the run it replaces."""
+    root = Path(store.location)
+    tmp = aside_dir(root)
+    try:
+        with _no_space(store.location, run_name):
+            side = create_store(tmp / "store.zarr", store.grid, processing=store.processing, rig=store.attrs.rig,
+                                frame_rate_hz=store.attrs.frame_rate_hz)
+            write(side)
+        new, target = tmp / "store.zarr" / run_name, root / run_name
+        # Anything at the run's path (the run replaced, or what a killed writer left) is swapped
+        # out whole and deleted with the aside directory.
+        swapped = target.exists() or target.is_symlink()
+        if swapped:
+            exchange(new, target)
+        else:
+            os.rename(new, target)
+        try:
+            with _no_space(store.location, run_name):
+                store.consolidate()
+        except BaseException:
+            # Without its consolidated metadata the store would list another run than it holds:
+            # put back what was there.
+            if swapped:
+                exchange(new, target)
+            else:
+                os.rename(target, new)
+            raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+class _no_space:
+    """Turn a write failure (a full disk, a read-only file system) into one line naming the store."""
+
+    def __init__(self, where: str, run_name: str):
+        self.where, self.run_name = where, run_name
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is not None and issubclass(exc_type, OSError) and not isinstance(exc, SonarSetError):
+            why = exc.strerror or str(exc) or type(exc).__name__
+            if exc.errno == errno.ENOSPC:
+                why = "no space left on device"
+            raise SonarSetError(f"{self.where}: cannot write run {self.run_name!r}: {why} "
+                                "(nothing was changed)") from None
+        return False

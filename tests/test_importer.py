@@ -153,3 +153,239 @@ def test_garbage_bytes_fail_cleanly(tmp_path, data):
     with pytest.raises(SonarSetError):
         import_recording(src, tmp_path / "never.zarr")
     assert not (tmp_path / "never.zarr").exists()
+
+
+# ---- files that are not files, bad options, absurd sidecars ------------------------------------
+
+def _cli_import(*args):
+    from typer.testing import CliRunner
+
+    from sonarset.cli.app import app
+
+    return CliRunner().invoke(app, ["import", *map(str, args)])
+
+
+def _error_lines(res) -> list[str]:
+    return [line for line in res.output.splitlines() if line.strip()]
+
+
+def _load_in_thread(*args, **kwargs):
+    """load_recording, given 10 s: a FIFO opened for reading would block it forever."""
+    import threading
+
+    box: dict = {}
+
+    def target():
+        try:
+            box["value"] = load_recording(*args, **kwargs)
+        except BaseException as exc:  # noqa: BLE001 - handed to the test thread
+            box["error"] = exc
+
+    t = threading.Thread(target=target, daemon=True)
+    t.start()
+    t.join(10)
+    assert not t.is_alive(), "load_recording blocked"
+    return box
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_fifo_as_file_is_refused_without_opening_it(tmp_path):
+    src = tmp_path / "rec.npz"
+    os.mkfifo(src)
+    box = _load_in_thread(src)
+    assert isinstance(box.get("error"), InputValidationError)
+    assert "not a regular file (a FIFO" in str(box["error"])
+    res = _cli_import(src, tmp_path / "out.zarr")
+    assert res.exit_code == 1 and len(_error_lines(res)) == 1 and "rec.npz" in res.output
+    assert not (tmp_path / "out.zarr").exists()
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_fifo_inside_npy_directory_and_as_sidecar_are_refused(tmp_path):
+    d = tmp_path / "rec"
+    d.mkdir()
+    for k, v in good_arrays().items():
+        np.save(d / k, v)
+    os.mkfifo(d / "pose.npy")
+    os.mkfifo(d / "recording.json")
+    box = _load_in_thread(d)
+    text = "\n".join(box["error"].problems)
+    assert "pose.npy: not a regular file (a FIFO" in text
+    assert "recording.json: not a regular file (a FIFO" in text
+    meta = tmp_path / "meta.json"
+    os.mkfifo(meta)
+    box = _load_in_thread(write_npz(tmp_path / "x.npz", None, **good_arrays()), meta)
+    assert "meta.json: not a regular file" in str(box["error"])
+
+
+def test_device_and_socket_are_refused(tmp_path):
+    import socket
+
+    dev = tmp_path / "zero.npz"
+    dev.symlink_to("/dev/zero")
+    with pytest.raises(InputValidationError, match="a character device"):
+        load_recording(dev)
+    sock_path = tmp_path / "s.npz"
+    sock = socket.socket(socket.AF_UNIX)
+    try:
+        sock.bind(str(sock_path))
+        with pytest.raises(InputValidationError, match="a socket"):
+            load_recording(sock_path)
+    finally:
+        sock.close()
+
+
+@pytest.mark.parametrize("args, match", [
+    (["--split", "TRAIN"], "--split 'TRAIN'"),
+    (["--split", ""], "--split ''"),
+    (["--name", ""], "--name ''"),
+    (["--name", "a/b"], "--name 'a/b'"),
+])
+def test_bad_cli_values_are_one_line(tmp_path, args, match):
+    src = write_npz(tmp_path / "rec.npz", {}, **good_arrays())
+    res = _cli_import(src, tmp_path / "out.zarr", *args)
+    assert res.exit_code == 1, res.output
+    lines = _error_lines(res)
+    assert len(lines) == 1 and match in lines[0], lines
+    assert not (tmp_path / "out.zarr").exists()
+
+
+@pytest.mark.parametrize("text, match", [
+    ('{"source": ' + "[" * 100_000 + "]" * 100_000 + "}", "nested too deeply"),
+    ('{"source": ' + '{"a": ' * 40 + "1" + "}" * 40 + "}", "nested too deeply"),
+    ('{"dynamic_range_db": NaN}', "NaN is not valid JSON"),
+    ('{"dynamic_range_db": 1e999}', "out of range"),
+    ('{"name": "' + "9" * 10 + '", "n": ' + "9" * 5000 + "}", "invalid JSON"),
+])
+def test_absurd_sidecars_are_one_line(tmp_path, text, match):
+    src = write_npz(tmp_path / "rec.npz", None, **good_arrays())
+    src.with_suffix(".json").write_text(text)
+    res = _cli_import(src, tmp_path / "out.zarr")
+    assert res.exit_code == 1, res.output
+    lines = _error_lines(res)
+    assert len(lines) == 1 and match in lines[0] and "rec.json" in lines[0], lines
+
+
+def test_deep_embedded_metadata_and_huge_sidecar(tmp_path, monkeypatch):
+    import sonarset.importer as imp
+
+    a = good_arrays()
+    src = write_npz(tmp_path / "rec.npz", None, metadata=np.array("[" * 5000 + "]" * 5000), **a)
+    with pytest.raises(InputValidationError, match="nested too deeply"):
+        load_recording(src)
+    src = write_npz(tmp_path / "big.npz", {"source": {"note": "x" * 300}}, **a)
+    monkeypatch.setattr(imp, "MAX_METADATA_BYTES", 200)
+    with pytest.raises(InputValidationError, match="more than a metadata file holds"):
+        load_recording(src)
+
+
+# ---- replacing a run, and a full disk ----------------------------------------------------------
+
+def _snapshot(root) -> dict:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _count_writes(monkeypatch, fn) -> int:
+    import zarr.storage._local as zlocal
+
+    n = [0]
+    orig = zlocal._put
+
+    def put(path, value, exclusive=False):
+        n[0] += 1
+        return orig(path, value, exclusive)
+
+    monkeypatch.setattr(zlocal, "_put", put)
+    fn()
+    monkeypatch.setattr(zlocal, "_put", orig)
+    return n[0]
+
+
+def _disk_full_at(monkeypatch, k: int) -> None:
+    """Every file write from the k-th on fails as on a full disk."""
+    import errno
+
+    import zarr.storage._local as zlocal
+
+    n = [0]
+    orig = zlocal._put
+
+    def put(path, value, exclusive=False):
+        n[0] += 1
+        if n[0] >= k:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return orig(path, value, exclusive)
+
+    monkeypatch.setattr(zlocal, "_put", put)
+
+
+def test_overwrite_on_full_disk_keeps_the_old_run_at_every_write(tmp_path, monkeypatch):
+    out = tmp_path / "s.zarr"
+    old = write_npz(tmp_path / "old.npz", {"name": "X"}, **good_arrays(12))
+    new_arrays = good_arrays(20)
+    new_arrays["images"] = new_arrays["images"][::-1].copy()
+    new = write_npz(tmp_path / "new.npz", {}, **new_arrays)
+    import_recording(old, out)
+    before = _snapshot(out)
+    scratch = tmp_path / "scratch.zarr"
+    import_recording(old, scratch)
+    total = _count_writes(monkeypatch, lambda: import_recording(new, scratch, name="X", overwrite=True))
+    assert total >= 10
+    for k in range(1, total + 1):
+        _disk_full_at(monkeypatch, k)
+        res = _cli_import(new, out, "--name", "X", "--overwrite")
+        monkeypatch.undo()
+        lines = _error_lines(res)
+        assert res.exit_code == 1 and len(lines) == 1, (k, res.output)
+        assert "no space left on device" in lines[0] and str(out) in lines[0], lines
+        assert _snapshot(out) == before, f"write {k}: the store changed"
+        assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == [], k
+    run = import_recording(new, out, name="X", overwrite=True)
+    assert run.n_frames == 20
+    np.testing.assert_array_equal(open_store(out).run("X").images[:], new_arrays["images"])
+    assert validate_store(out) == []
+
+
+def test_overwrite_never_touches_the_old_run_before_the_swap(tmp_path, monkeypatch):
+    """While the replacement is written, the old run's files stay exactly as they were."""
+    import zarr.storage._local as zlocal
+
+    out = tmp_path / "s.zarr"
+    import_recording(write_npz(tmp_path / "old.npz", {"name": "X"}, **good_arrays(12)), out)
+    old_run = _snapshot(out / "X")
+    seen = []
+    orig = zlocal._put
+
+    def put(path, value, exclusive=False):
+        seen.append(_snapshot(out / "X") == old_run)
+        return orig(path, value, exclusive)
+
+    monkeypatch.setattr(zlocal, "_put", put)
+    import_recording(write_npz(tmp_path / "new.npz", {}, **good_arrays(20)), out, name="X", overwrite=True)
+    monkeypatch.undo()
+    assert len(seen) >= 10 and all(seen[:-1])  # the last write is the consolidation after the swap
+    assert open_store(out).run("X").n_frames == 20
+
+
+@pytest.mark.parametrize("existing", [False, True])
+def test_full_disk_new_store_or_new_run_leaves_nothing(tmp_path, monkeypatch, existing):
+    out = tmp_path / "s.zarr"
+    if existing:
+        import_recording(write_npz(tmp_path / "first.npz", {}, **good_arrays()), out)
+    before = _snapshot(out) if existing else None
+    src = write_npz(tmp_path / "rec.npz", {}, **good_arrays())
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    total = _count_writes(monkeypatch, lambda: import_recording(src, scratch / "x.zarr"))
+    for k in range(1, total + 1, 2):
+        _disk_full_at(monkeypatch, k)
+        res = _cli_import(src, out)
+        monkeypatch.undo()
+        assert res.exit_code == 1 and len(_error_lines(res)) == 1, (k, res.output)
+        assert "no space left on device" in res.output
+        if existing:
+            assert _snapshot(out) == before, k
+            assert open_store(out).runs() == ["first"]
+        else:
+            assert not out.exists(), k
+        assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == [], k
