@@ -84,7 +84,7 @@ def show_run(store, run_name: str, frame: int, out: str | os.PathLike, world=Non
             ax.set_aspect("equal")
         ax.set_title(f"{run_name}: trajectory ({run.n_frames} frames)")
     t = float(run.read_time()[frame])
-    v = run.read("velocity", frame, frame + 1)[0]
+    v = run.read("velocity")[frame]  # whole: the command limits are checked on it
     im = draw_energyscape(axes[0], image, store.grid, f"frame {frame}, t = {t:.1f} s, v = {v[0]:+.2f} m/s, ω = {v[1]:+.2f} rad/s")
     draw_fan(axes[1], image, store.grid)
     axes[1].set_title("polar fan (sensor frame)")

@@ -8,6 +8,7 @@ finished. One process writes one run group; never let two processes write one ar
 
 from __future__ import annotations
 
+import json
 import os
 import warnings
 from dataclasses import dataclass
@@ -23,7 +24,9 @@ from . import __version__
 
 # Listing a group while another process writes into it atomically shows that writer's temp file
 # ("zarr.<id>.partial"); it is not a node, zarr skips it, and the warning is noise.
-warnings.filterwarnings("ignore", message=r"Object at .*\.partial is not recognized", category=UserWarning)
+# Other strays (a junk folder, a killed writer's leftovers) are not nodes either: readers ignore
+# them, as the spec says of anything that is not a node.
+warnings.filterwarnings("ignore", message=r"Object at .* is not recognized", category=UserWarning)
 from .errors import FormatError, GridMismatchError, InputValidationError, SonarSetError
 from .arrays import (
     ARRAYS, OPTIONAL_ARRAYS, array_meta_problems, check_run_arrays, expected_shape, frame_interval_problem,
@@ -333,6 +336,10 @@ def open_store(
             if path.is_dir() and ((path / ".zgroup").exists() or (path / ".zarray").exists()):
                 raise FormatError(f"{loc}: a Zarr v2 store; SonarSet requires Zarr v3")
             raise FormatError(f"{loc}: not a zarr store (no zarr.json at its root)")
+        try:  # zarr's own message would not say which file
+            json.loads((path / "zarr.json").read_bytes())
+        except (UnicodeDecodeError, ValueError) as exc:
+            raise FormatError(f"{path / 'zarr.json'}: unreadable JSON ({_one_line(exc)})") from None
         loc = str(path)
         if consolidated is None:
             consolidated = False
@@ -641,8 +648,9 @@ class Run:
         except Exception as exc:  # metadata zarr accepted but we cannot interpret
             raise FormatError(f"{where}: unusable zarr metadata ({_one_line(exc)})") from None
         if problems:
-            raise FormatError(f"{where}: {problems[0]} (n_frames={self.n_frames}, grid "
-                              f"{self.store.grid.shape[0]}x{self.store.grid.shape[1]})")
+            context = (f" (n_frames={self.n_frames}, grid {self.store.grid.shape[0]}x{self.store.grid.shape[1]})"
+                       if problems[0].startswith("shape") else "")
+            raise FormatError(f"{where}: {problems[0]}{context}")
         self._arrays[key] = arr
         return arr
 
@@ -691,7 +699,8 @@ class Run:
 
         The chunks read must be present and as long as their headers say, must decode, and the
         values must be what the spec allows (images finite and in [0, 1], the rest finite; a
-        whole ``time`` array also strictly increasing and spaced as the declared frame rate).
+        whole ``time`` array also strictly increasing and spaced as the declared frame rate; a
+        whole ``velocity`` array within the rig's command limits, as ``validate`` demands).
         """
         arr = self.array(key)
         n = arr.shape[0]
@@ -709,6 +718,12 @@ class Run:
         if problem is not None:
             frame, line = problem
             raise FormatError(f"{where}: {line}{self._chunk_of(key, frame)}")
+        if key == "velocity" and start == 0 and stop == n:
+            from .plausibility import command_problems  # it imports validate, which imports this module
+
+            lines = command_problems(block, self.store.rig)
+            if lines:
+                raise FormatError(f"{where}: {lines[0].split(': ', 1)[1]}")
         if key == "time" and start == 0 and stop == n:
             bad_steps = np.flatnonzero(np.diff(block) <= 0)
             if bad_steps.size:
@@ -729,7 +744,7 @@ class Run:
         chunks = arr.metadata.chunk_grid.chunk_shape
         if any(c < s for c, s in zip(chunks[1:], arr.shape[1:])):
             return ""  # chunked along other axes too: the frame alone says where
-        return f" (chunk {arr.metadata.encode_chunk_key((frame // chunks[0],) + (0,) * (arr.ndim - 1))})"
+        return f" in chunk {arr.metadata.encode_chunk_key((frame // chunks[0],) + (0,) * (arr.ndim - 1))}"
 
     def _decode_error(self, key: str, start: int, stop: int, exc: Exception) -> FormatError:
         """The error for a read that failed: it names the first chunk that fails on its own."""
