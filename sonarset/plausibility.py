@@ -72,14 +72,17 @@ def unit_hint(kind: str, value_si: float, ok: Callable[[float], bool], typical: 
     if max(value_si / typical, typical / value_si) < HINT_FACTOR:
         return ""
     scales = UNIT_SCALES[kind]
+    si = _SI[kind]
+    # In a store, values equally well explained by several pairs (ms/s, us/ms...) are put down to
+    # the pair with the SI unit: the unit of the file and the unit of the store.
     pairs = ([(t, declared_unit) for t in scales] if (declared_unit := getattr(declared, kind, None))
-             else [(t, c) for c in scales for t in scales])
+             else sorted(((t, c) for c in scales for t in scales), key=lambda p: si not in p))
     best = None
     for true, claimed in pairs:
         x = value_si * scales[true] / scales[claimed]
         if true != claimed and ok(x):
             score = abs(math.log(x / typical))
-            if best is None or score < best[0]:
+            if best is None or score < best[0] - 1e-6:  # ties: the earlier pair
                 best = (score, true, claimed)
     if best is None:
         return ""
