@@ -199,7 +199,7 @@ def generate(
     plans = plan_runs(runs, test_runs, minutes, seed, world, snr_db, psf, processing)
     loc = os.fspath(out)
     if not _is_url(loc):
-        _prepare_local(Path(loc), grid, processing)
+        _prepare_local(Path(loc), grid, processing, [p.name for p in plans])
     store = open_or_create_store(loc, grid, description=f"simulated by sonarset {__version__}",
                                  storage_options=storage_options, processing=processing, rig=simulator_rig())
     todo = []
@@ -237,8 +237,11 @@ def generate(
     return [p.name for p in todo]
 
 
-def _prepare_local(dest: Path, grid: SensorGrid, processing: Processing) -> None:
+def _prepare_local(dest: Path, grid: SensorGrid, processing: Processing, runs: list[str]) -> None:
     """Clear what a killed generate left at ``dest``'s root, and create the store if it is missing.
+
+    A folder of one of ``runs`` without ``zarr.json`` (its group's first write never landed) is not
+    a zarr node: zarr would warn about it on every listing, so it goes before the first one.
 
     The store is created aside and renamed into place: a kill during its first metadata writes
     leaves no folder without ``zarr.json`` that the same command would then refuse.
@@ -249,6 +252,9 @@ def _prepare_local(dest: Path, grid: SensorGrid, processing: Processing) -> None
         # the temp file. At the root only this process writes (workers write their run groups).
         for debris in dest.glob("zarr.*.partial"):
             debris.unlink(missing_ok=True)
+        for name in runs:
+            if (dest / name).is_dir() and not (dest / name / "zarr.json").exists():
+                shutil.rmtree(dest / name, ignore_errors=True)
     if (dest / "zarr.json").exists():
         return
     if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
