@@ -34,7 +34,8 @@ import numpy as np
 from pydantic import ValidationError
 
 from .errors import InputValidationError, SonarSetError
-from .importer import _ANGLE, _ANGV, _LINV, _RANGE, _TIME, MAX_SPEED_M_S, MAX_TURN_RAD_S, _sidecar_for, _why
+from . import plausibility
+from .importer import _ANGLE, _ANGV, _LINV, _RANGE, _TIME, _sidecar_for, _why
 from .schema import Processing, RawRecordingMeta, SensorGrid, pydantic_problems
 from .store import DEFAULT_CHUNK_FRAMES, Run, _is_url, create_store, open_or_create_store, open_store
 
@@ -342,12 +343,7 @@ def load_raw(src: str | os.PathLike, meta_path: str | os.PathLike | None = None,
     u = meta.units
     if "velocity" in small:
         v = small["velocity"] * np.array([_LINV[u.linear_velocity], _ANGV[u.angular_velocity]])
-        if v.size and np.abs(v[:, 0]).max() > MAX_SPEED_M_S:
-            problems.append(f"velocity: linear speed up to {np.abs(v[:, 0]).max():.3g} m/s is implausible "
-                            f"(declared units.linear_velocity={u.linear_velocity!r})")
-        if v.size and np.abs(v[:, 1]).max() > MAX_TURN_RAD_S:
-            problems.append(f"velocity: turn rate up to {np.abs(v[:, 1]).max():.3g} rad/s is implausible "
-                            f"(declared units.angular_velocity={u.angular_velocity!r}; degrees?)")
+        problems += plausibility.command_problems(v, meta.rig, u)  # the image importer's rules
         small["velocity"] = v
     if "time" in small:
         t = small["time"] * _TIME[u.time]
@@ -365,6 +361,11 @@ def load_raw(src: str | os.PathLike, meta_path: str | os.PathLike | None = None,
         problems.append(f"signals: {M} channels but the microphone layout has {len(positions)} microphones")
     sweep = _sweep(meta, reader, problems)
     out_grid = _resolve_grid(meta, grid, problems)
+    if out_grid is not None and meta.grid is not None:
+        problems += plausibility.grid_problems(out_grid, u)
+    if out_grid is not None and "time" in small:
+        problems += plausibility.time_problems(small["time"], meta.rig.frame_interval_s if meta.rig else None,
+                                               out_grid.range_max_m, u, "sidecar's rig")
     fs, c = meta.sample_rate_hz, meta.speed_of_sound_m_s
     if out_grid is not None and n is not None and sweep is not None:
         reach = (n - len(sweep)) / fs + meta.start_time_s  # the last echo whose sweep ends in the record

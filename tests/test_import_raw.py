@@ -1,0 +1,359 @@
+"""import-raw: microphone signals -> energyscapes, as the simulator makes them.
+
+The round trip renders a simulated run's scene to microphone signals with the signal-level
+reference, imports them and compares with the simulator's own images of the run; malformed inputs
+each get one-line errors and leave nothing behind; a killed import leaves no complete run.
+"""
+
+import json
+import math
+import os
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from sonarset import open_store
+from sonarset.cli.app import app
+from sonarset.errors import InputValidationError, SonarSetError
+from sonarset.rawimport import RawSource, import_raw, load_raw
+from sonarset.schema import Processing, SensorGrid
+from sonarset.sim.beamform import SignalBeamformer, read_layout_csv
+from sonarset.sim.reference import microphone_signals, reference_amplitude, write_raw_recording
+from sonarset.sim.sonar import Echoes, SonarModel, sweep
+from sonarset.validate import validate_store
+
+SMALL = SensorGrid(range_min_m=0.5, range_max_m=1.5, n_range=24, azimuth_min_rad=-1.2, azimuth_max_rad=1.2,
+                   n_azimuth=12)
+FS = 200e3
+
+
+def _cc(a, b):
+    a, b = a - a.mean(), b - b.mean()
+    return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
+
+
+def _signals(T, grid=SMALL, seed=0):
+    """T measurements of a few point echoes that move between measurements: (T, 32, n) float32."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(T):
+        r = rng.uniform(grid.range_min_m + 0.1, grid.range_max_m - 0.1, 3)
+        echoes = Echoes(r, rng.uniform(-1, 1, 3), rng.uniform(0.05, 0.3, 3))
+        out.append(microphone_signals(echoes, grid, coherent=True)[0])
+    return np.stack(out)
+
+
+def _sidecar(grid=SMALL, **over):
+    doc = {"sample_rate_hz": FS, "speed_of_sound_m_s": 343.0, "microphones": "ertis32", "split": "test",
+           "sweep": {"f_start_hz": 25e3, "f_end_hz": 50e3, "duration_s": 0.0025, "window": "hann"},
+           "grid": {"range_min": grid.range_min_m, "range_max": grid.range_max_m, "n_range": grid.n_range,
+                    "azimuth_min": grid.azimuth_min_rad, "azimuth_max": grid.azimuth_max_rad,
+                    "n_azimuth": grid.n_azimuth}}
+    doc.update(over)
+    return {k: v for k, v in doc.items() if v is not None}
+
+
+def _write(tmp_path, name="rec", T=4, signals=None, meta=None, **arrays):
+    sig = _signals(T) if signals is None else signals
+    T = len(sig)
+    base = {"signals": sig, "velocity": np.c_[np.full(T, 0.1), np.zeros(T)].astype(np.float32),
+            "time": np.arange(T) * 0.2}
+    base.update(arrays)
+    src = tmp_path / f"{name}.npz"
+    np.savez(src, **{k: v for k, v in base.items() if v is not None})
+    src.with_suffix(".json").write_text(json.dumps(_sidecar() if meta is None else meta))
+    return src
+
+
+@pytest.fixture(scope="module")
+def signals4():
+    return _signals(4)
+
+
+# ---- the beamformer -----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("beamformer", ["das", "dmas3-cf"])
+def test_fast_path_matches_the_exact_one_and_the_reference(beamformer, signals4):
+    """The fast path (rounded delays on a 1.6 MHz grid, one compiled loop) against frequency-domain
+    steering on the same signals, and that against the signal-level reference's own images."""
+    sig = signals4[0]
+    sb = SignalBeamformer(SMALL, read_layout_csv(), sweep(FS), FS, sig.shape[1], beamformer)
+    fast, exact = sb.amplitude(sig), sb.exact_amplitude(sig)
+    assert fast.shape == SMALL.shape and fast.dtype == np.float32
+    assert _cc(fast, exact) > 0.999
+    assert abs(fast.max() / exact.max() - 1) < 0.015  # the same scale: a lone echo of amplitude a peaks at a
+    # a lone broadside echo of amplitude 0.2 at a bin centre reads 0.2 x the bin's mean of the PSF
+    echo = Echoes(np.array([SMALL.range_centres()[10]]), np.array([SMALL.azimuth_centres()[6]]), np.array([0.2]))
+    one = sb.amplitude(microphone_signals(echo, SMALL, coherent=True)[0])
+    model = SonarModel(SMALL, processing=Processing.raw() if beamformer == "das" else
+                       Processing.ertis().model_copy(update={"smoothing_range_m": 0.0, "smoothing_azimuth_deg": 0.0}))
+    sim = model.amplitude(echo, 1)[0][0]
+    assert np.unravel_index(one.argmax(), one.shape) == (10, 6)
+    assert one.max() == pytest.approx(sim.max(), rel=0.05)
+
+
+def test_reference_bit_identical_after_the_refactor():
+    """reference_amplitude now runs beamform's exact path; these numbers were taken before."""
+    grid = SensorGrid(range_min_m=0.5, range_max_m=3.0, n_range=40, azimuth_min_rad=-math.pi / 2,
+                      azimuth_max_rad=math.pi / 2, n_azimuth=20)
+    e = Echoes(np.array([1.0, 2.2, 2.9]), np.radians([0.0, 35.0, -55.0]), np.array([0.3, 0.15, 0.1]))
+    assert reference_amplitude(e, grid, "das", coherent=True).sum() == pytest.approx(0.5979414793429497, rel=1e-12)
+    assert reference_amplitude(e, grid, "dmas3-cf", realizations=3, seed=4).sum() == pytest.approx(
+        0.052227299789331, rel=1e-12)
+
+
+# ---- round trip: a simulated run's scene, rendered to microphone signals ------------------------
+
+@pytest.fixture(scope="module")
+def round_trip(tmp_path_factory):
+    """A short simulated test run on the default grid (the simulator's ertis images), its scene
+    rendered to raw signals by the reference (one realization of the echo phases per frame) and
+    imported with the CLI."""
+    from sonarset.sim import generate
+
+    tmp = tmp_path_factory.mktemp("rt")
+    generate(tmp / "sim.zarr", runs=0, test_runs=1, minutes=0.02, seed=3, workers=1, snr_db=40.0)
+    run = open_store(tmp / "sim.zarr").run("test_000")
+    raw = write_raw_recording(run, tmp / "raw", seed=1)
+    r = CliRunner().invoke(app, ["import-raw", str(raw), str(tmp / "imp.zarr")])
+    assert r.exit_code == 0, r.output
+    return run, open_store(tmp / "imp.zarr"), tmp
+
+
+def test_round_trip_matches_the_simulators_images(round_trip, capsys):
+    sim, imp, _ = round_trip
+    run = imp.run("test_000")
+    assert imp.processing == Processing.ertis() and imp.grid == sim.store.grid and imp.rig == sim.store.rig
+    assert run.split == "test" and run.attrs.source["kind"] == "import-raw"
+    np.testing.assert_array_equal(run.velocity[:], sim.velocity[:])
+    np.testing.assert_array_equal(run["pose"][:], sim["pose"][:])
+    a, b = sim.images[:].astype(np.float32), run.images[:].astype(np.float32)
+    ccs = [_cc(x, y) for x, y in zip(a, b)]
+    with capsys.disabled():
+        print(f"\nimport-raw round trip (ertis, default grid, {len(ccs)} frames): 2D correlation with the "
+              f"simulator's images per frame {np.round(ccs, 3).tolist()}, mean {np.mean(ccs):.3f}")
+    # one realization of the echo phases per frame: speckle that the simulator's expected energies lack
+    assert np.mean(ccs) >= 0.9 and min(ccs) >= 0.85, ccs
+    assert validate_store(imp.location) == []
+
+
+def test_pretrained_echopt_evaluates_on_the_imported_run(round_trip):
+    pytest.importorskip("torch")
+    _, imp, tmp = round_trip
+    r = CliRunner().invoke(app, ["eval", imp.location, "--models", "flow,echopt:pretrained", "--horizons", "1",
+                                 "--samples", "3", "--out", str(tmp / "ev"), "--no-figures"])
+    assert r.exit_code == 0, r.output
+    metrics = json.loads((tmp / "ev" / "metrics.json").read_text())
+    assert "echopt" in json.dumps(metrics) and "trained on" not in r.output  # same images: no mismatch note
+
+
+# ---- streaming, processing options, appending ------------------------------------------------------
+
+def test_npz_and_npy_directory_stream_the_same_blocks(tmp_path, signals4):
+    src = _write(tmp_path, signals=signals4)
+    d = tmp_path / "dir"
+    d.mkdir()
+    np.save(d / "signals.npy", signals4)
+    for reader in (RawSource(src), RawSource(d)):
+        got = list(reader.blocks("signals", 3, start=1))
+        assert [i for i, _ in got] == [1] and got[0][1].shape == (3, *signals4.shape[1:])
+        np.testing.assert_array_equal(got[0][1], signals4[1:])
+
+
+def test_memory_stays_bounded_whatever_the_length(tmp_path):
+    """Peak numpy allocation (tracemalloc) of importing 16 and 96 measurements: the same, and far
+    below the longer recording's size."""
+    import tracemalloc
+
+    rng = np.random.default_rng(0)
+    peaks = {}
+    for T in (16, 96):
+        sig = rng.normal(0, 0.01, (T, 32, 3100)).astype(np.float32)  # 96: 38 MB of noise
+        size = sig.nbytes
+        src = _write(tmp_path, f"r{T}", signals=sig)
+        del sig
+        tracemalloc.start()
+        try:
+            run = import_raw(src, tmp_path / f"o{T}.zarr", processing="raw", workers=1)
+            peaks[T] = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert run.n_frames == T
+    assert peaks[96] < 1.15 * peaks[16] + 1e6 and peaks[96] < 0.75 * size, peaks
+
+
+def test_processing_and_beamformer_are_recorded_and_appending_must_match(tmp_path, signals4):
+    src = _write(tmp_path, signals=signals4)
+    import_raw(src, tmp_path / "a.zarr", processing="ertis", beamformer="das", name="one")
+    s = open_store(tmp_path / "a.zarr")
+    assert s.processing.beamformer == "das" and s.processing.profile == "custom" and s.processing.post_processed
+    import_raw(src, tmp_path / "a.zarr", processing="ertis", beamformer="das", name="two")  # same images: appended
+    assert open_store(tmp_path / "a.zarr").runs() == ["one", "two"]
+    with pytest.raises(SonarSetError, match="store images are custom"):
+        import_raw(src, tmp_path / "a.zarr", name="three")  # ertis = dmas3-cf: other images
+    with pytest.raises(SonarSetError, match="run 'two' already exists"):
+        import_raw(src, tmp_path / "a.zarr", processing="ertis", beamformer="das", name="two")
+    with pytest.raises(SonarSetError, match="unknown processing profile 'fancy'"):
+        import_raw(src, tmp_path / "b.zarr", processing="fancy")
+    raw = import_raw(src, tmp_path / "r.zarr", processing="raw", name="r")
+    assert raw.store.processing == Processing.raw() and raw.images.dtype == np.float16
+    # a recording in other units (x1000) with amplitude_scale 1000 makes the same images
+    src2 = _write(tmp_path, "scaled", signals=signals4 * 1000, meta=_sidecar(amplitude_scale=1000.0))
+    scaled = import_raw(src2, tmp_path / "r.zarr", processing="raw")
+    np.testing.assert_allclose(scaled.images[:].astype(np.float32), raw.images[:].astype(np.float32), atol=2e-3)
+
+
+def test_velocity_alignment_next_drops_the_first_measurement(tmp_path, signals4):
+    src = _write(tmp_path, signals=signals4, meta=_sidecar(velocity_alignment="next"),
+                 velocity=np.c_[np.arange(4) * 0.01, np.zeros(4)].astype(np.float32))
+    run = import_raw(src, tmp_path / "o.zarr", processing="raw")
+    full = import_raw(_write(tmp_path, "b", signals=signals4), tmp_path / "p.zarr", processing="raw")
+    assert run.n_frames == 3
+    np.testing.assert_allclose(run.velocity[:, 0], [0.0, 0.01, 0.02])
+    np.testing.assert_array_equal(run.images[:], full.images[1:])
+
+
+# ---- malformed inputs: one line each, nothing written -------------------------------------------------
+
+def _truncate(path: Path) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+def _corrupt_member(path: Path) -> None:
+    """Flip bytes inside the stored signals: the archive opens, its CRC fails when streamed."""
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo("signals.npy")
+    data = bytearray(path.read_bytes())
+    at = info.header_offset + 30 + len(info.filename) + 4096
+    data[at:at + 64] = bytes(64)
+    path.write_bytes(bytes(data))
+
+
+MALFORMED = {
+    "wrong channel count": (dict(signals=lambda s: s[:, :16]), None, None,
+                            "signals: 16 channels but the microphone layout has 32 microphones"),
+    "sample rate missing": (dict(), dict(sample_rate_hz=None), None, "rec.json: sample_rate_hz: Field required"),
+    "layout mismatch (CSV)": (dict(), dict(microphones="mics.csv"), "layout",
+                              "mics.csv: not a microphone layout CSV (header x,y lacks column(s) z)"),
+    "layout in millimetres": (dict(), dict(microphones=[[0, -38.4, 15.1], [0, -23.2, 10.1], [0, 5, 1]]), None,
+                              "metadata.microphones: microphones up to 38.4 from the emitter; positions must be metres"),
+    "NaN in a signal": (dict(signals=lambda s: _nan(s)), None, None,
+                        "signals: NaN or infinite values in measurement 2, channel 5"),
+    "truncated file": (dict(), None, "truncate", "not a readable .npz file"),
+    "corrupt archive member": (dict(), None, "corrupt", "signals: unreadable"),
+    "dead microphone": (dict(signals=lambda s: _dead(s)), None, None,
+                        "signals: channel(s) 7 are zero in every measurement"),
+    "velocity rows": (dict(velocity=np.zeros((3, 2), np.float32)), None, None,
+                      "velocity: 3 rows but signals has 4 measurements"),
+    "time not increasing": (dict(time=np.array([0, 0.2, 0.2, 0.6])), None, None,
+                            "time: not strictly increasing (first at measurement 2)"),
+    "signals too short for the grid": (dict(signals=lambda s: s[..., :1200]), None, None,
+                                       "signals: 1200 samples at 200000 Hz hold complete echoes out to 0.60 m"),
+    "sample rate below the sweep's Nyquist": (dict(), dict(sample_rate_hz=96000.0), None,
+                                              "metadata.sample_rate_hz: 96000 Hz cannot carry the sweep's 50000 Hz"),
+    "no sweep": (dict(), dict(sweep=None), None, "no emitted sweep"),
+    "speed of sound in km/s": (dict(), dict(speed_of_sound_m_s=0.343), None,
+                               "rec.json: speed_of_sound_m_s: Input should be greater than or equal to 300"),
+    "signals 2-D": (dict(signals=lambda s: s[:, 0]), None, None, "signals: expected 3-D (measurement, channel, sample)"),
+    "complex signals": (dict(signals=lambda s: s.astype(np.complex64)), None, None,
+                        "signals: dtype complex64 is not a real number type"),
+    "unknown array": (dict(images=np.zeros((4, 2, 2))), None, None, "unknown array 'images'"),
+    "speed in cm/s declared m/s": (dict(velocity=np.c_[np.full(4, 25.0), np.zeros(4)]), None, None,
+                                   "velocity: linear speed up to 25 m/s exceeds 10 m/s"),
+}
+
+
+def _nan(s):
+    s = s.copy()
+    s[2, 5, 100] = np.nan
+    return s
+
+
+def _dead(s):
+    s = s.copy()
+    s[:, 7] = 0
+    return s
+
+
+@pytest.mark.parametrize("case", list(MALFORMED))
+def test_malformed_raw_input_one_line_error_nothing_written(tmp_path, case, signals4):
+    arrays, meta_over, action, expect = MALFORMED[case]
+    arrays = {k: (v(signals4) if callable(v) else v) for k, v in arrays.items()}
+    sig = arrays.pop("signals", signals4)
+    meta = _sidecar(**(meta_over or {}))
+    if meta_over:
+        meta = {k: v for k, v in {**_sidecar(), **meta_over}.items() if v is not None}
+    src = _write(tmp_path, signals=sig, meta=meta, **arrays)
+    if action == "layout":
+        (tmp_path / "mics.csv").write_text("x,y\n0,0.01\n0,0.02\n")
+    elif action == "truncate":
+        _truncate(src)
+    elif action == "corrupt":
+        _corrupt_member(src)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    with pytest.raises(InputValidationError) as info:
+        import_raw(src, tmp_path / "out.zarr")
+    assert any(expect in p for p in info.value.problems), info.value.problems
+    assert all("\n" not in p for p in info.value.problems) and str(src) in str(info.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no store, no temporary directory
+    # the CLI: one line per problem, naming the file, exit 1, no traceback
+    r = CliRunner().invoke(app, ["import-raw", str(src), str(tmp_path / "out.zarr")])
+    assert r.exit_code == 1 and "Traceback" not in r.output
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert lines and all(ln.startswith("error: ") and src.name in ln for ln in lines), r.output
+    assert not (tmp_path / "out.zarr").exists()
+
+
+def test_missing_sidecar_and_existing_store_left_untouched(tmp_path, signals4):
+    src = _write(tmp_path, signals=signals4)
+    src.with_suffix(".json").unlink()
+    with pytest.raises(InputValidationError, match="rec.json: metadata file not found"):
+        load_raw(src)
+    good = _write(tmp_path, "good", signals=signals4)
+    import_raw(good, tmp_path / "s.zarr", processing="raw")
+    bad = _write(tmp_path, "bad", signals=_nan(signals4))
+    with pytest.raises(InputValidationError):
+        import_raw(bad, tmp_path / "s.zarr", processing="raw")
+    assert open_store(tmp_path / "s.zarr").runs(include_incomplete=True) == ["good"]
+
+
+# ---- a killed import ------------------------------------------------------------------------------
+
+KILLER = """
+import os, signal, sys
+from sonarset import rawimport
+real = rawimport.RawProcessor.images
+calls = []
+def images(self, block):
+    calls.append(1)
+    if len(calls) == 2:  # a block is beamformed, the run group exists: die without cleaning up
+        os.kill(os.getpid(), signal.SIGKILL)
+    return real(self, block)
+rawimport.RawProcessor.images = images
+rawimport.import_raw(sys.argv[1], sys.argv[2], processing="raw", workers=1, block=8, name="killed")
+"""
+
+
+@pytest.mark.parametrize("into", ["new store", "existing store"])
+def test_killed_import_leaves_no_complete_looking_run(tmp_path, into):
+    rng = np.random.default_rng(1)
+    src = _write(tmp_path, signals=rng.normal(0, 0.01, (24, 32, 3100)).astype(np.float32))
+    out = tmp_path / "out.zarr"
+    if into == "existing store":
+        import_raw(_write(tmp_path, "first", T=2), out, processing="raw")
+    p = subprocess.run([sys.executable, "-c", KILLER, str(src), str(out)], capture_output=True, text=True,
+                       env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert p.returncode == -9, p.stderr
+    if into == "new store":
+        assert not out.exists()  # only a hidden temporary directory beside it
+    else:
+        s = open_store(out)
+        assert s.runs() == ["first"] and "killed" in s.runs(include_incomplete=True)
+        import_raw(src, out, processing="raw", name="killed")  # the next import replaces it
+        assert open_store(out).run("killed").n_frames == 24
