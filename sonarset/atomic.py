@@ -130,3 +130,27 @@ def _renameat2_exchange(a: bytes, b: bytes) -> bool:
     if code in (errno.ENOSYS, errno.EINVAL, errno.EOPNOTSUPP, errno.ENOTSUP):
         return False
     raise OSError(code, os.strerror(code), os.fsdecode(b))
+
+
+def settle_zarr_writes(timeout_s: float = 30.0) -> None:
+    """Wait for the writes zarr still has in flight after one of them failed.
+
+    zarr writes an array's chunks concurrently, each in a thread; when one fails (a full disk) the
+    error surfaces at once while the others go on. Left alone they recreate folders after the
+    caller removed them, and their own errors end up logged as asyncio tracebacks ("Task exception
+    was never retrieved"). This awaits them on zarr's loop and retrieves their errors.
+    """
+    import asyncio
+
+    from zarr.core.sync import sync
+
+    async def settle() -> None:
+        me = asyncio.current_task()
+        tasks = [t for t in asyncio.all_tasks() if t is not me]
+        if tasks:
+            await asyncio.wait(tasks, timeout=timeout_s)
+        for t in tasks:
+            if t.done() and not t.cancelled():
+                t.exception()
+
+    sync(settle())

@@ -25,7 +25,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from . import plausibility as plaus
-from .atomic import aside_dir, exchange
+from .atomic import aside_dir, exchange, settle_zarr_writes
 from .errors import InputValidationError, SonarSetError
 from .schema import RUN_NAME_RE, SPLIT_RE, Processing, RecordingMeta, RobotRig, SensorGrid, pydantic_problems
 from .store import Run, _is_url, create_store, open_or_create_store, open_store
@@ -544,7 +544,13 @@ class _no_space:
         return None
 
     def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is not None:
+            settle_zarr_writes()
         if exc_type is not None and issubclass(exc_type, OSError) and not isinstance(exc, SonarSetError):
+            # The run writer's clean-up can fail on the same disk (or race the writes still in
+            # flight) and raise its own error; the first failure is the one to report.
+            while isinstance(exc.__context__, OSError):
+                exc = exc.__context__
             why = exc.strerror or str(exc) or type(exc).__name__
             if exc.errno == errno.ENOSPC:
                 why = "no space left on device"

@@ -199,3 +199,33 @@ def test_kill_leaves_incomplete_run_invisible(tmp_path, reference):
     assert status == -signal.SIGKILL
     assert open_store(out).runs() == ["run_000"]
     np.testing.assert_array_equal(open_store(out).run("run_000").images[:], ref[("run_000", "images")])
+
+
+def test_full_disk_is_one_line_and_resumable(tmp_path, reference, monkeypatch):
+    import errno
+
+    ref, writes = reference
+    n = next(i for i, w in enumerate(writes, start=1) if w.endswith("test_000/images/c/1/0/0"))
+    count = [0]
+    orig = zlocal._put
+
+    def put(path, value, exclusive=False):
+        count[0] += 1
+        if count[0] >= n:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return orig(path, value, exclusive)
+
+    out = tmp_path / "out.zarr"
+    monkeypatch.setattr(zlocal, "_put", put)
+    res = CliRunner().invoke(app, ["generate", str(out), *ARGS])
+    monkeypatch.undo()
+    lines = [line for line in res.output.splitlines() if line.strip()]
+    assert res.exit_code == 1 and len(lines) == 1, res.output
+    assert "out.zarr" in lines[0] and "no space left on device" in lines[0] and "re-run" in lines[0]
+    assert open_store(out).runs() == ["run_000"]
+    res = CliRunner().invoke(app, ["generate", str(out), *ARGS])
+    assert res.exit_code == 0, res.output
+    got = _arrays(out)
+    assert all(got[k].tobytes() == ref[k].tobytes() for k in ref) and got.keys() == ref.keys()
+    assert _leftovers(out) == []

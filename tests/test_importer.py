@@ -302,8 +302,10 @@ def _count_writes(monkeypatch, fn) -> int:
 
 
 def _disk_full_at(monkeypatch, k: int) -> None:
-    """Every file write from the k-th on fails as on a full disk."""
+    """The k-th file write fails as on a full disk, after creating its folder (as zarr's does);
+    the writes running beside it (zarr writes chunks concurrently) still land, slowly."""
     import errno
+    import time
 
     import zarr.storage._local as zlocal
 
@@ -312,8 +314,11 @@ def _disk_full_at(monkeypatch, k: int) -> None:
 
     def put(path, value, exclusive=False):
         n[0] += 1
-        if n[0] >= k:
+        if n[0] == k:
+            path.parent.mkdir(parents=True, exist_ok=True)
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        if n[0] > k:
+            time.sleep(0.02)
         return orig(path, value, exclusive)
 
     monkeypatch.setattr(zlocal, "_put", put)
@@ -322,7 +327,7 @@ def _disk_full_at(monkeypatch, k: int) -> None:
 def test_overwrite_on_full_disk_keeps_the_old_run_at_every_write(tmp_path, monkeypatch):
     out = tmp_path / "s.zarr"
     old = write_npz(tmp_path / "old.npz", {"name": "X"}, **good_arrays(12))
-    new_arrays = good_arrays(20)
+    new_arrays = good_arrays(150)  # three image chunks, written concurrently
     new_arrays["images"] = new_arrays["images"][::-1].copy()
     new = write_npz(tmp_path / "new.npz", {}, **new_arrays)
     import_recording(old, out)
@@ -341,7 +346,7 @@ def test_overwrite_on_full_disk_keeps_the_old_run_at_every_write(tmp_path, monke
         assert _snapshot(out) == before, f"write {k}: the store changed"
         assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == [], k
     run = import_recording(new, out, name="X", overwrite=True)
-    assert run.n_frames == 20
+    assert run.n_frames == 150
     np.testing.assert_array_equal(open_store(out).run("X").images[:], new_arrays["images"])
     assert validate_store(out) == []
 
@@ -373,7 +378,7 @@ def test_full_disk_new_store_or_new_run_leaves_nothing(tmp_path, monkeypatch, ex
     if existing:
         import_recording(write_npz(tmp_path / "first.npz", {}, **good_arrays()), out)
     before = _snapshot(out) if existing else None
-    src = write_npz(tmp_path / "rec.npz", {}, **good_arrays())
+    src = write_npz(tmp_path / "rec.npz", {}, **good_arrays(150))
     scratch = tmp_path / "scratch"
     scratch.mkdir()
     total = _count_writes(monkeypatch, lambda: import_recording(src, scratch / "x.zarr"))

@@ -9,6 +9,7 @@ every complete run (the plan recorded in its ``source`` must match) and redoes t
 from __future__ import annotations
 
 import concurrent.futures as cf
+import errno
 import multiprocessing as mp
 import os
 import shutil
@@ -20,7 +21,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import SonarSetError
-from ..atomic import aside_dir, remove_stale_asides
+from ..atomic import aside_dir, remove_stale_asides, settle_zarr_writes
 from ..perf import keep_freed_memory
 from ..schema import Processing, RobotRig, SensorGrid
 from ..store import DEFAULT_CHUNK_FRAMES, _is_url, create_store, open_or_create_store, open_store
@@ -211,6 +212,20 @@ def generate(
                                     "use a new output or the same options")
             continue
         todo.append(plan)
+    try:
+        _simulate_into(store, loc, todo, grid, workers, progress, scheduler, storage_options)
+    except OSError as exc:
+        settle_zarr_writes()
+        while isinstance(exc.__context__, OSError):  # the run writer's clean-up failed too: report the cause
+            exc = exc.__context__
+        why = "no space left on device" if exc.errno == errno.ENOSPC else (exc.strerror or str(exc))
+        raise SonarSetError(f"{loc}: cannot write {exc.filename or 'the store'}: {why} (complete runs are kept; "
+                            "re-run the same command to resume)") from None
+    return [p.name for p in todo]
+
+
+def _simulate_into(store, loc: str, todo: list[RunPlan], grid: SensorGrid, workers: int | None, progress,
+                   scheduler, storage_options: dict | None) -> None:
     total = {p.name: p.n_frames for p in todo}
     if todo and scheduler is not None:
         from .distributed import run_on_dask
@@ -234,7 +249,6 @@ def generate(
                     if v is None:
                         os.environ.pop(k, None)
     store.consolidate()
-    return [p.name for p in todo]
 
 
 def _prepare_local(dest: Path, grid: SensorGrid, processing: Processing, runs: list[str]) -> None:
