@@ -15,7 +15,6 @@ import itertools
 import math
 import os
 import struct
-from pathlib import Path
 from typing import Iterable
 
 import numpy as np
@@ -72,7 +71,9 @@ class ChunkChecker:
         root = getattr(store, "root", None)
         # Local files: a stat and a 16-byte read per chunk. Elsewhere one get per chunk, which a
         # caching store (sonarset.cache) keeps for the decode that follows.
-        self.local = Path(root) / arr.store_path.path if isinstance(store, zarr.storage.LocalStore) else None
+        # (plain strings: pathlib's joins cost as much as the stat itself)
+        self.local = (os.path.join(str(root), arr.store_path.path) if isinstance(store, zarr.storage.LocalStore)
+                      else None)
 
     def key(self, coords: tuple[int, ...]) -> str:
         return self.arr.metadata.encode_chunk_key(coords)
@@ -81,7 +82,7 @@ class ChunkChecker:
         """None when the chunk at ``coords`` looks sound, else what is wrong (a phrase)."""
         key = self.key(coords)
         if self.local is not None:
-            path = self.local / key
+            path = os.path.join(self.local, key)
             try:
                 size = os.stat(path).st_size
                 head = b""

@@ -93,6 +93,10 @@ class SonarStore:
         """
         if self.attrs.rig is not None:
             return self.attrs.rig
+        if self.mode == "r":  # a reader's view does not change: read every run's provenance once
+            if not hasattr(self, "_provenance_rig"):
+                self._provenance_rig = self._rig_from_provenance()
+            return self._provenance_rig
         return self._rig_from_provenance()
 
     def _rig_from_provenance(self) -> RobotRig | None:
@@ -172,7 +176,8 @@ class SonarStore:
         Every run group's metadata must parse and its attributes validate (incomplete runs are
         skipped, as readers ignore them); each complete run (or each of ``runs``) must hold its
         arrays with the spec's dtypes, shapes and dimension names, coordinates matching the grid,
-        and, with ``chunks``, every chunk present and as long as its header says. Raises
+        and, with ``chunks``, every chunk of a local store present and as long as its header says
+        (a remote store's chunks are checked as they are read). Raises
         FormatError naming the run, array and chunk of the first problem. Values are checked as
         they are loaded (``Run.read``).
         """
@@ -690,6 +695,10 @@ class Run:
                                   f"(got {values[0]:.6g}..{values[-1]:.6g}, grid {centres[0]:.6g}..{centres[-1]:.6g})")
         if chunks:
             for key in keys:
+                if self._checker(key).local is None:
+                    # Remote: checking a chunk means fetching it, so each chunk is checked when
+                    # it is read (``read``), through the chunk cache, not all of them at open.
+                    continue
                 bad = self._checker(key).first_problem()
                 if bad is not None:
                     raise FormatError(f"{self.where}/{key}: chunk {bad[0]} {bad[1]}")
@@ -797,8 +806,8 @@ def _child_names(group: zarr.Group) -> list[str]:
 
     prefix = f"{base}/" if base else ""
     names = []
-    for name in sorted(sync(listing())):
-        if name == "zarr.json" or name.endswith(".partial"):
+    for name in sorted({n.rstrip("/") for n in sync(listing())}):  # HTTP listings end folders with '/'
+        if not name or name == "zarr.json" or name.endswith(".partial"):
             continue
         if sync(store.exists(f"{prefix}{name}/zarr.json")):
             names.append(name)

@@ -291,7 +291,8 @@ class Outcome:
 
     @property
     def error_lines(self) -> list[str]:
-        return [line for line in self.output.splitlines() if re.match(r"^(error|invalid|internal error):", line)]
+        return [line for line in self.output.splitlines()
+                if re.match(r"^(error|invalid|implausible|internal error):", line)]
 
 
 def run_command(command: str, store: Path, work: Path) -> Outcome:
@@ -363,6 +364,71 @@ def test_corruption(kind: Kind, base_store, tmp_path):
     RESULTS[kind.name] = {c: status if problem is None else f"BAD: {problem}" for c, (status, problem) in got.items()}
     bad = {c: problem for c, (_, problem) in got.items() if problem is not None}
     assert not bad, f"{kind.name}: {bad}"
+
+
+def test_remote_store_checks_each_chunk_as_it_is_read(base_store, tmp_path):
+    """Over a URL the open check cannot fetch every chunk; the read that needs one checks it."""
+    from sonarset.errors import FormatError
+    from sonarset.store import open_store
+    from sonarset.testing import serve_directory
+    from sonarset.validate import validate_store
+    from sonarset.windows import FrameBank
+
+    shutil.copytree(base_store, tmp_path / "s.zarr")
+    chunk = tmp_path / "s.zarr" / "test_000" / "velocity" / "c" / "0" / "0"
+    chunk.write_bytes(chunk.read_bytes()[:600])  # stored uncompressed: zarr would decode garbage
+    with serve_directory(str(tmp_path)) as (url, _):
+        store = open_store(f"{url}/s.zarr", check=True)
+        assert len(FrameBank.from_store(store, split="train").run_names) == 1  # the intact run loads
+        with pytest.raises(FormatError, match=r"s.zarr/test_000/velocity: chunk c/0/0 is corrupt or truncated: "
+                                              r"its blosc header declares 1216 bytes, the chunk has 600"):
+            FrameBank.from_store(store, split="test")
+        problems = [str(p) for p in validate_store(f"{url}/s.zarr")]
+    assert any("test_000/velocity: chunk c/0/0 is corrupt or truncated" in p for p in problems), problems
+
+
+def test_eval_takes_dt_from_the_time_stamps(tmp_path, monkeypatch):
+    """The baselines step by the median spacing of the time stamps, not by the declared rate."""
+    from sonarset.models import registry
+    from sonarset.models.evaluate import evaluate
+    from sonarset.store import create_store
+    from tests.conftest import TINY, make_run
+
+    s = create_store(tmp_path / "s.zarr", TINY)  # declares 5 Hz; the stamps are 4 % slower
+    s.write_run("test_000", **{**make_run(12), "time": np.arange(12) * 0.208}, split="test")
+    seen = []
+    real = registry.make_predictor
+
+    def spy(spec, grid, **kw):
+        seen.append(kw["dt"])
+        return real(spec, grid, **kw)
+
+    monkeypatch.setattr(registry, "make_predictor", spy)
+    res = evaluate(s, ["naive", "flow"], horizons=(1,), samples=5)
+    assert seen == [pytest.approx(0.208)] * 2
+    assert "naive and flow use the time stamps' 0.208 s frames" in res.notes[0]
+
+
+def test_eval_counts_windows_whose_cc_is_undefined(tmp_path):
+    from sonarset.models.evaluate import evaluate, results_table
+    from sonarset.store import create_store
+    from tests.conftest import TINY, make_run
+
+    run = make_run(20)
+    run["images"][8:] = 0.5  # targets of windows 5..16 are constant
+    s = create_store(tmp_path / "s.zarr", TINY)
+    s.write_run("test_000", **run, split="test")
+    res = evaluate(s, ["persistence", "naive"], horizons=(1,), samples=100)
+    assert len(res.window_ids) == 17
+    assert ("note: CC is undefined where the target frame or the prediction is constant: 12 of 17 windows at "
+            "one-shot; those windows are left out of its means, stds and tests") in res.notes
+    summary = res.summary()
+    assert summary["naive"]["1"]["n"] == 5 and summary["naive"]["1"]["nrmsd"]["mean"] is not None
+    run["images"][:] = 0.5
+    s.write_run("test_000", **run, split="test", overwrite=True)
+    res = evaluate(s, ["naive"], horizons=(1,), samples=100)
+    assert res.summary()["naive"]["1"]["cc"] == {"mean": None, "std": None}
+    assert "| naive | undefined |" in results_table(res, with_paper=False)
 
 
 def table(results: dict[str, dict[str, str]]) -> str:
