@@ -77,7 +77,7 @@ class RunRenderer:
         except (TypeError, ValueError) as exc:
             raise CeilingUnavailable(f"cannot build its sonar model ({exc})") from None
         self.name = name
-        self.poses = np.asarray(run["pose"][:], float)
+        self.poses = np.asarray(run.read("pose"), float)  # checked: a corrupt pose is refused, not rendered
         self.image_dtype = run.images.dtype
         self.shape = store.grid.shape
         self.rng = np.random.Generator(np.random.SFC64(np.random.SeedSequence(
