@@ -438,7 +438,7 @@ def import_recording(
     a failure, a full disk included, leaves it as it was.
     """
     check_run_options(name, split)
-    out_s = os.fspath(out)
+    out_s = os.fspath(out).removeprefix("file://")  # a local path: renamed into, not written through fsspec
     existing = None
     if _is_url(out_s) or (Path(out_s) / "zarr.json").exists():
         existing = open_store(out_s, "r")

@@ -198,7 +198,7 @@ def generate(
     except ValueError as exc:
         raise SonarSetError(f"--psf: {exc}") from None
     plans = plan_runs(runs, test_runs, minutes, seed, world, snr_db, psf, processing)
-    loc = os.fspath(out)
+    loc = os.fspath(out).removeprefix("file://")  # a local path: the store is created aside and renamed
     if not _is_url(loc):
         _prepare_local(Path(loc), grid, processing, [p.name for p in plans])
     store = open_or_create_store(loc, grid, description=f"simulated by sonarset {__version__}",
