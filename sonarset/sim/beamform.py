@@ -182,7 +182,7 @@ def band_envelope(Y: np.ndarray, steer: np.ndarray, band: np.ndarray, n_fft: int
 
 # ---- the fast path ----------------------------------------------------------------------------
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, fastmath=True)
 def _gather(zr, zi, cr, pw, shift, n_out, dmas):
     """Beamformed output (A, n_out) from per-channel polyphase tables (M, P, Q) float32 of the
     upsampled analytic signal: real part ``zr``, imaginary part ``zi``, cube root of the real part
@@ -359,7 +359,7 @@ class SignalBeamformer:
         bf = beamformer or self.beamformer
         out = _gather(*self.analytic(sig, bf != "das"), self.shift, self.n_out, bf != "das")
         if bf != "das":
-            out = np.abs(signal.hilbert(out, sfft.next_fast_len(self.n_out), axis=-1)[:, :self.n_out])
+            out = analytic_envelope(out)
         return envelope_lowpass(out, self.fs_out, axis=-1) / self.norm
 
     def amplitude(self, sig: np.ndarray) -> np.ndarray:
@@ -378,6 +378,18 @@ class SignalBeamformer:
         env = band_envelope(Y, steering(f, self.proj, self.c), band, n_fft, fs, t_idx, self.beamformer)
         edges = range_edges(self.grid, fs, n_fft, self.c, self.start_s)
         return bin_average(env[0] / sweep_norm(self.sweep, fs), edges)
+
+
+def analytic_envelope(x: np.ndarray) -> np.ndarray:
+    """|hilbert(x)| along the last axis, zero-padded to a fast length, in single precision
+    (``scipy.signal.hilbert`` transforms the real input as complex, in double: twice the work)."""
+    n = x.shape[-1]
+    N = sfft.next_fast_len(n, real=True)
+    X = sfft.rfft(np.asarray(x, np.float32), N, axis=-1)
+    X[..., 1:(N + 1) // 2] *= 2  # positive frequencies doubled; DC (and Nyquist) kept once
+    full = np.zeros((*x.shape[:-1], N), np.complex64)
+    full[..., :X.shape[-1]] = X
+    return np.abs(sfft.ifft(full, axis=-1, overwrite_x=True)[..., :n])
 
 
 def sweep_band(sweep: np.ndarray, fs: float) -> tuple[float, float]:
