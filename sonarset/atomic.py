@@ -74,6 +74,8 @@ def remove_stale_asides(dest: str | os.PathLike) -> list[Path]:
         m = pattern.fullmatch(entry.name)
         if m is None or not entry.is_dir() or _alive(int(m.group(1))):
             continue
+        if any(p.name.endswith(".old") for p in entry.glob("*/*")):
+            continue  # the run an interrupted two-rename swap took out (exchange): never delete it
         shutil.rmtree(entry, ignore_errors=True)
         removed.append(entry)
     return removed
@@ -95,8 +97,9 @@ def exchange(a: str | os.PathLike, b: str | os.PathLike) -> None:
     """Swap the directories ``a`` and ``b`` in one atomic step: a reader sees either, never neither.
 
     Linux's ``renameat2(RENAME_EXCHANGE)`` does it; where the kernel, the C library or the file
-    system lacks it, two renames do, and on failure of the second the first is undone (a kill
-    between them leaves the old directory at ``a``).
+    system lacks it, two renames do, and on failure of the second the first is undone. A kill
+    between them leaves ``b``'s old directory at ``a`` + ".old"; ``remove_stale_asides`` keeps an
+    aside directory holding one, for the user to recover.
     """
     a, b = os.fsencode(os.fspath(a)), os.fsencode(os.fspath(b))
     if _renameat2_exchange(a, b):

@@ -394,3 +394,16 @@ def test_full_disk_new_store_or_new_run_leaves_nothing(tmp_path, monkeypatch, ex
         else:
             assert not out.exists(), k
         assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == [], k
+
+
+def test_overwrite_without_renameat2_swaps_with_two_renames(tmp_path, monkeypatch):
+    import sonarset.atomic as atomic
+
+    out = tmp_path / "s.zarr"
+    import_recording(write_npz(tmp_path / "old.npz", {"name": "X"}, **good_arrays(12)), out)
+    monkeypatch.setattr(atomic, "_renameat2_exchange", lambda a, b: False)
+    new = good_arrays(15)
+    import_recording(write_npz(tmp_path / "new.npz", {}, **new), out, name="X", overwrite=True)
+    np.testing.assert_array_equal(open_store(out).run("X").images[:], new["images"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["new.json", "new.npz", "old.json", "old.npz", "s.zarr"]
+    assert validate_store(out) == []
