@@ -223,7 +223,7 @@ def load_recording(src: str | os.PathLike, meta_path: str | os.PathLike | None =
             continue
         conv[key] = arr
     if meta is None:
-        raise InputValidationError(where, problems + implausible)
+        raise InputValidationError(where, problems + [line + IMPLAUSIBLE_NOTE for line in implausible])
 
     u = meta.units
     shapes_ok = _check_shapes(conv, problems)
@@ -465,7 +465,8 @@ def import_recording(
         if run_name in store.runs() and not overwrite:
             raise SonarSetError(f"{out_s}: run {run_name!r} already exists (use --overwrite or --name)")
         if _is_url(out_s):  # object stores have no rename: the run writer keeps it invisible until complete
-            with _no_space(out_s, run_name):
+            replaced = overwrite and run_name in store.group.group_keys()
+            with _no_space(out_s, run_name, "the run it replaced is gone" if replaced else "nothing was changed"):
                 store.write_run(run_name, rec.arrays["images"], rec.arrays["velocity"], rec.arrays["time"],
                                 split=run_split, source=source, overwrite=overwrite, **opt)
             return store.run(run_name)
@@ -537,8 +538,8 @@ def _move_run_in(store, run_name: str, write: Callable) -> None:
 class _no_space:
     """Turn a write failure (a full disk, a read-only file system) into one line naming the store."""
 
-    def __init__(self, where: str, run_name: str):
-        self.where, self.run_name = where, run_name
+    def __init__(self, where: str, run_name: str, outcome: str = "nothing was changed"):
+        self.where, self.run_name, self.outcome = where, run_name, outcome
 
     def __enter__(self) -> None:
         return None
@@ -554,6 +555,5 @@ class _no_space:
             why = exc.strerror or str(exc) or type(exc).__name__
             if exc.errno == errno.ENOSPC:
                 why = "no space left on device"
-            raise SonarSetError(f"{self.where}: cannot write run {self.run_name!r}: {why} "
-                                "(nothing was changed)") from None
+            raise SonarSetError(f"{self.where}: cannot write run {self.run_name!r}: {why} ({self.outcome})") from None
         return False
