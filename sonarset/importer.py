@@ -474,6 +474,7 @@ def import_recording(
         return open_store(out_s).run(run_name)
 
     dest = Path(out_s)
+    dest = dest.resolve() if dest.is_symlink() else dest  # the store goes where the link points
     if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
         raise SonarSetError(f"{out_s}: exists and is not a SonarSet store")
     rig = rec.meta.rig

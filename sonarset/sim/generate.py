@@ -260,10 +260,11 @@ def _prepare_local(dest: Path, grid: SensorGrid, processing: Processing, runs: l
     The store is created aside and renamed into place: a kill during its first metadata writes
     leaves no folder without ``zarr.json`` that the same command would then refuse.
     """
+    dest = dest.resolve() if dest.is_symlink() else dest  # the store goes where the link points
     remove_stale_asides(dest)
     if dest.is_dir():
         # zarr writes each file as zarr.<id>.partial, then renames it; a kill in between leaves
-        # the temp file. At the root only this process writes (workers write their run groups).
+        # the temp file. No worker has started yet: nothing else is writing here.
         for debris in dest.glob("zarr.*.partial"):
             debris.unlink(missing_ok=True)
         for name in runs:
