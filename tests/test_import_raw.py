@@ -357,3 +357,30 @@ def test_killed_import_leaves_no_complete_looking_run(tmp_path, into):
         assert s.runs() == ["first"] and "killed" in s.runs(include_incomplete=True)
         import_raw(src, out, processing="raw", name="killed")  # the next import replaces it
         assert open_store(out).run("killed").n_frames == 24
+
+
+def test_a_450_khz_int16_directory_recording_makes_the_same_images(tmp_path, signals4):
+    """eRTIS-like 450 kHz ADC counts in a .npy directory, with the sweep as an array and the layout
+    as a CSV: the same images as the 200 kHz float recording of the same echoes."""
+    rng = np.random.default_rng(0)
+    fs = 450e3
+    sig = []
+    for k in range(2):
+        r = rng.uniform(0.6, 1.4, 3)
+        echoes = Echoes(r, rng.uniform(-1, 1, 3), rng.uniform(0.05, 0.3, 3))
+        sig.append((microphone_signals(echoes, SMALL, coherent=True, fs=FS)[0],
+                    microphone_signals(echoes, SMALL, coherent=True, fs=fs)[0]))
+    ref = import_raw(_write(tmp_path, "f200", signals=np.stack([a for a, _ in sig])), tmp_path / "a.zarr",
+                     processing="raw")
+    d = tmp_path / "adc"
+    d.mkdir()
+    np.save(d / "signals.npy", np.round(np.stack([b for _, b in sig]) * 20000).astype(np.int16))
+    np.save(d / "velocity.npy", np.zeros((2, 2)))
+    np.save(d / "time.npy", np.array([0.0, 0.2]))
+    np.save(d / "sweep.npy", sweep(fs))
+    (d / "mics.csv").write_text("# eRTIS, metres\nx,y,z\n" + "\n".join(f"{x},{y},{z}" for x, y, z in read_layout_csv()))
+    (d / "recording.json").write_text(json.dumps(_sidecar(sample_rate_hz=fs, sweep=None, microphones="mics.csv",
+                                                          amplitude_scale=20000.0)))
+    adc = import_raw(d, tmp_path / "a.zarr", processing="raw", name="adc")
+    a, b = ref.images[:].astype(np.float32), adc.images[:].astype(np.float32)
+    assert _cc(a, b) > 0.99 and np.abs(a - b).max() < 0.03

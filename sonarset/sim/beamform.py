@@ -21,9 +21,9 @@ Two implementations of the same stage share the pieces below:
   are taken once per channel, not once per azimuth; one compiled loop then sums, for every azimuth
   and output sample, the analytic channels (delay-and-sum and the coherence factor's numerator),
   their powers (its denominator) and the first three powers of the cube roots (DMAS3 by Newton's
-  identity, ``energyscape.dmas3``). The output runs at about ``FS_PROCESS`` (the recording's rate
-  divided by an integer), the reference's rate, so that the odd harmonics of DMAS3 fold as they do
-  there.
+  identity, ``energyscape.dmas3``). The output runs at the recording's rate divided by
+  floor(fs / ``FS_PROCESS``), at or just above the reference's 200 kHz, so that the odd harmonics
+  of DMAS3 fold much as they do there.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from ..schema import SensorGrid
 from .energyscape import BEAMFORMERS, dmas3
 from .sonar import C_SOUND, envelope_lowpass
 
-FS_PROCESS = 200e3  # Hz: the reference's rate; the fast path's output runs at fs_in / round(fs_in / this)
+FS_PROCESS = 200e3  # Hz: the reference's rate; the fast path's output runs at fs_in / floor(fs_in / this)
 UPSAMPLED_HZ = 3.2e6  # the fast path's steering grid: delays rounded to 1 / (2 x this)
 BAND_MARGIN_HZ = 10e3  # around the sweep's band: the 25->50 kHz sweep keeps 15..60 kHz, as the reference
 MARGIN_S = 0.002  # processed beyond the grid's first and last range, for the filters' edges
@@ -266,7 +266,7 @@ class SignalBeamformer:
         if self.beamformer not in BEAMFORMERS:
             raise ValueError(f"beamformer must be one of {', '.join(BEAMFORMERS)}, got {self.beamformer!r}")
         fs = float(self.fs)
-        self.decim = max(1, int(round(fs / FS_PROCESS)))
+        self.decim = max(1, int(fs // FS_PROCESS))  # the output never slower than the reference's rate
         self.up = max(1, int(math.ceil(UPSAMPLED_HZ / fs - 1e-9)))
         self.fs_out = fs / self.decim
         self.stride = self.decim * self.up  # upsampled samples per output sample
