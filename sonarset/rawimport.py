@@ -9,9 +9,9 @@ simulator would make of the same echoes.
 
 As ``sonarset import``: everything is read and checked before anything is written (including one
 streamed pass over the signals for non-finite values and dead channels), every problem is one
-line naming the file, and the run is written atomically (a new store is built beside OUT and
-renamed into place; an existing store gets the run through its run writer, invisible until
-committed). Signals are streamed in blocks of measurements, so memory does not grow with the
+line naming the file, and the run is written atomically with the image importer's helpers (built
+in a store beside OUT, then renamed into place or swapped for the run it replaces; an object store
+gets it through its run writer, invisible until committed). Signals are streamed in blocks of measurements, so memory does not grow with the
 recording's length: a ``.npy`` is memory-mapped, a ``.npz`` member is read sequentially from the
 archive.
 """
@@ -23,7 +23,6 @@ import json
 import math
 import os
 import shutil
-import tempfile
 import zipfile
 import zlib
 from dataclasses import dataclass, field
@@ -35,8 +34,11 @@ from pydantic import ValidationError
 
 from .errors import InputValidationError, SonarSetError
 from . import plausibility
-from .importer import _ANGLE, _ANGV, _LINV, _RANGE, _TIME, _sidecar_for, _why
-from .schema import Processing, RawRecordingMeta, SensorGrid, pydantic_problems
+from .importer import (
+    _ANGLE, _ANGV, _LINV, _RANGE, _TIME, _frame_rate, _move_run_in, _no_space, _sidecar_for, _why, check_run_options,
+)
+from .atomic import aside_dir
+from .schema import RUN_NAME_RE, Processing, RawRecordingMeta, SensorGrid, pydantic_problems
 from .store import DEFAULT_CHUNK_FRAMES, Run, _is_url, create_store, open_or_create_store, open_store
 
 ARRAY_KEYS = ("signals", "velocity", "time", "pose", "sweep")
@@ -481,35 +483,52 @@ def import_raw(
     the profile's. A new store gets the sidecar's grid (default: the 200 x 90 grid; ``grid``
     overrides) and records the processing and the sidecar's rig; an existing store must have the
     same grid, processing and rig. ``workers`` threads beamform a block's measurements.
+
+    Written as ``sonarset import`` writes: a new store is built beside ``out`` and renamed into
+    place; a run for an existing local store is built in a store beside it and renamed in (swapped
+    for the run it replaces, with ``overwrite``). A failed or killed import leaves ``out`` as it was.
     """
+    check_run_options(name, split)
     proc = processing if isinstance(processing, Processing) else resolve_processing(processing, beamformer)
-    out_s = os.fspath(out)
-    existing = _is_url(out_s) or (Path(out_s) / "zarr.json").exists()
-    store_grid = open_store(out_s).grid if existing else grid
-    rec, out_grid = load_raw(src, meta_path, grid=store_grid)
-    run_name = name or rec.meta.name or Path(src).stem
-    run_split = split or rec.meta.split
+    out_s = os.fspath(out).removeprefix("file://")
+    existing = open_store(out_s) if _is_url(out_s) or (Path(out_s) / "zarr.json").exists() else None
+    rec, out_grid = load_raw(src, meta_path, grid=existing.grid if existing is not None else grid)
     meta = rec.meta
+    run_name = name or meta.name or Path(src).stem
+    if not RUN_NAME_RE.match(run_name):
+        raise SonarSetError(f"{src}: {run_name!r} is not a valid run name; pass --name")
+    run_split = split or meta.split
     source = {"kind": "import-raw", "file": Path(src).name, "sample_rate_hz": meta.sample_rate_hz,
               "speed_of_sound_m_s": meta.speed_of_sound_m_s, "microphones": int(len(rec.positions)),
               "beamformer": proc.beamformer, "processing": proc.profile,
               "velocity_alignment": meta.velocity_alignment, "source": meta.source}
     optional = ("pose",) if "pose" in rec.arrays else ()
-    if existing:
+
+    def write(store, replace: bool = False) -> None:
+        _write(store, rec, out_grid, proc, run_name, run_split, source, optional, replace, workers, block, progress)
+
+    if existing is not None:
         store = open_or_create_store(out_s, out_grid, processing=proc, rig=meta.rig)
         if run_name in store.runs() and not overwrite:
             raise SonarSetError(f"{out_s}: run {run_name!r} already exists (use --overwrite or --name)")
-        _write(store, rec, out_grid, proc, run_name, run_split, source, optional, overwrite, workers, block, progress)
-        return store.run(run_name)
+        if _is_url(out_s):  # no rename in object stores: the run writer keeps it invisible until complete
+            write(store, overwrite)
+        else:
+            # The import's own helper: built in a store beside, then renamed in (or swapped for the
+            # run it replaces), so a failed or killed import leaves the store as it was.
+            _move_run_in(store, run_name, write)
+        return open_store(out_s).run(run_name)
     dest = Path(out_s)
-    if dest.exists() and (dest.is_file() or any(dest.iterdir())):
+    dest = dest.resolve() if dest.is_symlink() else dest
+    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
         raise SonarSetError(f"{out_s}: exists and is not a SonarSet store")
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent))
+    tmp = aside_dir(dest)
     try:
-        store = create_store(tmp / "store.zarr", out_grid, processing=proc, rig=meta.rig,
-                             description=f"imported from raw microphone signals ({Path(src).name})")
-        _write(store, rec, out_grid, proc, run_name, run_split, source, optional, False, workers, block, progress)
+        with _no_space(out_s, run_name):
+            store = create_store(tmp / "store.zarr", out_grid, processing=proc, rig=meta.rig,
+                                 frame_rate_hz=_frame_rate(rec, meta.rig),
+                                 description=f"imported from raw microphone signals ({Path(src).name})")
+            write(store)
         if dest.exists():
             dest.rmdir()  # an empty directory, checked above
         os.replace(tmp / "store.zarr", dest)

@@ -321,6 +321,11 @@ def test_missing_sidecar_and_existing_store_left_untouched(tmp_path, signals4):
     with pytest.raises(InputValidationError):
         import_raw(bad, tmp_path / "s.zarr", processing="raw")
     assert open_store(tmp_path / "s.zarr").runs(include_incomplete=True) == ["good"]
+    # --overwrite swaps the new run in only once it is complete
+    again = import_raw(good, tmp_path / "s.zarr", processing="raw", overwrite=True)
+    assert again.n_frames == 4 and open_store(tmp_path / "s.zarr").runs() == ["good"]
+    with pytest.raises(SonarSetError, match="--name 'a b'"):
+        import_raw(good, tmp_path / "s.zarr", name="a b")
 
 
 # ---- a killed import ------------------------------------------------------------------------------
@@ -351,12 +356,14 @@ def test_killed_import_leaves_no_complete_looking_run(tmp_path, into):
                        env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert p.returncode == -9, p.stderr
     if into == "new store":
-        assert not out.exists()  # only a hidden temporary directory beside it
+        assert not out.exists()  # only a hidden directory beside it, which the next import removes
     else:
         s = open_store(out)
-        assert s.runs() == ["first"] and "killed" in s.runs(include_incomplete=True)
-        import_raw(src, out, processing="raw", name="killed")  # the next import replaces it
-        assert open_store(out).run("killed").n_frames == 24
+        assert s.runs(include_incomplete=True) == ["first"]  # the run was being built beside the store
+        assert validate_store(out) == []
+    import_raw(src, out, processing="raw", name="killed")
+    assert open_store(out).run("killed").n_frames == 24
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".out.zarr")] == []  # the dead one's aside
 
 
 def test_a_450_khz_int16_directory_recording_makes_the_same_images(tmp_path, signals4):
