@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import csv
 import math
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -307,6 +308,7 @@ class SignalBeamformer:
         mf = 2 * np.conj(sfft.rfft(self.sweep, self.n_fft)[self.band])
         advance = np.exp(2j * np.pi * f[None, :] * np.arange(P)[:, None] / fs_up)
         self._mf = (mf[None, :] * advance).astype(np.complex64)  # (P, F)
+        self._local = threading.local()
         self.norm = 1.0
         self.norm = self._calibrate()
 
@@ -339,11 +341,14 @@ class SignalBeamformer:
         src = slice(int(self._k[0]), int(self._k[-1]) + 1, self.decim)
         dst = slice(int(self._valid[0]), int(self._valid[-1]) + 1)
         step = 8  # channels per inverse FFT: the complex intermediate stays a few MB
-        full = np.zeros((min(step, M), P, self.n_fft), np.complex64)
+        full = getattr(self._local, "full", None)
+        if full is None or full.shape[0] < min(step, M):
+            # one buffer per thread: outside the band it stays zero (the inverse FFT does not
+            # overwrite its input), so it is cleared once, not for every measurement
+            full = self._local.full = np.zeros((min(step, M), P, self.n_fft), np.complex64)
         for m0 in range(0, M, step):
             m1 = min(M, m0 + step)
             buf = full[:m1 - m0]
-            buf[:] = 0
             np.multiply(X[m0:m1, None, :], self._mf[None], out=buf[:, :, band])
             z = sfft.ifft(buf, axis=2)
             zr[m0:m1, :, dst] = z.real[:, :, src]
