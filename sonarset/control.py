@@ -140,6 +140,12 @@ class BurstDetector:
     every row keeps its blobs. Measured on 1000 random poses per world (``bench/bench_burst.py``):
     clean frames cover at most 0.03 / 0.10 (corridor, raw / ertis) and 0.21 / 0.40 (lab, facing
     cluttered walls) of the range bins; -80 dB bursts cover 0.89-1.0 (ertis) and 1.0 (raw).
+
+    What it cannot see: the simulator sets a burst's noise 80 dB above the frame's strongest echo
+    (the paper's SNR), so with only weak echoes in view (a robot turned out of the corridor) a burst
+    stays near or under the -60 dB floor and the frame looks almost empty. Over poses anywhere
+    around the corridor, facing any way, the detector flags 74% of ertis bursts and 90% of raw ones
+    (raw: the frames with no echo in view at all); inside the corridor, all of them.
     """
 
     level: float = 0.5
