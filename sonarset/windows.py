@@ -66,7 +66,7 @@ class FrameBank:
             step = run.array("images").chunks[0] * 16
             for s in range(0, hi - lo, step):
                 e = min(hi - lo, s + step)
-                images[lo + s:lo + e] = run.read("images", s, e)
+                run.read("images", s, e, out=images[lo + s:lo + e])
                 if progress is not None:
                     progress(run.name, e, hi - lo)
             velocity[lo:hi] = run.read("velocity")
