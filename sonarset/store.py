@@ -270,7 +270,14 @@ class SonarStore:
     def consolidate(self) -> None:
         """Rewrite the root's consolidated metadata; call after runs were written elsewhere."""
         self._require_writable()
-        zarr.consolidate_metadata(self.group.store)
+        try:
+            zarr.consolidate_metadata(self.group.store)
+        except OSError:
+            raise
+        except Exception as exc:  # zarr parses every node's metadata: one broken node stops it
+            where = _first_unreadable_node(self.group)
+            raise FormatError(f"{self.location}{'/' + where[0] if where else ''}: unreadable zarr metadata "
+                              f"({_one_line(where[1] if where else exc)}); cannot consolidate") from None
 
 
 def read_store_attrs(group: zarr.Group, location: str) -> StoreAttrs:
@@ -824,3 +831,20 @@ def _child_names(group: zarr.Group) -> list[str]:
         if sync(store.exists(f"{prefix}{name}/zarr.json")):
             names.append(name)
     return names
+
+
+def _first_unreadable_node(root: zarr.Group) -> tuple[str, Exception] | None:
+    """(path, error) of the first run group or array under ``root`` whose metadata zarr cannot parse."""
+    for name in _child_names(root):
+        try:
+            node = root[name]
+        except Exception as exc:
+            return name, exc
+        if not isinstance(node, zarr.Group):
+            continue
+        for child in _child_names(node):
+            try:
+                root[f"{name}/{child}"]
+            except Exception as exc:
+                return f"{name}/{child}", exc
+    return None

@@ -296,7 +296,11 @@ class Outcome:
 
 
 def run_command(command: str, store: Path, work: Path) -> Outcome:
-    r = runner.invoke(app, _args(command, store, work))
+    return invoke(_args(command, store, work))
+
+
+def invoke(args: list[str]) -> Outcome:
+    r = runner.invoke(app, args)
     crashed = None
     if r.exception is not None and not isinstance(r.exception, SystemExit):
         crashed = f"{type(r.exception).__name__}: {r.exception}"
@@ -364,6 +368,18 @@ def test_corruption(kind: Kind, base_store, tmp_path):
     RESULTS[kind.name] = {c: status if problem is None else f"BAD: {problem}" for c, (status, problem) in got.items()}
     bad = {c: problem for c, (_, problem) in got.items() if problem is not None}
     assert not bad, f"{kind.name}: {bad}"
+
+
+@pytest.mark.parametrize("name", ["run zarr.json is `true`", "images data_type float17"])
+def test_validate_consolidate_names_the_broken_node(name, base_store, tmp_path):
+    """Re-consolidating parses every node: a broken one is named, in one line."""
+    kind = next(k for k in KINDS if k.name == name)
+    store = tmp_path / "store.zarr"
+    shutil.copytree(base_store, store)
+    kind.apply(store)
+    o = invoke(["validate", str(store), "--consolidate"])
+    assert o.crashed is None and o.exit_code == 1, o
+    assert len(o.error_lines) == 1 and "test_000" in o.error_lines[0] and "cannot consolidate" in o.error_lines[0]
 
 
 def test_remote_store_checks_each_chunk_as_it_is_read(base_store, tmp_path):
