@@ -275,8 +275,8 @@ def show(
     if src.get("kind") == "simulator":
         try:
             world = load_world(src["world"], int(src["world_seed"]))
-        except (SonarSetError, KeyError, ValueError):
-            world = None  # a world file that moved: plot the trajectory alone
+        except (SonarSetError, KeyError, ValueError, TypeError):
+            world = None  # a world file that moved, or odd provenance: plot the trajectory alone
     path = show_run(s, name, frame, out_png, world)
     out.print(f"wrote {path}")
 
