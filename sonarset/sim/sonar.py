@@ -197,6 +197,12 @@ class SonarModel:
         # envelope with a box filter): a 2 cm PSF point-sampled on 2.25 cm bins would alias, making
         # echo levels depend on where a reflector falls within a bin.
         box = max(1, int(round(self.grid.range_step / self._r_step)))
+        if 2 * box > len(env):
+            # Bins wider than half the envelope table (0.12 m): the average spreads the main lobe
+            # beyond the table, so widen it with zeros first ('same' mode keeps the table's length;
+            # finer grids keep their images bit for bit).
+            dr = dr[0] + self._r_step * np.arange(-box, len(env) + box)
+            env = np.pad(env, box)
         self._r0, self._renv2 = dr[0], np.convolve(env ** 2, np.ones(box) / box, mode="same")
         self._u_step = du[1] - du[0]
         self._beam2 = bp ** 2
