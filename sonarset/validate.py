@@ -44,6 +44,13 @@ def validate_store(location: str | os.PathLike, *, check_data: bool = True,
     as ``Implausible`` problems.
     """
     loc = os.fspath(location)
+    try:
+        return _validate(loc, check_data, progress, plausibility)
+    except Exception as exc:  # a check that is not guarded below: still a finding, never a crash
+        return [Problem(loc, f"cannot be checked: {_one_line(exc)}")]
+
+
+def _validate(loc: str, check_data: bool, progress: ProgressFn | None, plausibility: bool) -> list[Problem]:
     local = not _is_url(loc)
     problems: list[Problem] = []
     if local:
@@ -136,7 +143,8 @@ def _check_local_root(path: Path) -> Problem | None:
         return Problem(str(meta), "not Zarr v3 metadata (zarr_format must be 3)")
     if doc.get("node_type") != "group":
         return Problem(where, "root is a zarr array; a SonarSet store is a group")
-    raw = (doc.get("attributes") or {}).get(NAMESPACE)
+    attributes = doc.get("attributes")
+    raw = attributes.get(NAMESPACE) if isinstance(attributes, dict) else None
     if not isinstance(raw, dict):
         return Problem(where, f"missing root attribute {NAMESPACE!r}: not a SonarSet store")
     try:
