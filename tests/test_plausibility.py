@@ -166,6 +166,26 @@ def test_validate_reports_implausible_values_and_allows_them_on_request(tmp_path
     assert validate_store(tmp_path / "s.zarr", plausibility=False) == []
 
 
+def test_commands_beyond_the_rig_are_flagged_but_readable_those_beyond_any_robot_are_not(tmp_path):
+    """--allow-implausible is a user's word: a run it let in stays readable by eval and train. Commands
+    no ground robot could follow are corrupt, and no reader uses them."""
+    from sonarset import FormatError
+
+    store = create_store(tmp_path / "s.zarr", TINY, rig=RobotRig(v_max_m_s=0.3))
+    fast = make_run(20, 1)
+    fast["velocity"][3, 0] = 0.9  # 3x the declared limit
+    store.write_run("fast", **fast)
+    absurd = make_run(20, 2)
+    absurd["velocity"][3, 0] = 50.0  # 180 km/h
+    store.write_run("absurd", **absurd)
+    flagged = {p.where.split("/")[-2] for p in validate_store(tmp_path / "s.zarr")}
+    assert flagged == {"fast", "absurd"}
+    store = open_store(tmp_path / "s.zarr")
+    np.testing.assert_array_equal(store.run("fast").read("velocity"), fast["velocity"])
+    with pytest.raises(FormatError, match="absurd.*50 m/s exceeds 10 m/s, beyond any ground robot"):
+        store.run("absurd").read("velocity")
+
+
 def test_validate_checks_the_grid(tmp_path):
     grid = SensorGrid(range_min_m=0.0005, range_max_m=0.005, n_range=8, azimuth_min_rad=-1.2,
                       azimuth_max_rad=1.2, n_azimuth=6)

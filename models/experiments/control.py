@@ -313,6 +313,7 @@ def fig6(res: ControlResult):
     ax = fig.add_subplot(gs[-1, 1])
     ax.boxplot([[r["midline_deviation_m"] for r in res.episodes[c] if np.isfinite(r["midline_deviation_m"])] or [np.nan]
                 for c in conds], tick_labels=conds)
+    ax.tick_params(axis="x", labelrotation=15)
     ax.set_ylabel("mean |y| [m]")
     ax.set_title(f"{letter(1)}) midline deviation", fontsize=10, loc="left")
     ax = fig.add_subplot(gs[-1, 2])
