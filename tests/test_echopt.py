@@ -67,7 +67,7 @@ def test_tiny_model_overfits_a_handful_of_windows(tiny_store):
         opt.zero_grad()
         loss.backward()
         opt.step()
-        losses.append(float(loss))
+        losses.append(loss.item())
     assert losses[-1] < losses[0] / 10, (losses[0], losses[-1])
 
 
