@@ -134,7 +134,7 @@ def test_train_and_eval_cli(tiny_store, tmp_path):
     # a model trained on another grid is refused, in one line
     r = CliRunner().invoke(app, ["eval", tiny_store.location, "--models", "echopt:pretrained", "--samples", "5",
                                  "--out", str(tmp_path / "ev2")])
-    assert r.exit_code == 1 and ("trained on grid" in r.output or "no EchoPT checkpoint" in r.output)
+    assert r.exit_code == 1 and "EchoPT was trained on grid 200x90" in r.output and "retrain on this grid" in r.output
 
 
 class _Killed(Exception):

@@ -42,6 +42,7 @@ def test_version_parsing():
 def test_store_attrs_accept_unknown_keys_from_later_minor():
     a = StoreAttrs.model_validate({"format_version": "1.4", "grid": SensorGrid.default().model_dump(), "new": 1})
     assert a.format_version == "1.4"
+    assert a.model_dump()["new"] == 1  # kept, so a rewrite of the attributes does not drop it
 
 
 def test_recording_meta_rejects_unknown_units():
