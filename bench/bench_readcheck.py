@@ -35,29 +35,13 @@ from pathlib import Path
 
 import numpy as np
 
+from bench_windows import synthetic_run  # bench/ is the script's folder, first on sys.path
 from sonarset.arrays import frame_interval_problem, value_problem
 from sonarset.integrity import ChunkChecker
 from sonarset.plausibility import command_problems
 from sonarset.schema import Processing, SensorGrid
 from sonarset.store import create_store, open_store
 from sonarset.windows import FrameBank
-
-
-def synthetic_run(T: int, grid: SensorGrid, seed: int, sparse: bool) -> dict[str, np.ndarray]:
-    """Energyscape-like frames: a few bright drifting blobs, on black (ertis) or on a noise floor (raw)."""
-    rng = np.random.default_rng(seed)
-    R, A = grid.shape
-    r, a = np.meshgrid(np.arange(R), np.arange(A), indexing="ij")
-    images = np.empty((T, R, A), np.float16)
-    centres = rng.uniform([0, 0], [R, A], size=(6, 2))
-    for k in range(T):
-        img = np.zeros((R, A)) if sparse else rng.uniform(0, 0.25, (R, A))
-        for cr, ca in centres + k * np.array([-0.3, 0.05]):
-            blob = 0.9 * np.exp(-((r - cr % R) ** 2 / 2.0 + (a - ca % A) ** 2 / 3.0))
-            img = np.maximum(img, np.where(blob > 0.05, blob, 0.0) if sparse else blob)
-        images[k] = img
-    velocity = np.c_[rng.uniform(-0.3, 0.3, T), rng.uniform(-1, 1, T)].astype(np.float32)
-    return {"images": images, "velocity": velocity, "time": np.arange(T) * 0.2}
 
 
 def load_unchecked(store, dtype) -> np.ndarray:

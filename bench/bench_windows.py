@@ -27,17 +27,19 @@ from sonarset.store import create_store, open_store
 from sonarset.windows import FrameBank, WindowIndex, iter_batches
 
 
-def synthetic_run(T: int, grid: SensorGrid, seed: int) -> dict[str, np.ndarray]:
-    """Energyscape-like frames: a low noise floor with a few bright, drifting blobs."""
+def synthetic_run(T: int, grid: SensorGrid, seed: int, sparse: bool = False) -> dict[str, np.ndarray]:
+    """Energyscape-like frames: a few bright drifting blobs, on a low noise floor (raw images) or,
+    ``sparse``, on black (ertis images)."""
     rng = np.random.default_rng(seed)
     R, A = grid.shape
     r, a = np.meshgrid(np.arange(R), np.arange(A), indexing="ij")
     images = np.empty((T, R, A), np.float16)
     centres = rng.uniform([0, 0], [R, A], size=(6, 2))
     for k in range(T):
-        img = rng.uniform(0, 0.25, (R, A))
+        img = np.zeros((R, A)) if sparse else rng.uniform(0, 0.25, (R, A))
         for cr, ca in centres + k * np.array([-0.3, 0.05]):
-            img = np.maximum(img, 0.9 * np.exp(-((r - cr % R) ** 2 / 2.0 + (a - ca % A) ** 2 / 3.0)))
+            blob = 0.9 * np.exp(-((r - cr % R) ** 2 / 2.0 + (a - ca % A) ** 2 / 3.0))
+            img = np.maximum(img, np.where(blob > 0.05, blob, 0.0) if sparse else blob)
         images[k] = img
     velocity = np.c_[rng.uniform(-0.3, 0.3, T), rng.uniform(-1, 1, T)].astype(np.float32)
     return {"images": images, "velocity": velocity, "time": np.arange(T) * 0.2}
