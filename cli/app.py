@@ -455,11 +455,11 @@ def demo(
     _print_notes(res.notes)
     out.print(results_table(res, with_paper=True))
     one = {c.metric: c for c in res.comparisons if c.horizon == 1 and {c.a, c.b} == {"flow", "echopt"}}
-    from sonarset.models.evaluate import _fmt_p
+    from sonarset.report import format_p
 
     for k, c in one.items():
         out.print(f"one-shot {k}: EchoPT - flow = {(-c.mean_diff if c.a == 'flow' else c.mean_diff):+.4f}, "
-                  f"paired t-test p {_fmt_p(c.t_paired_p)} (Holm {_fmt_p(c.p_holm)})")
+                  f"paired t-test p {format_p(c.t_paired_p)} (Holm {format_p(c.p_holm)})")
     out.print(f"report: {out_dir / 'report.md'} (figures beside it); {time.perf_counter() - t0:.0f} s in all")
 
 

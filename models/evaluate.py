@@ -18,6 +18,7 @@ from typing import Callable
 
 import numpy as np
 
+from sonarset.report import format_p, horizon_name
 from sonarset.atomic import atomic_text, atomic_write
 from sonarset.ceiling import CEILING
 from sonarset.arrays import FRAME_INTERVAL_TOLERANCE
@@ -196,9 +197,9 @@ def _undefined_notes(res: "EvalResult") -> list[str]:
             if not any(per.values()):
                 continue
             if len(set(per.values())) == 1:
-                parts.append(f"{next(iter(per.values()))} of {n} windows at {_hname(h)}")
+                parts.append(f"{next(iter(per.values()))} of {n} windows at {horizon_name(h)}")
             else:
-                parts.append(f"at {_hname(h)} " + ", ".join(f"{m} {c}" for m, c in per.items() if c) + f" of {n} windows")
+                parts.append(f"at {horizon_name(h)} " + ", ".join(f"{m} {c}" for m, c in per.items() if c) + f" of {n} windows")
         if parts:
             notes.append(f"note: {why[k]}: {'; '.join(parts)}; those windows are left out of its means, "
                          "stds and tests")
@@ -450,16 +451,10 @@ def fade_table(res: EvalResult, fade: dict | None = None) -> str:
     return "\n".join(lines)
 
 
-def _fmt_p(p: float | None) -> str:
-    if p is None or not np.isfinite(p):
-        return "n/a"
-    return "< 1e-300" if p < 1e-300 else f"{p:.1e}" if p < 1e-3 else f"{p:.3f}"
-
-
 def results_table(res: EvalResult, with_paper: bool = True) -> str:
     s = res.summary()
-    head = "| method | " + " | ".join(f"CC {_hname(h)}" for h in res.horizons) + " | " + \
-           " | ".join(f"NRMSD {_hname(h)}" for h in res.horizons) + " |"
+    head = "| method | " + " | ".join(f"CC {horizon_name(h)}" for h in res.horizons) + " | " + \
+           " | ".join(f"NRMSD {horizon_name(h)}" for h in res.horizons) + " |"
     lines = [head, "|---" * (1 + 2 * len(res.horizons)) + "|"]
     for m in res.methods:
         cells = [_cell(s[m][str(h)][k]) for k in METRICS for h in res.horizons]
@@ -477,10 +472,6 @@ def _cell(entry: dict) -> str:
     if entry["mean"] is None:
         return "undefined"
     return f"{entry['mean']:.3f} ({entry['std']:.3f})"
-
-
-def _hname(h: int) -> str:
-    return "one-shot" if h == 1 else f"AR-{h}"
 
 
 def render_report(res: EvalResult, figures: list[str]) -> str:
@@ -513,9 +504,9 @@ def render_report(res: EvalResult, figures: list[str]) -> str:
         if c.p_holm is not None and np.isfinite(c.p_holm) and c.p_holm < 0.05:
             a_better = (c.mean_diff < 0) if LOWER_IS_BETTER[c.metric] else (c.mean_diff > 0)
             better = c.a if a_better else c.b
-        parts.append(f"| {_hname(c.horizon)} | {c.metric} | {c.a} | {c.b} | {c.mean_diff:+.4f} | "
-                     f"[{c.ci_low:+.4f}, {c.ci_high:+.4f}] | {_fmt_p(c.t_two_sample_p)} | {_fmt_p(c.t_paired_p)} | "
-                     f"{_fmt_p(c.wilcoxon_p)} | {_fmt_p(c.p_holm)} | {better} |")
+        parts.append(f"| {horizon_name(c.horizon)} | {c.metric} | {c.a} | {c.b} | {c.mean_diff:+.4f} | "
+                     f"[{c.ci_low:+.4f}, {c.ci_high:+.4f}] | {format_p(c.t_two_sample_p)} | {format_p(c.t_paired_p)} | "
+                     f"{format_p(c.wilcoxon_p)} | {format_p(c.p_holm)} | {better} |")
     fade = fade_summary(res)
     if fade:
         steps = len(next(iter(fade.values()))["peak_ratio"])

@@ -9,7 +9,7 @@ import numpy as np
 from scipy import signal
 
 from sonarset.atomic import save_figure
-from sonarset.plots import _plt, draw_energyscape
+from sonarset.plots import draw_energyscape, pyplot
 
 
 def correlogram(pred: np.ndarray, target: np.ndarray, max_lag: tuple[int, int] = (20, 15)) -> np.ndarray:
@@ -22,7 +22,7 @@ def correlogram(pred: np.ndarray, target: np.ndarray, max_lag: tuple[int, int] =
 
 
 def write_figures(res, out: Path) -> list[str]:
-    plt = _plt()
+    plt = pyplot()
     from sonarset.store import open_store
 
     grid = open_store(res.store).grid
@@ -111,7 +111,7 @@ def fade_figure(res, path: Path, fade: dict | None = None) -> Path | None:
     fade = fade_summary(res) if fade is None else fade
     if not fade:
         return None
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), constrained_layout=True)
     for key, ax, title in (("peak_ratio", axes[0], "peak pixel"),
                            ("energy_ratio", axes[1], f"echo energy (sum of pixels > {ECHO_FLOOR:g})")):

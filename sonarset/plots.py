@@ -9,7 +9,8 @@ import numpy as np
 from .schema import SensorGrid
 
 
-def _plt():
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (files only), imported on first use."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -22,9 +23,9 @@ def draw_world(ax, world, trajectory: np.ndarray | None = None, marker: np.ndarr
     for a, b in zip(world.seg_a, world.seg_b):
         ax.plot([a[0], b[0]], [a[1], b[1]], color="0.15", lw=1.5)
     for c, r in zip(world.circ_c, world.circ_r):
-        ax.add_patch(_plt().Circle(c, r, color="0.3"))
+        ax.add_patch(pyplot().Circle(c, r, color="0.3"))
     for box in world.spawn:
-        ax.add_patch(_plt().Rectangle((box.x[0], box.y[0]), box.x[1] - box.x[0], box.y[1] - box.y[0],
+        ax.add_patch(pyplot().Rectangle((box.x[0], box.y[0]), box.x[1] - box.x[0], box.y[1] - box.y[0],
                                       fill=False, ls=":", color="tab:green"))
     if world.waypoint is not None:
         ax.plot(*world.waypoint, marker="*", color="tab:red", ms=12)
@@ -63,7 +64,7 @@ def draw_fan(ax, image: np.ndarray, grid: SensorGrid) -> None:
 def show_run(store, run_name: str, frame: int, out: str | os.PathLike, world=None) -> str:
     """Write a PNG: world map with the trajectory (if the run has poses and a world is known), the
     frame as a range x azimuth image, and as a polar fan."""
-    plt = _plt()
+    plt = pyplot()
     run = store.run(run_name)
     if not 0 <= frame < run.n_frames:
         from .errors import SonarSetError

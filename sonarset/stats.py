@@ -72,6 +72,13 @@ def _pvalues(a: np.ndarray, b: np.ndarray, d: np.ndarray) -> tuple[float, float,
                 float(stats.wilcoxon(d).pvalue))
 
 
+def wilcoxon_p(d: np.ndarray) -> float:
+    """Wilcoxon signed-rank p of paired differences ``d``; NaN for fewer than 3 or all zero (the
+    test is undefined there, and scipy would raise or warn)."""
+    d = np.asarray(d, float)
+    return float(stats.wilcoxon(d).pvalue) if len(d) >= 3 and np.any(d != 0) else float("nan")
+
+
 def holm(pvalues: list[float]) -> list[float]:
     """Holm-Bonferroni adjusted p-values (family-wise error), NaNs passed through."""
     p = np.asarray(pvalues, float)

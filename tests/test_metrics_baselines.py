@@ -119,3 +119,14 @@ def test_rollout_passes_each_step_its_own_commands():
     cmds[0, :, 0] = np.arange(6)
     rollout(Spy(), np.zeros((1, 3, 4, 5), np.float32), cmds, 3)
     assert seen == [[0, 1, 2, 3], [1, 2, 3, 4], [2, 3, 4, 5]]
+
+
+def test_report_formats_and_the_wilcoxon_guard():
+    from sonarset.report import format_p, horizon_name
+    from sonarset.stats import wilcoxon_p
+
+    assert [format_p(p) for p in (None, float("nan"), 0.5, 0.0004, 1e-301)] == ["n/a", "n/a", "0.500", "4.0e-04",
+                                                                                  "< 1e-300"]
+    assert [horizon_name(h) for h in (1, 3, 10)] == ["one-shot", "AR-3", "AR-10"]
+    assert np.isnan(wilcoxon_p([0.1, 0.2])) and np.isnan(wilcoxon_p(np.zeros(5)))
+    assert wilcoxon_p(np.arange(1, 21, dtype=float)) < 1e-4

@@ -34,7 +34,8 @@ from sonarset.sim.generate import DT, spawn_seeds
 from sonarset.sim.robot import ROBOT_RADIUS, integrate
 from sonarset.sim.sonar import SonarModel
 from sonarset.sim.world import World, corridor_world
-from sonarset.stats import holm
+from sonarset.report import format_p
+from sonarset.stats import holm, wilcoxon_p
 
 from .common import experiment_processing, finite_or_none, mean_ci, parallel_map, predictor
 
@@ -201,7 +202,7 @@ def summarise(by: dict, seed: int = 0) -> tuple[dict, list[dict], dict]:
             for metric in ("travel_time_s", "midline_deviation_m"):
                 x = np.array([r[metric] for r in by[a]]) - np.array([r[metric] for r in by[b]])
                 x = x[np.isfinite(x)]  # runs that reached the goal in both conditions, for travel time
-                p = float(stats.wilcoxon(x).pvalue) if len(x) >= 3 and np.any(x != 0) else float("nan")
+                p = wilcoxon_p(x)
                 comps.append({"a": a, "b": b, "metric": metric, "n_pairs": len(x),
                               "mean_diff": float(x.mean()) if len(x) else float("nan"), "wilcoxon_p": p})
             sa = np.array([r["outcome"] == "success" for r in by[a]])
@@ -227,8 +228,6 @@ def summarise(by: dict, seed: int = 0) -> tuple[dict, list[dict], dict]:
 
 
 def write_control_report(res: ControlResult, out: str | os.PathLike) -> Path:
-    from ..evaluate import _fmt_p
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     per_run = [{k: v for k, v in r.items() if k in ("index", "condition", "outcome", "travel_time_s",
@@ -258,7 +257,7 @@ def write_control_report(res: ControlResult, out: str | os.PathLike) -> Path:
               "| a vs b | metric | pairs | mean a - b | p (Holm) |", "| --- | --- | ---: | ---: | ---: |"]
     for c in res.comparisons:
         lines.append(f"| {c['a']} vs {c['b']} | {c['metric']} | {c['n_pairs']} | {c['mean_diff']:+.3f} | "
-                     f"{_fmt_p(c['p_holm'])} |")
+                     f"{format_p(c['p_holm'])} |")
     det = res.detector
     lines += ["", f"Burst detector (range bins with a pixel above {BurstDetector.level} > {BurstDetector.max_coverage:.0%}): "
               + "; ".join(f"{c}: recall {d['recall']:.3f}, precision {d['precision']:.3f} over {d['frames']} frames"
@@ -273,10 +272,9 @@ def write_control_report(res: ControlResult, out: str | os.PathLike) -> Path:
 
 def fig6(res: ControlResult):
     """a-c trajectory densities per condition, d travel times, e midline deviations, f an SNR trace."""
-    import matplotlib
+    from sonarset.plots import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     world = corridor_world()
     conds = list(res.episodes)

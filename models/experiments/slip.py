@@ -40,7 +40,8 @@ from sonarset.sim.generate import DT, spawn_seeds
 from sonarset.sim.robot import ExplorationPolicy, apply_slip, integrate
 from sonarset.sim.sonar import SonarModel
 from sonarset.sim.world import lab_world
-from sonarset.stats import holm
+from sonarset.report import format_p, horizon_name
+from sonarset.stats import holm, wilcoxon_p
 
 from ..baselines import rollout
 from .common import experiment_processing, finite_or_none, mean_ci, parallel_map, predictor
@@ -240,7 +241,7 @@ def summarise(per_trial: list[dict], names: list[str], seed: int = 0) -> tuple[l
             for h, kind, det in keys:
                 x = np.array([t[f"{a}|{h}|{kind}|{det}"] - t[f"{b}|{h}|{kind}|{det}"] for t in per_trial], float)
                 x = x[np.isfinite(x)]
-                p = float(stats.wilcoxon(x).pvalue) if len(x) >= 3 and np.any(x != 0) else float("nan")
+                p = wilcoxon_p(x)
                 comps.append({"a": a, "b": b, "horizon": h, "kind": kind, "detector": det, "n": len(x),
                               "mean_auc_diff": float(x.mean()) if len(x) else float("nan"), "wilcoxon_p": p})
     for c, p in zip(comps, holm([c["wilcoxon_p"] for c in comps])):
@@ -254,13 +255,7 @@ DETECTOR_TEXT = {
 }
 
 
-def _h(h: int) -> str:
-    return "one-shot" if h == 1 else f"AR-{h}"
-
-
 def write_slip_report(res: SlipResult, out: str | os.PathLike) -> Path:
-    from ..evaluate import _fmt_p
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paper = res.paper
@@ -299,7 +294,7 @@ def write_slip_report(res: SlipResult, out: str | os.PathLike) -> Path:
                 for kind in KINDS:
                     x = by[(name, h, kind, det)]
                     cells.append(f"{x['auc_mean']:.2f} [{x['ci_low']:.2f}, {x['ci_high']:.2f}]")
-            lines.append(f"| {name} | {_h(h)} | " + " | ".join(cells) + " |")
+            lines.append(f"| {name} | {horizon_name(h)} | " + " | ".join(cells) + " |")
     lines += ["", "Detectors: " + "; ".join(f"`{k}` is {v}" for k, v in DETECTOR_TEXT.items()) + "."]
     if res.comparisons:
         lines += ["", "EchoPT against each baseline, paired Wilcoxon signed-rank tests on per-trajectory AUC "
@@ -307,8 +302,8 @@ def write_slip_report(res: SlipResult, out: str | os.PathLike) -> Path:
                   "| detector | a - b | horizon | kind | mean AUC difference | p (Holm) |",
                   "| --- | --- | ---: | --- | ---: | ---: |"]
         for c in res.comparisons:
-            lines.append(f"| {c['detector']} | {c['a']} - {c['b']} | {_h(c['horizon'])} | {c['kind']} | "
-                         f"{c['mean_auc_diff']:+.3f} | {_fmt_p(c['p_holm'])} |")
+            lines.append(f"| {c['detector']} | {c['a']} - {c['b']} | {horizon_name(c['horizon'])} | {c['kind']} | "
+                         f"{c['mean_auc_diff']:+.3f} | {format_p(c['p_holm'])} |")
     p0, p1 = trial["periods"]
     lines += ["", "## The paper's trajectory", "",
               f"Both wheels slip (factors {tuple(p0['factors'])}) from {p0['start_s']:g} s to {p0['end_s']:g} s, one "
@@ -320,7 +315,7 @@ def write_slip_report(res: SlipResult, out: str | os.PathLike) -> Path:
     for name in res.names:
         for h in HORIZONS:
             cells = [f"{ratios[f'{name}|{h}|{det}'][kind]:.2f}" for det in DETECTORS for kind in KINDS]
-            lines.append(f"| {name} | {_h(h)} | " + " | ".join(cells) + " |")
+            lines.append(f"| {name} | {horizon_name(h)} | " + " | ".join(cells) + " |")
     lines += ["", f"![Fig. 5]({fig_path.name})", "", f"{res.seconds:.0f} s in all."]
     atomic_text(out / "report.md", "\n".join(lines) + "\n")
     return out
@@ -341,10 +336,9 @@ def _slip_ratios(paper: dict, names: list[str]) -> dict:
 def fig5(paper: dict, names: list[str]):
     """Detector signals over time: a row per predictor, a column per detector, a curve per horizon
     (each over its slip-free median), slip periods shaded."""
-    import matplotlib
+    from sonarset.plots import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     t = np.arange(len(paper["slip"])) * DT
     fig, axes = plt.subplots(len(names), len(DETECTORS), figsize=(13, 2.4 * len(names)), sharex=True, squeeze=False)
@@ -358,7 +352,7 @@ def fig5(paper: dict, names: list[str]):
                            label="both wheels slip" if kind == "both" else "one wheel slips")
             for h in HORIZONS:
                 sig = paper["signals"][f"{name}|{h}|{det}"]
-                ax.plot(t, sig / np.nanmedian(sig[frame_labels(paper["slip"], h)["clean"]]), lw=1.0, label=_h(h))
+                ax.plot(t, sig / np.nanmedian(sig[frame_labels(paper["slip"], h)["clean"]]), lw=1.0, label=horizon_name(h))
             ax.grid(alpha=0.3)
             if j == 0:
                 ax.set_ylabel(f"{name}\nsignal / slip-free median")
