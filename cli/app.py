@@ -433,6 +433,10 @@ def demo(
     from sonarset.sim import generate as gen
     from sonarset.store import open_store
 
+    from sonarset.models.cards import card_processing, describe_images, read_card
+    from sonarset.models.checkpoint import load_checkpoint
+
+    load_checkpoint(model, SensorGrid.default())  # a bad model fails now, not after the simulation
     t0 = time.perf_counter()
     store_path = out_dir / "test.zarr"
     out.print(f"simulating a fresh {minutes:g}-minute test run (seed {seed}) -> {store_path}")
@@ -441,7 +445,6 @@ def demo(
         gen(store_path, runs=0, test_runs=1, minutes=minutes, seed=seed, workers=1, grid=SensorGrid.default(),
             progress=lambda name, done, total: bar.update(task, completed=done, total=total))
     s = open_store(store_path)
-    from sonarset.models.cards import card_processing, describe_images, read_card
 
     out.print(f"EchoPT ({model}) was trained on {describe_images(card_processing(read_card(model)))}; "
               f"the fresh run has {describe_images(s.processing)}", highlight=False)

@@ -71,3 +71,19 @@ def test_bad_input_gives_one_line_and_no_traceback(tmp_path):
         assert "Traceback" not in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
         assert str(Path(args[1]).name) in res.stderr
     assert not (tmp_path / "o.zarr").exists()
+
+
+def test_demo_on_a_short_fresh_run(tmp_path):
+    """The README's main job, on a 30 s run and 10 windows: the shipped model against the baselines,
+    with the noise ceiling, the fade check and the report; a bad model fails before any simulation."""
+    r = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "d"), "--minutes", "0.5", "--samples", "10",
+                                 "--device", "cpu"])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "d" / "metrics.json").read_text())
+    assert list(doc["results"]) == ["persistence", "naive", "flow", "echopt", "ceiling"]
+    assert doc["windows"]["n"] == 10 and doc["windows"]["horizons"] == [1, 3, 5, 10]
+    assert all(doc["results"]["echopt"][h]["n"] == 10 for h in ("1", "3", "5", "10"))
+    assert set(doc["fade"]) == {"persistence", "naive", "flow", "echopt"}
+    assert "| echopt |" in (tmp_path / "d" / "report.md").read_text() and "one-shot cc: EchoPT - flow" in r.output
+    bad = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "e"), "--model", str(tmp_path / "nope")])
+    assert bad.exit_code == 1 and "no EchoPT checkpoint" in bad.output and not (tmp_path / "e").exists()

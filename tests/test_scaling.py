@@ -136,3 +136,31 @@ def test_two_process_gloo_ddp_matches_single_process_training(local_ref, tmp_pat
     ref = [json.loads(l) for l in (tmp_path / "one" / "metrics.jsonl").read_text().splitlines()]
     assert len(log) == len(ref) == 1
     assert log[0]["val_loss"] == pytest.approx(ref[0]["val_loss"], rel=1e-4)
+
+
+def test_chunk_cache_evicts_the_least_recently_used_values_within_its_budget():
+    import asyncio
+
+    from zarr.core.buffer import cpu, default_buffer_prototype
+    from zarr.storage import MemoryStore
+
+    from sonarset.cache import ChunkCache
+
+    proto = default_buffer_prototype()
+
+    async def scenario():
+        mem = MemoryStore()
+        for key, size in (("a", 100), ("b", 100), ("c", 100), ("big", 300)):
+            await mem.set(key, cpu.Buffer.from_bytes(bytes([len(key)]) * size))
+        cache = ChunkCache(mem, max_bytes=250)
+        got = [await cache.get(k, proto) for k in ("a", "b", "a", "c")]  # "a" used again: "b" goes
+        assert [len(v) for v in got] == [100] * 4 and cache._size == 200 and list(cache._lru) == [
+            ("a", "None"), ("c", "None")]
+        assert (cache.hits, cache.misses) == (1, 3)
+        await cache.get("a", proto)
+        await cache.get("b", proto)  # evicted: fetched again, and now "c" is the oldest
+        assert (cache.hits, cache.misses) == (2, 4) and [k for k, _ in cache._lru] == ["a", "b"]
+        big = await cache.get("big", proto)  # larger than the whole budget: served, never kept
+        assert len(big) == 300 and cache._size == 200 and await cache.get("missing", proto) is None
+
+    asyncio.run(scenario())
