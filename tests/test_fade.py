@@ -110,8 +110,9 @@ def test_report_table_json_and_figure(result, tmp_path):
 
 def test_a_tiny_model_that_learned_a_moving_scene_does_not_fade(tmp_path):
     """A tiny EchoPT trained briefly on a simulated run (the robot moving through the lab) keeps its
-    rollouts' peak and echo energy within 50% of the targets' (loose: the 15% criterion is for
-    the shipped model)."""
+    rollouts' peak and echo energy within 20% of the targets' over 10 steps. Measured on the dev VM:
+    peak 1.00 -> 0.86, energy 1.00 -> 0.94 at step 10, so it meets the 15% criterion, but with too
+    little margin to assert it across machines' floating point."""
     import torch
 
     from sonarset.models.train import TrainConfig, train
@@ -139,4 +140,4 @@ def test_a_tiny_model_that_learned_a_moving_scene_does_not_fade(tmp_path):
     assert s["echopt"]["1"]["cc"]["mean"] > s["persistence"]["1"]["cc"]["mean"] + 0.05  # it predicts the motion
     f = fade_summary(res)["echopt"]
     ratios = np.array(f["peak_ratio"] + f["energy_ratio"])
-    assert np.all((ratios > 0.5) & (ratios < 1.5)), f
+    assert np.all((ratios > 0.8) & (ratios < 1.2)), f
