@@ -13,10 +13,11 @@ from sonarset.perf import keep_freed_memory
 from sonarset.errors import SonarSetError
 from sonarset.schema import Processing, SensorGrid
 from sonarset.stats import bootstrap_ci
-from sonarset.sim.generate import DT
-from sonarset.sim.robot import SENSOR_OFFSET
+from sonarset.sim.generate import simulator_rig
 
 _PREDICTORS: dict = {}
+#: The robot the experiments simulate; the predictors warp by its frame interval and sensor offset.
+RIG = simulator_rig()
 
 
 def predictor(spec: str, grid: SensorGrid, device: str = "cpu"):
@@ -25,7 +26,8 @@ def predictor(spec: str, grid: SensorGrid, device: str = "cpu"):
     if key not in _PREDICTORS:
         from ..registry import make_predictor
 
-        _PREDICTORS[key] = make_predictor(spec, grid, dt=DT, sensor_offset=SENSOR_OFFSET, device=device)
+        _PREDICTORS[key] = make_predictor(spec, grid, dt=RIG.frame_interval_s, sensor_offset=RIG.sensor_offset_m,
+                                           device=device)
     return _PREDICTORS[key]
 
 
