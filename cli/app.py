@@ -63,8 +63,9 @@ def info(
     from sonarset.store import open_store
 
     s = open_store(store, check=True)
-    runs = [s.run(n) for n in s.runs()]
-    incomplete = [n for n in s.runs(include_incomplete=True) if n not in s.runs()]
+    complete = s.runs()  # listing runs reads every run's attributes: once, not once per run
+    runs = [s.run(n) for n in complete]
+    incomplete = sorted(set(s.runs(include_incomplete=True)) - set(complete))
     g = s.grid
     summary = {
         "store": s.location, "format_version": s.format_version, "grid": g.model_dump(),
