@@ -473,16 +473,23 @@ def import_recording(
         _move_run_in(store, run_name, write)
         return open_store(out_s).run(run_name)
 
+    rig = rec.meta.rig
+    dest = write_new_store(out_s, run_name, write, grid=rec.grid, rig=rig, frame_rate_hz=_frame_rate(rec, rig),
+                           processing=rec.meta.processing or Processing(profile="unknown"))
+    return open_store(dest).run(run_name)
+
+
+def write_new_store(out_s: str, run_name: str, write: Callable, **create) -> Path:
+    """A new store at ``out_s`` holding the run ``write(store)`` writes, made by ``create_store(**create)``
+    beside it and renamed into place: a failed or killed import leaves nothing that looks like a store."""
     dest = Path(out_s)
     dest = dest.resolve() if dest.is_symlink() else dest  # the store goes where the link points
     if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
         raise SonarSetError(f"{out_s}: exists and is not a SonarSet store")
-    rig = rec.meta.rig
     tmp = aside_dir(dest)
     try:
         with _no_space(out_s, run_name):
-            store = create_store(tmp / "store.zarr", rec.grid, rig=rig, frame_rate_hz=_frame_rate(rec, rig),
-                                 processing=rec.meta.processing or Processing(profile="unknown"))
+            store = create_store(tmp / "store.zarr", **create)
             write(store)
             store.consolidate()
         if dest.exists():
@@ -490,7 +497,7 @@ def import_recording(
         os.replace(tmp / "store.zarr", dest)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return open_store(dest).run(run_name)
+    return dest
 
 
 def _frame_rate(rec: Recording, rig: RobotRig | None) -> float:

@@ -21,7 +21,6 @@ from __future__ import annotations
 import concurrent.futures as cf
 import json
 import os
-import shutil
 import zipfile
 import zlib
 from dataclasses import dataclass, field
@@ -34,11 +33,11 @@ from pydantic import ValidationError
 from .errors import InputValidationError, SonarSetError
 from . import plausibility
 from .importer import (
-    _ANGLE, _ANGV, _LINV, _RANGE, _TIME, _frame_rate, _move_run_in, _no_space, _sidecar_for, _why, check_run_options,
+    _ANGLE, _ANGV, _LINV, _RANGE, _TIME, _frame_rate, _move_run_in, _sidecar_for, _why, check_run_options,
+    write_new_store,
 )
-from .atomic import aside_dir
 from .schema import RUN_NAME_RE, Processing, RawRecordingMeta, SensorGrid, pydantic_problems
-from .store import DEFAULT_CHUNK_FRAMES, Run, _is_url, create_store, open_or_create_store, open_store
+from .store import DEFAULT_CHUNK_FRAMES, Run, _is_url, open_or_create_store, open_store
 
 ARRAY_KEYS = ("signals", "velocity", "time", "pose", "sweep")
 REQUIRED_KEYS = ("signals", "velocity", "time")
@@ -517,22 +516,9 @@ def import_raw(
             # run it replaces), so a failed or killed import leaves the store as it was.
             _move_run_in(store, run_name, write)
         return open_store(out_s).run(run_name)
-    dest = Path(out_s)
-    dest = dest.resolve() if dest.is_symlink() else dest
-    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
-        raise SonarSetError(f"{out_s}: exists and is not a SonarSet store")
-    tmp = aside_dir(dest)
-    try:
-        with _no_space(out_s, run_name):
-            store = create_store(tmp / "store.zarr", out_grid, processing=proc, rig=meta.rig,
-                                 frame_rate_hz=_frame_rate(rec, meta.rig),
-                                 description=f"imported from raw microphone signals ({Path(src).name})")
-            write(store)
-        if dest.exists():
-            dest.rmdir()  # an empty directory, checked above
-        os.replace(tmp / "store.zarr", dest)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    dest = write_new_store(out_s, run_name, write, grid=out_grid, processing=proc, rig=meta.rig,
+                           frame_rate_hz=_frame_rate(rec, meta.rig),
+                           description=f"imported from raw microphone signals ({Path(src).name})")
     return open_store(dest).run(run_name)
 
 
