@@ -3,11 +3,10 @@
 This package never imports torch; ``sonarset.models`` and ``sonarset.cli`` do, lazily.
 """
 
-__version__ = "0.1.0"
-
-from .errors import FormatError, GridMismatchError, InputValidationError, SonarSetError  # noqa: E402
-from .schema import FORMAT_VERSION, Processing, RecordingMeta, RobotRig, RunAttrs, SensorGrid, StoreAttrs  # noqa: E402
-from .store import Run, RunData, RunWriter, SonarStore, create_store, open_or_create_store, open_store  # noqa: E402
+from .version import __version__
+from .errors import FormatError, GridMismatchError, InputValidationError, SonarSetError
+from .schema import FORMAT_VERSION, Processing, RecordingMeta, RobotRig, RunAttrs, SensorGrid, StoreAttrs
+from .store import Run, RunData, RunWriter, SonarStore, create_store, open_or_create_store, open_store
 
 __all__ = [
     "__version__", "FORMAT_VERSION", "FormatError", "GridMismatchError", "InputValidationError",

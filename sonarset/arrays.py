@@ -21,6 +21,14 @@ class ArraySpec:
     units: str | None = None
     description: str = ""
 
+    def layout(self) -> str:
+        """The shape this array must have, in words (``T`` frames; a grid's bins are the store's)."""
+        if self.dims[0] != "time":
+            return "a 1-D array of bin centres"
+        if self.last is None and len(self.dims) > 1:
+            return f"{len(self.dims)}-D ({', '.join(self.dims)})"
+        return f"shape (T, {self.last})" if self.last is not None else "shape (T,)"
+
 
 #: Every array a run group may hold. Time-indexed arrays all have length n_frames.
 ARRAYS: dict[str, ArraySpec] = {
@@ -40,6 +48,9 @@ ARRAYS: dict[str, ArraySpec] = {
                       description="wheel speed factors (left, right); 1 = no slip"),
 }
 OPTIONAL_ARRAYS = [k for k, s in ARRAYS.items() if not s.required]
+#: The arrays indexed by frame (their first axis is ``time``), and those no run can lack.
+FRAME_ARRAYS = tuple(k for k, s in ARRAYS.items() if s.dims[0] == "time")
+REQUIRED_FRAME_ARRAYS = tuple(k for k in FRAME_ARRAYS if ARRAYS[k].required)
 
 
 def expected_shape(key: str, n_frames: int, grid_shape: tuple[int, int]) -> tuple[int, ...]:
@@ -126,60 +137,119 @@ def value_problem(key: str, block: np.ndarray, first_frame: int = 0) -> tuple[in
             return None
     elif np.isfinite(block).all():
         return None
+    k = nonfinite_frame(block, first_frame)
+    if k is not None:
+        return k, f"NaN or infinite values (first at frame {k})"
+    return _outside_unit_interval(block, first_frame)
+
+
+def nonfinite_frame(block: np.ndarray, first_frame: int = 0) -> int | None:
+    """The first frame of ``block`` (frames from ``first_frame``) holding NaN or an infinity, else None."""
     frames = block.reshape(block.shape[0], -1) if block.ndim > 1 else block[:, None]
     finite = np.isfinite(frames)
-    if not finite.all():
-        k = first_frame + int(np.flatnonzero(~finite.all(axis=1))[0])
-        return k, f"NaN or infinite values (first at frame {k})"
-    k = first_frame + int(np.flatnonzero(((frames < 0) | (frames > 1)).any(axis=1))[0])
-    return k, f"values outside [0, 1] ({float(frames.min()):g}..{float(frames.max()):g}; first at frame {k})"
+    if finite.all():
+        return None
+    return first_frame + int(np.flatnonzero(~finite.all(axis=1))[0])
+
+
+def unit_interval_problem(block: np.ndarray, first_frame: int = 0) -> str | None:
+    """A line when finite values of ``block`` (frames from ``first_frame``) lie outside [0, 1], else None."""
+    if block.size == 0 or in_unit_interval(block):
+        return None
+    found = _outside_unit_interval(block, first_frame)
+    return found[1] if found is not None else None
+
+
+def _outside_unit_interval(block: np.ndarray, first_frame: int) -> tuple[int, str] | None:
+    frames = block.reshape(block.shape[0], -1) if block.ndim > 1 else block[:, None]
+    finite = np.isfinite(frames)
+    outside = finite & ((frames < 0) | (frames > 1))
+    if not outside.any():
+        return None  # only NaN or infinities, which nonfinite_frame reports
+    k = first_frame + int(np.flatnonzero(outside.any(axis=1))[0])
+    values = frames[finite]
+    return k, f"values outside [0, 1] ({float(values.min()):g}..{float(values.max()):g}; first at frame {k})"
+
+
+def dtype_problem(arr) -> str | None:
+    """A line when ``arr`` does not hold real numbers (integers or floats), else None."""
+    dtype = getattr(arr, "dtype", None)  # an array, or an array's header
+    if isinstance(dtype, np.dtype) and dtype.kind in "fiu":
+        return None
+    return f"dtype {dtype if dtype is not None else type(arr).__name__} is not a real number type"
+
+
+def layout_problem(key: str, shape: tuple[int, ...]) -> str | None:
+    """A line when an array ``key`` of ``shape`` has the wrong number of axes or last axis, else None."""
+    spec = ARRAYS[key]
+    if len(shape) == len(spec.dims) and (spec.last is None or shape[-1] == spec.last):
+        return None
+    return f"expected {spec.layout()}, got shape {tuple(shape)}"
+
+
+def frame_count_problem(n: int, n_frames: int) -> str | None:
+    """A line when a per-frame array has ``n`` frames where the images have ``n_frames``."""
+    return None if n == n_frames else f"{n} frames but images has {n_frames}"
+
+
+def nonfinite_problem(arr: np.ndarray) -> str | None:
+    return "contains NaN or infinite values" if arr.size and not np.all(np.isfinite(arr)) else None
+
+
+def time_order_problem(time: np.ndarray, previous: float = -np.inf, first: int = 0,
+                       unit: str = "frame") -> str | None:
+    """A line when a time stamp does not come after the one before it (``previous`` before the
+    first, whose index is ``first``: a block of a longer array), else None."""
+    t = np.asarray(time, dtype=np.float64)
+    if t.size == 0:
+        return None
+    bad = np.flatnonzero(np.diff(t, prepend=previous) <= 0)
+    return f"not strictly increasing (first at {unit} {first + int(bad[0])})" if bad.size else None
 
 
 def check_run_arrays(grid: SensorGrid, arrays: Mapping[str, np.ndarray]) -> list[str]:
-    """Every problem with a run's arrays, one line each; empty when they can be written."""
-    problems: list[str] = []
-    for key in ("images", "velocity", "time"):
-        if key not in arrays:
-            problems.append(f"{key}: missing")
+    """Every problem with a run's arrays, one line each; empty when they can be written.
+
+    The one check of arrays before they are written: the run writer applies it to every block,
+    the importer to what it converted, and the validator's data pass applies its pieces chunk by
+    chunk (dtype, layout, frame count, finite values, images in [0, 1], time order).
+    """
+    problems = [f"{key}: missing" for key in REQUIRED_FRAME_ARRAYS if key not in arrays]
     if problems:
         return problems
     images = arrays["images"]
     T = images.shape[0] if images.ndim else -1
-    images_ok = False
+    images_ok = False  # finite and in [0, 1]: the common case, checked in one fast pass
     for key, arr in arrays.items():
-        spec = ARRAYS.get(key)
-        if spec is None or key in ("range", "azimuth"):
+        if key not in FRAME_ARRAYS:
             continue
-        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
-            problems.append(f"{key}: dtype {arr.dtype} is not numeric")
-            continue
-        if arr.ndim != len(spec.dims):
-            problems.append(f"{key}: expected {len(spec.dims)}-D {spec.dims}, got shape {arr.shape}")
-            continue
-        if spec.last is not None and arr.shape[-1] != spec.last:
-            problems.append(f"{key}: last axis must have {spec.last} values, got shape {arr.shape}")
-        if arr.shape[0] != T:
-            problems.append(f"{key}: {arr.shape[0]} frames but images has {T}")
-        if key == "images" and arr.ndim == 3 and arr.size:
-            images_ok = in_unit_interval(arr)  # finite and in [0, 1]: the common case, one fast pass
-            if images_ok:
-                continue
-        if arr.size and not np.all(np.isfinite(arr)):
-            problems.append(f"{key}: contains NaN or infinite values")
+        line = dtype_problem(arr) or layout_problem(key, arr.shape) or frame_count_problem(arr.shape[0], T)
+        if line is None and key == "images" and arr.size:
+            images_ok = in_unit_interval(arr)
+        if line is None and not (key == "images" and images_ok):
+            line = nonfinite_problem(arr)
+        if line is not None:
+            problems.append(f"{key}: {line}")
     if images.ndim == 3:
-        if images.shape[1:] != grid.shape:
-            problems.append(f"images: frame shape {images.shape[1:]} does not match the grid {grid.shape}")
-        if T < 1:
-            problems.append("images: a run needs at least one frame")
-        if images.dtype not in (np.float16, np.float32, np.float64):
-            problems.append(f"images: dtype {images.dtype} must be float16 or float32")
-        elif images.size and not images_ok and np.all(np.isfinite(images)):
-            lo, hi = float(images.min()), float(images.max())
-            if lo < 0.0 or hi > 1.0:
-                problems.append(f"images: values must lie in [0, 1] (energyscape), found {lo:g}..{hi:g}")
+        problems += [f"images: {line}" for line in _image_problems(grid, images, images_ok)]
     t = arrays["time"]
-    if t.ndim == 1 and t.size > 1 and np.all(np.isfinite(t)):
-        bad = np.flatnonzero(np.diff(t.astype(np.float64)) <= 0)
-        if bad.size:
-            problems.append(f"time: not strictly increasing (first at frame {int(bad[0]) + 1})")
+    if dtype_problem(t) is None and t.ndim == 1 and np.all(np.isfinite(t)):
+        line = time_order_problem(t)
+        if line is not None:
+            problems.append(f"time: {line}")
     return problems
+
+
+def _image_problems(grid: SensorGrid, images: np.ndarray, in_unit: bool) -> list[str]:
+    """What the spec asks of images beyond their layout: the grid's frame shape, at least one
+    frame, a float dtype and values in [0, 1] (``in_unit``: known to be)."""
+    out = []
+    if images.shape[1:] != grid.shape:
+        out.append(f"frame shape {images.shape[1:]} does not match the grid {grid.shape}")
+    if images.shape[0] < 1:
+        out.append("a run needs at least one frame")
+    if images.dtype not in (np.float16, np.float32, np.float64):
+        out.append(f"dtype {images.dtype} must be float16 or float32")
+    elif images.size and not in_unit and np.all(np.isfinite(images)):
+        out.append(f"values must lie in [0, 1] (energyscape), found {float(images.min()):g}..{float(images.max()):g}")
+    return out

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import errno
+
 
 class SonarSetError(Exception):
     """An error caused by the user's input (a file, a store, an argument), not by a bug."""
@@ -24,3 +26,26 @@ class InputValidationError(SonarSetError):
         head = f"{source}: {problems[0]}" if problems else source
         more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
         super().__init__(head + more)
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception as one short line (its type and message), for an error that names a file."""
+    text = " ".join(str(exc).split())
+    if len(text) > 200:
+        text = text[:197] + "..."
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def first_os_error(exc: OSError) -> OSError:
+    """The first of a chain of OSErrors: a writer's clean-up can fail on the same disk (or race the
+    writes still in flight) and raise its own error, but the first failure is the one to report."""
+    while isinstance(exc.__context__, OSError):
+        exc = exc.__context__
+    return exc
+
+
+def os_error_reason(exc: OSError) -> str:
+    """Why a write failed, in words ("no space left on device" for a full disk)."""
+    if exc.errno == errno.ENOSPC:
+        return "no space left on device"
+    return exc.strerror or str(exc) or type(exc).__name__

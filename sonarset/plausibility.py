@@ -17,7 +17,7 @@ import numpy as np
 
 from .arrays import FRAME_INTERVAL_TOLERANCE
 from .schema import RecordingUnits, RobotRig, SensorGrid
-from .validate import Problem
+from .problems import Problem
 
 SPEED_OF_SOUND_M_S = 343.0  # dry air at 20 degC
 #: Commands may exceed the rig's declared limits by this fraction (controller overshoot, rounding).

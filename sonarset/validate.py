@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -17,20 +16,19 @@ import numpy as np
 import zarr
 from pydantic import ValidationError
 
-from .errors import SonarSetError
-from .schema import NAMESPACE, RUN_NAME_RE, SUPPORTED_MAJOR, RunAttrs, StoreAttrs, parse_version, pydantic_problems
-from .arrays import ARRAYS, array_meta_problems, expected_shape, frame_interval_problem
+from .arrays import (
+    ARRAYS, array_meta_problems, expected_shape, frame_interval_problem, nonfinite_frame, time_order_problem,
+    unit_interval_problem,
+)
+from .errors import SonarSetError, one_line
 from .integrity import ChunkChecker, chunk_coords
-from .store import _is_url, open_store
+from .plausibility import store_problems
+from .problems import Problem
+from .schema import NAMESPACE, RUN_NAME_RE, SUPPORTED_MAJOR, RunAttrs, StoreAttrs, parse_version, pydantic_problems
+from .store import open_store
+from .zarrio import child_names, is_url
 
-
-@dataclass(frozen=True)
-class Problem:
-    where: str
-    message: str
-
-    def __str__(self) -> str:
-        return f"{self.where}: {self.message}"
+__all__ = ["Problem", "ProgressFn", "validate_store"]
 
 
 ProgressFn = Callable[[str, int, int], None]
@@ -47,11 +45,11 @@ def validate_store(location: str | os.PathLike, *, check_data: bool = True,
     try:
         return _validate(loc, check_data, progress, plausibility)
     except Exception as exc:  # a check that is not guarded below: still a finding, never a crash
-        return [Problem(loc, f"cannot be checked: {_one_line(exc)}")]
+        return [Problem(loc, f"cannot be checked: {one_line(exc)}")]
 
 
 def _validate(loc: str, check_data: bool, progress: ProgressFn | None, plausibility: bool) -> list[Problem]:
-    local = not _is_url(loc)
+    local = not is_url(loc)
     problems: list[Problem] = []
     if local:
         early = _check_local_root(Path(loc))
@@ -77,16 +75,10 @@ def _validate(loc: str, check_data: bool, progress: ProgressFn | None, plausibil
         problems += _guarded(f"{loc}/{name}", lambda: _check_run(store, name, check_data, progress))
     problems += _guarded(loc, lambda: _check_consolidated(loc, root, names))
     if plausibility:
-        problems += _guarded(loc, lambda: _plausibility(store, check_data))
+        problems += _guarded(loc, lambda: store_problems(store, check_data))
     if not problems:
         problems += _guarded(loc, lambda: [] if store.runs() else [Problem(loc, "no complete run")])
     return problems
-
-
-def _plausibility(store, check_data: bool) -> list[Problem]:
-    from .plausibility import store_problems  # imports Problem from this module
-
-    return store_problems(store, check_data)
 
 
 def _guarded(where: str, check: Callable[[], list[Problem]]) -> list[Problem]:
@@ -94,13 +86,7 @@ def _guarded(where: str, check: Callable[[], list[Problem]]) -> list[Problem]:
     try:
         return check()
     except Exception as exc:  # zarr and numpy raise many types on broken metadata or chunks
-        return [Problem(where, f"cannot be checked: {_one_line(exc)}")]
-
-
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
-    text = text if len(text) <= 200 else text[:197] + "..."
-    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+        return [Problem(where, f"cannot be checked: {one_line(exc)}")]
 
 
 def _run_groups(loc: str, root: zarr.Group) -> tuple[list[str], list[Problem]]:
@@ -110,14 +96,12 @@ def _run_groups(loc: str, root: zarr.Group) -> tuple[list[str], list[Problem]]:
         return sorted(root.group_keys()), []
     except Exception:
         pass
-    from .store import _child_names
-
     names, problems = [], []
-    for name in _child_names(root):
+    for name in child_names(root):
         try:
             node = root[name]
         except Exception as exc:
-            problems.append(Problem(f"{loc}/{name}", f"unreadable zarr metadata ({_one_line(exc)})"))
+            problems.append(Problem(f"{loc}/{name}", f"unreadable zarr metadata ({one_line(exc)})"))
             continue
         if isinstance(node, zarr.Group):
             names.append(name)
@@ -192,9 +176,7 @@ def _check_run(store, name: str, check_data: bool, progress: ProgressFn | None) 
     try:
         present = set(group.array_keys())
     except Exception:  # one member's metadata is unreadable: open each below to say which
-        from .store import _child_names
-
-        present = set(_child_names(group))
+            present = set(child_names(group))
     arrays: dict[str, zarr.Array] = {}
     for key, spec in ARRAYS.items():
         if key not in present:
@@ -210,7 +192,7 @@ def _check_run(store, name: str, check_data: bool, progress: ProgressFn | None) 
             dims = tuple(arr.metadata.dimension_names or ())
             dtype, shape = str(arr.dtype), tuple(arr.shape)
         except Exception as exc:
-            out.append(Problem(aw, f"unreadable zarr metadata ({_one_line(exc)})"))
+            out.append(Problem(aw, f"unreadable zarr metadata ({one_line(exc)})"))
             continue
         expected = expected_shape(key, T, grid.shape)
         found = array_meta_problems(key, dtype, dims, shape, expected)
@@ -228,7 +210,7 @@ def _check_run(store, name: str, check_data: bool, progress: ProgressFn | None) 
             try:
                 values = arr[:]
             except Exception as exc:
-                out.append(Problem(f"{where}/{key}", f"unreadable ({_one_line(exc)})"))
+                out.append(Problem(f"{where}/{key}", f"unreadable ({one_line(exc)})"))
                 continue
             tol = 1e-6 * max(1.0, float(np.max(np.abs(centres))))
             if not np.allclose(values, centres, rtol=0, atol=tol):
@@ -282,18 +264,14 @@ def _check_data(aw: str, key: str, arr: zarr.Array, progress: ProgressFn | None,
             key0 = arr.metadata.encode_chunk_key((start // step,) + (0,) * (arr.ndim - 1))
             out.append(Problem(aw, f"chunk {key0} is corrupt or truncated ({type(exc).__name__})"))
             return out
-        finite = np.isfinite(block)
-        if bad_finite is None and not finite.all():
-            bad_finite = start + int(np.argwhere(~finite)[0][0])
+        nonfinite = nonfinite_frame(block, start)
+        bad_finite = nonfinite if bad_finite is None else bad_finite
         if key == "images" and bad_range is None:
-            vals = block[finite]
-            if vals.size and (vals.min() < 0 or vals.max() > 1):
-                bad_range = (float(vals.min()), float(vals.max()))
-        if key == "time" and finite.all():
-            seq = np.concatenate([[prev_t], block.astype(np.float64)])
-            d = np.diff(seq)
-            if np.any(d <= 0):
-                out.append(Problem(aw, f"time is not strictly increasing (first at frame {start + int(np.argmax(d <= 0))})"))
+            bad_range = unit_interval_problem(block, start)
+        if key == "time" and nonfinite is None:
+            line = time_order_problem(block, prev_t, start)
+            if line is not None:
+                out.append(Problem(aw, f"time is {line}"))
                 return out
             prev_t = float(block[-1])
         if progress is not None:
@@ -301,7 +279,7 @@ def _check_data(aw: str, key: str, arr: zarr.Array, progress: ProgressFn | None,
     if bad_finite is not None and not missing:
         out.append(Problem(aw, f"NaN or infinite values (first at frame {bad_finite})"))
     if bad_range is not None:
-        out.append(Problem(aw, f"values outside [0, 1] ({bad_range[0]:g}..{bad_range[1]:g})"))
+        out.append(Problem(aw, bad_range))
     if key == "time" and not out:
         line = frame_interval_problem(arr[:], frame_rate_hz)
         if line is not None:
@@ -324,7 +302,7 @@ def _check_consolidated(loc: str, root: zarr.Group, names: list[str]) -> list[Pr
         cons = zarr.open_group(root.store, mode="r", use_consolidated=True)
         listed = cons.metadata.consolidated_metadata.flattened_metadata
     except Exception as exc:
-        return [Problem(loc, f"consolidated metadata is unreadable ({_one_line(exc)}); {fix}")]
+        return [Problem(loc, f"consolidated metadata is unreadable ({one_line(exc)}); {fix}")]
     actual, unreadable = _node_metadata(root, names)
     # Compare runs and their arrays; what cannot be read is reported by the run checks already.
     listed = {k: v for k, v in listed.items()
@@ -352,8 +330,6 @@ def _check_consolidated(loc: str, root: zarr.Group, names: list[str]) -> list[Pr
 def _node_metadata(root: zarr.Group, names: list[str]) -> tuple[dict, set[str]]:
     """The metadata of every readable node under the root's run groups (runs and their arrays),
     and the keys of those whose metadata zarr cannot parse (the run checks report them)."""
-    from .store import _child_names
-
     actual, unreadable = {}, set()
     for name in names:
         try:
@@ -362,11 +338,11 @@ def _node_metadata(root: zarr.Group, names: list[str]) -> tuple[dict, set[str]]:
         except Exception:
             unreadable.add(name)
             continue
-        for child in _child_names(group):
+        for child in child_names(group):
             key = f"{name}/{child}"
             try:
                 actual[key] = root[key].metadata
             except Exception:
                 unreadable.add(key)
-    unreadable |= {n for n in _child_names(root) if n not in names}  # children that are no group
+    unreadable |= {n for n in child_names(root) if n not in names}  # children that are no group
     return actual, unreadable

@@ -20,7 +20,9 @@ from typer.testing import CliRunner
 from sonarset import open_store
 from sonarset.cli.app import app
 from sonarset.errors import InputValidationError, SonarSetError
-from sonarset.rawimport import RawSource, import_raw, load_raw
+from sonarset.raw_recording import load_raw
+from sonarset.rawimport import import_raw
+from sonarset.recording_files import RawSource
 from sonarset.schema import Processing, SensorGrid
 from sonarset.sim.beamform import SignalBeamformer, read_layout_csv
 from sonarset.sim.reference import microphone_signals, reference_amplitude, write_raw_recording

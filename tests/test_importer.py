@@ -267,14 +267,14 @@ def test_absurd_sidecars_are_one_line(tmp_path, text, match):
 
 
 def test_deep_embedded_metadata_and_huge_sidecar(tmp_path, monkeypatch):
-    import sonarset.importer as imp
+    import sonarset.sidecar as sidecar
 
     a = good_arrays()
     src = write_npz(tmp_path / "rec.npz", None, metadata=np.array("[" * 5000 + "]" * 5000), **a)
     with pytest.raises(InputValidationError, match="nested too deeply"):
         load_recording(src)
     src = write_npz(tmp_path / "big.npz", {"source": {"note": "x" * 300}}, **a)
-    monkeypatch.setattr(imp, "MAX_METADATA_BYTES", 200)
+    monkeypatch.setattr(sidecar, "MAX_METADATA_BYTES", 200)
     with pytest.raises(InputValidationError, match="more than a metadata file holds"):
         load_recording(src)
 

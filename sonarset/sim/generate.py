@@ -24,7 +24,9 @@ from ..errors import SonarSetError
 from ..atomic import aside_dir, remove_stale_asides, settle_zarr_writes
 from ..perf import keep_freed_memory
 from ..schema import Processing, RobotRig, SensorGrid
-from ..store import DEFAULT_CHUNK_FRAMES, _is_url, create_store, open_or_create_store, open_store
+from ..runwriter import DEFAULT_CHUNK_FRAMES
+from ..store import create_store, open_or_create_store, open_store
+from ..zarrio import is_url
 from .robot import SENSOR_OFFSET, V_MAX, W_MAX, WHEEL_BASE, ExplorationPolicy, apply_slip, integrate
 from .sonar import SonarModel, check_psf
 from .world import load_world
@@ -199,7 +201,7 @@ def generate(
         raise SonarSetError(f"--psf: {exc}") from None
     plans = plan_runs(runs, test_runs, minutes, seed, world, snr_db, psf, processing)
     loc = os.fspath(out).removeprefix("file://")  # a local path: the store is created aside and renamed
-    if not _is_url(loc):
+    if not is_url(loc):
         _prepare_local(Path(loc), grid, processing, [p.name for p in plans])
     store = open_or_create_store(loc, grid, description=f"simulated by sonarset {__version__}",
                                  storage_options=storage_options, processing=processing, rig=simulator_rig())
