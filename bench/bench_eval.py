@@ -15,16 +15,16 @@ import platform
 import tempfile
 import time
 
-from sonarset import open_store
+from sonarset import RobotRig, open_store
 from sonarset.models.baselines import AcousticFlow, NaiveShift, Persistence
 from sonarset.models.evaluate import evaluate
 from sonarset.sim import generate
 
 
 def run(store, backend: str) -> tuple[float, dict]:
-    grid = store.grid
-    preds = {"persistence": Persistence(grid), "naive": NaiveShift(grid, backend=backend),
-             "flow": AcousticFlow(grid, sensor_offset=0.15, backend=backend)}
+    grid, rig = store.grid, store.rig or RobotRig()
+    preds = {"persistence": Persistence(grid), "naive": NaiveShift(grid, rig, backend=backend),
+             "flow": AcousticFlow(grid, rig, backend=backend)}
     t0 = time.perf_counter()
     res = evaluate(store, [], predictors=preds, samples=1000, horizons=(1, 3, 5, 10))
     return time.perf_counter() - t0, res.seconds

@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from sonarset import open_store
+from sonarset import RobotRig, open_store
 from sonarset.windows import FrameBank, WindowIndex, gather
 
 
@@ -43,6 +43,7 @@ def main() -> None:
     targets = batch.targets.astype(np.float32)
     rig = store.rig
     dt = bank.frame_interval_s or (rig.frame_interval_s if rig else 1 / store.attrs.frame_rate_hz)
+    baselines_rig = RobotRig(frame_interval_s=dt, sensor_offset_m=rig.sensor_offset_m if rig else 0.0)
     print(f"# bench_fade  {platform.node()}  {os.cpu_count()} cores  {time.strftime('%Y-%m-%d %H:%M')}  "
           f"{store.location}, {len(pick)} test windows, seed {args.seed}")
     print("| predictor | step | peak | energy > 0.05 | energy > 0.2 | pixel sum | pixels > 0.05 |")
@@ -52,7 +53,7 @@ def main() -> None:
         return float((x * (x > level)).sum(axis=(1, 2)).mean())
 
     for spec in args.models.split(","):
-        pred = make_predictor(spec, store.grid, dt=dt, sensor_offset=rig.sensor_offset_m if rig else 0.0)
+        pred = make_predictor(spec, store.grid, baselines_rig)
         out = rollout(pred, batch.frames.astype(np.float32), batch.commands.astype(np.float32), args.horizon)
         for h in range(args.horizon):
             p, t = out[:, h], targets[:, h]

@@ -43,7 +43,8 @@ def experiment_slip(
     device: str = typer.Option("cpu", "--device", help="Device for EchoPT: cpu, cuda, auto."),
 ) -> None:
     """Wheel-slip detection (paper Fig. 5) and its ROC AUC over random trajectories."""
-    from sonarset.models.experiments.slip import run_slip_experiment, write_slip_report
+    from sonarset.models.experiments.slip import run_slip_experiment
+    from sonarset.models.experiments.slip_report import write_slip_report
 
     models = [*_specs(baselines), _echopt_spec(model)]
     with progress_bar() as bar:
@@ -77,7 +78,8 @@ def experiment_control(
     device: str = typer.Option("cpu", "--device", help="Device for EchoPT: cpu, cuda, auto."),
 ) -> None:
     """Corridor control through noise bursts (paper Fig. 6): clean, bursts, bursts bridged by EchoPT."""
-    from sonarset.models.experiments.control import run_control_experiment, write_control_report
+    from sonarset.models.experiments.control import run_control_experiment
+    from sonarset.models.experiments.control_report import write_control_report
 
     models = [_echopt_spec(model), *_specs(compare)]
     with progress_bar() as bar:

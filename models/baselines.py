@@ -3,23 +3,26 @@
 A predictor maps a batch of windows, ``frames`` (B, n_in, R, A) and ``commands`` (B, n_in + 1, 2),
 to the next frame (B, R, A). ``commands[:, -1]`` is the command that moves the robot from the last
 input frame to the predicted one (DESIGN.md §2). These baselines use only the last frame and that
-command; EchoPT uses them all. No torch here: the baselines run wherever NumPy and SciPy do.
+command, turned into image motion by the robot's rig (frame interval, sensor offset); EchoPT uses
+them all. No torch here: the baselines run wherever NumPy and SciPy do.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import numpy as np
 from scipy import ndimage
 
-from sonarset.schema import SensorGrid
+from sonarset.schema import RobotRig, SensorGrid
+from sonarset.windows import N_IN
 
 
 class Predictor(Protocol):
     name: str
     grid: SensorGrid
+    n_in: int  # input frames per window
 
     def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray: ...
 
@@ -85,6 +88,8 @@ class Persistence:
 
     grid: SensorGrid
     name: str = "persistence"
+    # The baselines read only the last frame; they are fed the paper's windows.
+    n_in: ClassVar[int] = N_IN
 
     def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:
         return np.array(frames[:, -1], dtype=np.float32)
@@ -99,8 +104,9 @@ class NaiveShift:
     """
 
     grid: SensorGrid
-    dt: float = 0.2
+    rig: RobotRig
     name: str = "naive"
+    n_in: ClassVar[int] = N_IN
 
     backend: str = "torch"
 
@@ -110,7 +116,8 @@ class NaiveShift:
         w = arr(commands[:, -1, 1])[:, None, None]
         r = arr(self.grid.range_centres())[None, :, None]
         th = arr(self.grid.azimuth_centres())[None, None, :]
-        return _sample(frames[:, -1], self.grid, r + v * self.dt, th + w * self.dt, self.backend)
+        dt = self.rig.frame_interval_s
+        return _sample(frames[:, -1], self.grid, r + v * dt, th + w * dt, self.backend)
 
 
 @dataclass
@@ -118,16 +125,16 @@ class AcousticFlow:
     """Exact SE(2) warp of the last frame's pixels under the commanded motion (acoustic flow).
 
     Each pixel of the predicted frame is a point in the new sensor frame; moving it back through
-    the robot's arc (and the sensor's mount ``sensor_offset`` ahead of the axle) gives where it was
-    in the last frame, which is sampled bilinearly. Under pure translation this moves reflectors
-    along r sin(theta) = const. It keeps each pixel's value, so it deforms the sensor's
-    point-spread function, which is the weakness the paper points out.
+    the robot's arc over the rig's frame interval (the sensor mounted ``sensor_offset_m`` ahead of
+    the axle) gives where it was in the last frame, which is sampled bilinearly. Under pure
+    translation this moves reflectors along r sin(theta) = const. It keeps each pixel's value, so
+    it deforms the sensor's point-spread function, which is the weakness the paper points out.
     """
 
     grid: SensorGrid
-    dt: float = 0.2
-    sensor_offset: float = 0.0
+    rig: RobotRig
     name: str = "flow"
+    n_in: ClassVar[int] = N_IN
 
     backend: str = "torch"
 
@@ -135,17 +142,18 @@ class AcousticFlow:
         xp, arr = _xp(self.backend)
         cmd = np.asarray(commands[:, -1], dtype=np.float64)
         v, w = cmd[:, 0], cmd[:, 1]
-        phi = w * self.dt
+        dt, offset = self.rig.frame_interval_s, self.rig.sensor_offset_m
+        phi = w * dt
         # robot displacement over dt along the arc (exact unicycle integration from the origin)
         small = np.abs(w) < 1e-9
         w_safe = np.where(small, 1.0, w)
-        dx = np.where(small, v * self.dt, v / w_safe * np.sin(phi))
+        dx = np.where(small, v * dt, v / w_safe * np.sin(phi))
         dy = np.where(small, 0.0, v / w_safe * (1 - np.cos(phi)))
         c, s_, dx, dy = (arr(a)[:, None, None] for a in (np.cos(phi), np.sin(phi), dx, dy))
         r = arr(self.grid.range_centres())[None, :, None]
         th = arr(self.grid.azimuth_centres())[None, None, :]
         # point in the new sensor frame -> new robot frame -> old robot frame -> old sensor frame
-        xn, yn = r * xp.cos(th) + self.sensor_offset, r * xp.sin(th)
-        xo = c * xn - s_ * yn + dx - self.sensor_offset
+        xn, yn = r * xp.cos(th) + offset, r * xp.sin(th)
+        xo = c * xn - s_ * yn + dx - offset
         yo = s_ * xn + c * yn + dy
         return _sample(frames[:, -1], self.grid, xp.hypot(xo, yo), xp.arctan2(yo, xo), self.backend)

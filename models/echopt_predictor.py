@@ -15,6 +15,7 @@ class EchoPTPredictor:
         self.model, self.card, self.grid = model, card, grid
         self.device, self.batch_size = device, batch_size
         self.name = "echopt"
+        self.n_in = model.cfg.n_in  # input frames per window, as trained
         self.label = "echopt"  # names the checkpoint in notes: echopt-small, run-small/model
 
     @torch.no_grad()

@@ -3,22 +3,23 @@
 from __future__ import annotations
 
 from sonarset.errors import SonarSetError
-from sonarset.schema import SensorGrid
+from sonarset.schema import RobotRig, SensorGrid
 
 from .baselines import AcousticFlow, NaiveShift, Persistence, Predictor
 
 BASELINES = ("persistence", "naive", "flow")
 
 
-def make_predictor(spec: str, grid: SensorGrid, *, dt: float = 0.2, sensor_offset: float = 0.0,
-                   device: str = "cpu") -> Predictor:
+def make_predictor(spec: str, grid: SensorGrid, rig: RobotRig, *, device: str = "cpu") -> Predictor:
+    """The predictor for ``spec`` on ``grid``. The baselines turn commands into image motion with
+    ``rig`` (the robot that made the frames); EchoPT uses the rig it was trained on (its config)."""
     name, _, arg = spec.partition(":")
     if name == "persistence":
         return Persistence(grid)
     if name == "naive":
-        return NaiveShift(grid, dt=dt)
+        return NaiveShift(grid, rig)
     if name == "flow":
-        return AcousticFlow(grid, dt=dt, sensor_offset=sensor_offset)
+        return AcousticFlow(grid, rig)
     if name == "echopt":
         try:
             from .echopt_predictor import load_echopt_predictor

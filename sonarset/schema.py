@@ -228,6 +228,21 @@ class RobotRig(BaseModel):
                 f"wheel base {self.wheel_base_m:g} m, |v| <= {self.v_max_m_s:g} m/s, "
                 f"|omega| <= {self.omega_max_rad_s:g} rad/s")
 
+    def provenance(self) -> dict[str, float]:
+        """The rig as a simulated run's provenance (``RunAttrs.source``) records it. Format 1.0
+        stores have no ``rig`` attribute: :meth:`from_provenance` reads their rig back from there."""
+        return {"dt": self.frame_interval_s, "sensor_offset_m": self.sensor_offset_m, "wheel_base_m": self.wheel_base_m}
+
+    @classmethod
+    def from_provenance(cls, source: dict) -> RobotRig | None:
+        """The rig a simulated run's provenance records (:meth:`provenance`); None where it records
+        none or an invalid one. The speed limits are the defaults, which the simulator has always used."""
+        try:
+            return cls(frame_interval_s=float(source["dt"]), sensor_offset_m=float(source["sensor_offset_m"]),
+                       wheel_base_m=float(source["wheel_base_m"]))
+        except (KeyError, TypeError, ValueError):  # pydantic's ValidationError is a ValueError
+            return None
+
 
 class _Attrs(BaseModel):
     # Unknown keys are kept, not rejected: a 1.x reader must read a later 1.y store.

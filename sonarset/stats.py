@@ -79,6 +79,31 @@ def wilcoxon_p(d: np.ndarray) -> float:
     return float(stats.wilcoxon(d).pvalue) if len(d) >= 3 and np.any(d != 0) else float("nan")
 
 
+def auc(pos: np.ndarray, neg: np.ndarray) -> float:
+    """ROC AUC of a score separating ``pos`` from ``neg``: P(pos > neg) + P(tie) / 2 (Mann-Whitney U);
+    non-finite scores are dropped, NaN when either side is left empty."""
+    pos, neg = pos[np.isfinite(pos)], neg[np.isfinite(neg)]
+    if len(pos) == 0 or len(neg) == 0:
+        return float("nan")
+    return float(stats.mannwhitneyu(pos, neg).statistic / (len(pos) * len(neg)))
+
+
+def wilson_interval(k: int, n: int) -> tuple[float, float]:
+    """Wilson score 95% CI of the proportion k / n; NaNs for n = 0."""
+    if not n:
+        return float("nan"), float("nan")
+    ci = stats.binomtest(k, n).proportion_ci(method="wilson")
+    return float(ci.low), float(ci.high)
+
+
+def mcnemar_p(a: np.ndarray, b: np.ndarray) -> float:
+    """McNemar's exact test of paired outcomes (booleans, one pair per run): a binomial test on the
+    discordant pairs; NaN when there are none."""
+    a, b = np.asarray(a, bool), np.asarray(b, bool)
+    n01, n10 = int((~a & b).sum()), int((a & ~b).sum())
+    return float(stats.binomtest(n10, n01 + n10).pvalue) if n01 + n10 else float("nan")
+
+
 def holm(pvalues: list[float]) -> list[float]:
     """Holm-Bonferroni adjusted p-values (family-wise error), NaNs passed through."""
     p = np.asarray(pvalues, float)

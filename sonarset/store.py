@@ -71,9 +71,9 @@ class SonarStore:
         """The robot geometry: the store's ``rig`` attribute (1.1), else None when unknown.
 
         Backward compatibility: a store without ``rig`` (format 1.0) whose complete runs were all
-        made by the simulator gets the rig recorded in their provenance (``dt``, ``sensor_offset_m``,
-        ``wheel_base_m``; speed limits: the defaults). This is the one place that reads geometry
-        from the free-form ``source``.
+        made by the simulator gets the rig recorded in their provenance
+        (:meth:`RobotRig.from_provenance`). This is the one place that reads geometry from the
+        free-form ``source``.
         """
         if self.attrs.rig is not None:
             return self.attrs.rig
@@ -87,13 +87,10 @@ class SonarStore:
         rigs = set()
         for name in self.runs():
             src = self.run(name).attrs.source
-            if src.get("kind") != "simulator":
+            rig = RobotRig.from_provenance(src) if src.get("kind") == "simulator" else None
+            if rig is None:
                 return None
-            try:
-                rigs.add(RobotRig(frame_interval_s=float(src["dt"]), sensor_offset_m=float(src["sensor_offset_m"]),
-                                  wheel_base_m=float(src["wheel_base_m"])))
-            except (KeyError, TypeError, ValueError):  # pydantic's ValidationError is a ValueError
-                return None
+            rigs.add(rig)
         return rigs.pop() if len(rigs) == 1 else None
 
     def run_attrs(self, name: str) -> RunAttrs | None:

@@ -454,9 +454,9 @@ def test_eval_takes_dt_from_the_time_stamps(tmp_path, monkeypatch):
     seen = []
     real = registry.make_predictor
 
-    def spy(spec, grid, **kw):
-        seen.append(kw["dt"])
-        return real(spec, grid, **kw)
+    def spy(spec, grid, rig, **kw):
+        seen.append(rig.frame_interval_s)
+        return real(spec, grid, rig, **kw)
 
     monkeypatch.setattr(registry, "make_predictor", spy)
     res = evaluate(s, ["naive", "flow"], horizons=(1,), samples=5)

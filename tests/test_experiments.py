@@ -13,10 +13,10 @@ from sonarset.models.checkpoint import save_checkpoint
 from sonarset.models.echopt import EchoPT, make_config
 from sonarset.models.experiments.common import predictor
 from sonarset.models.experiments.control import BurstSchedule, Episode, run_control_experiment, run_episode
-from sonarset.models.experiments.slip import (
-    SlipPeriod, SlipTrial, frame_labels, run_slip_experiment, slip_signals, write_slip_report,
-)
+from sonarset.models.experiments.slip import SlipPeriod, SlipTrial, frame_labels, run_slip_experiment, slip_signals
+from sonarset.models.experiments.slip_report import write_slip_report
 from sonarset.schema import Processing, SensorGrid
+from sonarset.windows import N_IN
 from sonarset.sim.robot import apply_slip, integrate
 from sonarset.sim.sonar import SonarModel
 from sonarset.sim.world import CircleSpec, SpawnBox, WallSpec, World, WorldSpec, corridor_world, lab_world
@@ -58,7 +58,7 @@ def test_slip_raises_the_flow_detector_signal(processing):
     still = slip_signals(predictor("persistence", GRID), images, commands, (1, 3))
     for h in (1, 3):
         eps, base = flow[h], still[h]
-        lab = frame_labels(slip, h)
+        lab = frame_labels(slip, h, N_IN)
         assert lab["both"].sum() == 15 + h - 1 and not (lab["both"] & lab["clean"]).any()
         assert np.isnan(eps[:2 + h]).all() and (eps[2 + h:] > 0).all()
         ratio = eps / base
@@ -90,9 +90,13 @@ def test_one_rollout_serves_every_horizon():
 def test_slip_labels_follow_the_horizon():
     slip = np.ones((20, 2))
     slip[8:10] = (0.2, 1.0)
-    lab = frame_labels(slip, 3)
+    lab = frame_labels(slip, 3, 3)
     assert np.flatnonzero(lab["one"]).tolist() == [8, 9, 10, 11]  # moves t-2..t touch frames 8-9
     assert not lab["clean"][8:14].any() and lab["clean"][[5, 7, 14]].all() and not lab["clean"][:5].any()
+    # windows of 4 frames: the first labelled frame and the slip-free span (inputs' moves) grow by one
+    four = frame_labels(slip, 3, 4)
+    assert np.array_equal(four["one"], lab["one"]) and four["clean"][[6, 7, 15]].all()
+    assert not four["clean"][:6].any() and not four["clean"][14]
     assert SlipPeriod(1, 2, (0.2, 0.3)).kind == "both" and SlipPeriod(1, 2, (1.0, 0.3)).kind == "one"
 
 
@@ -126,7 +130,7 @@ def test_burst_detector_finds_injected_bursts_and_leaves_clean_frames(processing
     assert min(detect.coverage(f) for f in burst) > 0.8
     if processing.profile == "ertis":  # the post-processing leaves few bright pixels in a burst
         assert np.mean([(f > 0.5).mean() for f in burst]) < 0.2
-    on = BurstSchedule().frames(np.random.default_rng(0), 5000)
+    on = BurstSchedule().frames(np.random.default_rng(0), 5000, 0.2)
     assert 0.25 < on.mean() < 0.35  # about 30% of the time, in bursts of 1.2 s
     starts = np.flatnonzero(np.diff(on.astype(int)) == 1) + 1
     assert all(on[s:s + 6].all() for s in starts[:-1])

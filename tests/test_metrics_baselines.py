@@ -6,11 +6,15 @@ import numpy as np
 import pytest
 
 from sonarset.metrics import cc, nrmsd, slip_error
-from sonarset.schema import SensorGrid
-from sonarset.stats import compare, holm
+from sonarset.schema import RobotRig, SensorGrid
+from sonarset.stats import auc, compare, holm, mcnemar_p, wilson_interval
+from sonarset.windows import N_IN
 from sonarset.models.baselines import AcousticFlow, NaiveShift, Persistence, rollout
+from sonarset.models.registry import make_predictor
 
 GRID = SensorGrid.default()
+RIG = RobotRig()
+ON_AXLE = RobotRig(sensor_offset_m=0.0)  # a rotation turns the sensor on the spot
 
 
 def test_cc_nrmsd_slip_by_hand():
@@ -46,13 +50,13 @@ def test_persistence_copies_the_last_frame():
     assert np.array_equal(out, frames[:, -1])
 
 
-@pytest.mark.parametrize("predictor", [NaiveShift(GRID), AcousticFlow(GRID, sensor_offset=0.0),
-                                       NaiveShift(GRID, backend="scipy")])
+@pytest.mark.parametrize("predictor", [NaiveShift(GRID, ON_AXLE), AcousticFlow(GRID, ON_AXLE),
+                                       NaiveShift(GRID, ON_AXLE, backend="scipy")])
 def test_pure_rotation_shifts_azimuth_exactly(predictor):
     rng = np.random.default_rng(2)
     frames = rng.random((1, 3, *GRID.shape)).astype(np.float32)
     k = 3  # bins
-    omega = k * GRID.azimuth_step / 0.2
+    omega = k * GRID.azimuth_step / ON_AXLE.frame_interval_s
     out = predictor.predict(frames, np.array([[[0, 0]] * 3 + [[0.0, omega]]]))
     # turning left by k bins: what was at azimuth theta + k bins is now at theta
     np.testing.assert_allclose(out[0, :, :-k], frames[0, -1, :, k:], atol=1e-4)  # float32 grids
@@ -64,8 +68,9 @@ def test_flow_moves_a_reflector_along_its_flow_line():
     blob = np.exp(-(((rr - r0) / 0.02) ** 2 + ((tt - th0) / math.radians(2)) ** 2) / 2)
     frames = np.repeat(blob[None, None].astype(np.float32), 3, axis=1)
     v = 0.3
-    flow = AcousticFlow(GRID, dt=1.0).predict(frames, np.array([[[0, 0]] * 3 + [[v, 0.0]]]))[0]
-    naive = NaiveShift(GRID, dt=1.0).predict(frames, np.array([[[0, 0]] * 3 + [[v, 0.0]]]))[0]
+    one_second = RobotRig(frame_interval_s=1.0, sensor_offset_m=0.0)
+    flow = AcousticFlow(GRID, one_second).predict(frames, np.array([[[0, 0]] * 3 + [[v, 0.0]]]))[0]
+    naive = NaiveShift(GRID, one_second).predict(frames, np.array([[[0, 0]] * 3 + [[v, 0.0]]]))[0]
     # where the reflector really is after moving 0.3 m forward
     x, y = r0 * math.cos(th0) - v, r0 * math.sin(th0)
     r1, th1 = math.hypot(x, y), math.atan2(y, x)
@@ -82,9 +87,37 @@ def test_torch_and_scipy_warps_agree():
     frames = rng.random((4, 3, *GRID.shape)).astype(np.float32)
     cmds = np.c_[rng.uniform(-0.3, 0.3, 16), rng.uniform(-1, 1, 16)].reshape(4, 4, 2)
     for cls in (NaiveShift, AcousticFlow):
-        a = cls(GRID, backend="torch").predict(frames, cmds)
-        b = cls(GRID, backend="scipy").predict(frames, cmds)
+        a = cls(GRID, RIG, backend="torch").predict(frames, cmds)
+        b = cls(GRID, RIG, backend="scipy").predict(frames, cmds)
         np.testing.assert_allclose(a, b, atol=1e-4)
+
+
+def test_baselines_take_the_rig_and_the_window_geometry():
+    """The sensor offset and frame interval reach the baselines through the rig alone."""
+    rig = RobotRig(frame_interval_s=0.1, sensor_offset_m=0.05)
+    for spec in ("persistence", "naive", "flow"):
+        p = make_predictor(spec, GRID, rig)
+        assert p.n_in == N_IN and getattr(p, "rig", rig) is rig
+    frames = np.random.default_rng(4).random((1, 3, *GRID.shape)).astype(np.float32)
+    cmds = np.array([[[0, 0]] * 3 + [[0.3, 0.5]]])
+    # the same motion: twice the speed over half the time
+    np.testing.assert_allclose(AcousticFlow(GRID, rig).predict(frames, cmds),
+                               AcousticFlow(GRID, RobotRig(frame_interval_s=0.2, sensor_offset_m=0.05))
+                               .predict(frames, cmds / 2), atol=1e-5)
+    assert not np.allclose(AcousticFlow(GRID, rig).predict(frames, cmds),
+                           AcousticFlow(GRID, RobotRig(frame_interval_s=0.1, sensor_offset_m=0.0)).predict(frames, cmds))
+
+
+def test_auc_wilson_and_mcnemar():
+    assert auc(np.array([3.0, 4.0]), np.array([1.0, 2.0])) == 1.0
+    assert auc(np.array([1.0, 2.0, np.nan]), np.array([1.0, 2.0])) == 0.5  # ties count half, NaN dropped
+    assert math.isnan(auc(np.array([np.nan]), np.array([1.0])))
+    lo, hi = wilson_interval(5, 10)
+    assert lo == pytest.approx(0.2366, abs=1e-4) and hi == pytest.approx(0.7634, abs=1e-4)
+    assert all(math.isnan(x) for x in wilson_interval(0, 0))
+    a = np.array([True] * 8 + [False] * 2)
+    assert mcnemar_p(a, ~a) == pytest.approx(0.109375)  # 8 vs 2 discordant pairs: binomial, two-sided
+    assert math.isnan(mcnemar_p(a, a))
 
 
 class AddOne:

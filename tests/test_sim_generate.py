@@ -112,7 +112,7 @@ def test_generated_commands_and_poses_are_aligned(tmp_path):
 def test_exploration_covers_commands_and_never_collides():
     world = lab_world(5)
     rng = np.random.default_rng(0)
-    policy = ExplorationPolicy(world, rng)
+    policy = ExplorationPolicy(world, rng, dt=0.2)
     pose = world.sample_spawn(rng)
     cmds, clear = [], []
     for _ in range(3000):

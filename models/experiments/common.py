@@ -13,10 +13,11 @@ from sonarset.perf import keep_freed_memory
 from sonarset.errors import SonarSetError
 from sonarset.schema import Processing, SensorGrid
 from sonarset.stats import bootstrap_ci
-from sonarset.sim.generate import simulator_rig
+from sonarset.sim.runs import simulator_rig
 
 _PREDICTORS: dict = {}
-#: The robot the experiments simulate; the predictors warp by its frame interval and sensor offset.
+#: The robot the experiments simulate, at its frame interval; the baselines warp by its frame
+#: interval and sensor offset.
 RIG = simulator_rig()
 
 
@@ -26,8 +27,7 @@ def predictor(spec: str, grid: SensorGrid, device: str = "cpu"):
     if key not in _PREDICTORS:
         from ..registry import make_predictor
 
-        _PREDICTORS[key] = make_predictor(spec, grid, dt=RIG.frame_interval_s, sensor_offset=RIG.sensor_offset_m,
-                                           device=device)
+        _PREDICTORS[key] = make_predictor(spec, grid, RIG, device=device)
     return _PREDICTORS[key]
 
 

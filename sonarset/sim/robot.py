@@ -55,7 +55,7 @@ class ExplorationPolicy:
 
     world: World
     rng: np.random.Generator
-    dt: float = 0.2
+    dt: float  # s, the frame interval (the rig's): the policy chooses one command per frame
     tau: float = 2.0  # s, correlation time of the desired commands
     lookahead: float = 1.6  # s
     margin: float = 0.08  # m, beyond the robot radius

@@ -1,0 +1,149 @@
+"""The control experiment's report: metrics.json, report.md and the paper's Fig. 6, from a
+:class:`~.control.ControlResult` (computed by :func:`~.control.run_control_experiment`)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from sonarset.atomic import atomic_text, save_figure
+from sonarset.control import BurstDetector
+from sonarset.plots import pyplot
+from sonarset.report import format_p
+from sonarset.sim.world import World, corridor_world
+
+from .common import finite_or_none
+from .control import GOAL_RADIUS, ControlResult
+
+FIGURE = "fig6_control.png"
+#: What metrics.json keeps of each run (the trajectories and per-frame flags stay out).
+PER_RUN_KEYS = ("index", "condition", "outcome", "travel_time_s", "midline_deviation_m", "layers")
+
+
+def write_control_report(res: ControlResult, out: str | os.PathLike) -> Path:
+    """metrics.json, fig6_control.png and report.md in ``out`` (created)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_text(out / "metrics.json", json.dumps(finite_or_none(control_metrics(res)), indent=2) + "\n")
+    save_figure(fig6(res), out / FIGURE)
+    lines = [*outcome_table(res), *tests_table(res), *detector_and_gains(res),
+             "", f"![Fig. 6]({FIGURE})", "", f"{res.seconds:.0f} s in all."]
+    atomic_text(out / "report.md", "\n".join(lines) + "\n")
+    return out
+
+
+def control_metrics(res: ControlResult) -> dict:
+    """The metrics.json document."""
+    per_run = [{k: v for k, v in r.items() if k in PER_RUN_KEYS} for rs in res.episodes.values() for r in rs]
+    return {"experiment": "control", "model": res.model, "runs": res.runs, "conditions": list(res.episodes),
+            "summary": res.summary, "tests": res.comparisons, "burst_detector": res.detector,
+            "controller_gains": res.gains, "processing": res.processing.model_dump(), "per_run": per_run,
+            "seconds": res.seconds}
+
+
+def outcome_table(res: ControlResult) -> list[str]:
+    """The title, the setup, and per condition: outcomes, travel time and midline deviation."""
+    lines = ["# Corridor control through noise bursts (EchoPT paper, Fig. 6)", "",
+             f"{res.runs} runs per condition from the same random spawn poses; bursts: SNR -80 dB for 1.2 s, "
+             f"about 30% of the time; predictors bridging the bursts: `{res.model}`. Images: "
+             f"{res.processing.describe()} (the bridging models' training images).", "",
+             "| condition | success | collision | timeout | success rate 95% CI | travel time [s] mean [CI] (median) | "
+             "midline deviation [m] mean [CI] |", "| --- | ---: | ---: | ---: | --- | --- | --- |"]
+    for c, s in res.summary.items():
+        tt, dv = s["travel_time_s"], s["midline_deviation_m"]
+        lines.append(f"| {c} | {s['success']} | {s['collision']} | {s['timeout']} | "
+                     f"{s['success_rate_ci'][0]:.2f}-{s['success_rate_ci'][1]:.2f} | "
+                     f"{tt['mean']:.1f} [{tt['ci_low']:.1f}, {tt['ci_high']:.1f}] ({tt['median']:.1f}) | "
+                     f"{dv['mean']:.3f} [{dv['ci_low']:.3f}, {dv['ci_high']:.3f}] |")
+    return lines
+
+
+def tests_table(res: ControlResult) -> list[str]:
+    """The paired tests between conditions."""
+    lines = ["", "Paired tests between conditions (same spawn poses): Wilcoxon signed-rank on travel time (runs "
+             "that succeeded in both) and deviation, McNemar's exact test on success; Holm-corrected.", "",
+             "| a vs b | metric | pairs | mean a - b | p (Holm) |", "| --- | --- | ---: | ---: | ---: |"]
+    for c in res.comparisons:
+        lines.append(f"| {c['a']} vs {c['b']} | {c['metric']} | {c['n_pairs']} | {c['mean_diff']:+.3f} | "
+                     f"{format_p(c['p_holm'])} |")
+    return lines
+
+
+def detector_and_gains(res: ControlResult) -> list[str]:
+    """The burst detector's scores and the controller's gains, a sentence each."""
+    det = res.detector
+    return ["", f"Burst detector (range bins with a pixel above {BurstDetector.level} > {BurstDetector.max_coverage:.0%}): "
+            + "; ".join(f"{c}: recall {d['recall']:.3f}, precision {d['precision']:.3f} over {d['frames']} frames"
+                        for c, d in det.items() if isinstance(d, dict))
+            + (f"; false alarms on clean frames {det['false_positive_rate_clean']:.4f}"
+               if "false_positive_rate_clean" in det else "") + ".",
+            "", "Controller gains: " + ", ".join(f"{k} = {v}" for k, v in res.gains.items()) + "."]
+
+
+def fig6(res: ControlResult):
+    """a-c trajectory densities per condition, d travel times, e midline deviations, f an SNR trace."""
+    plt = pyplot()
+    world = corridor_world()
+    conds = list(res.episodes)
+    fig = plt.figure(figsize=(13, 2.2 * len(conds) + 3))
+    gs = fig.add_gridspec(len(conds) + 1, 3)
+    for i, c in enumerate(conds):
+        trajectory_density(fig.add_subplot(gs[i, :]), world, res, c, chr(ord("a") + i))
+    letter = lambda k: chr(ord("a") + len(conds) + k)  # noqa: E731 - panel letters after the maps
+    box_panel(fig.add_subplot(gs[-1, 0]), res, "travel_time_s", "travel time [s]",
+              f"{letter(0)}) travel time (successful runs)")
+    box_panel(fig.add_subplot(gs[-1, 1]), res, "midline_deviation_m", "mean |y| [m]", f"{letter(1)}) midline deviation")
+    snr_panel(fig.add_subplot(gs[-1, 2]), res, letter(2))
+    fig.suptitle("Corridor control through noise bursts (EchoPT paper, Fig. 6)")
+    fig.tight_layout()
+    return fig
+
+
+def trajectory_density(ax, world: World, res: ControlResult, condition: str, letter: str) -> None:
+    """Where the runs of one condition drove, over the corridor's reflectors, spawn boxes and goal."""
+    plt = pyplot()
+    x_edges = np.arange(-0.5, world.waypoint[0] + 1.0, 0.02)
+    y_edges = np.arange(-1.2, 1.2 + 1e-9, 0.02)
+    pts = np.concatenate([r["pose"][:, :2] for r in res.episodes[condition]])
+    # Trajectory density: a Gaussian kernel density estimate on a 2 cm grid (5 cm kernel),
+    # with a fixed bandwidth so that conditions compare; square-root colour scale.
+    hist, _, _ = np.histogram2d(pts[:, 0], pts[:, 1], bins=[x_edges, y_edges])
+    dens = ndimage.gaussian_filter(hist, 2.5)
+    ax.pcolormesh(x_edges, y_edges, np.sqrt(dens.T / max(dens.max(), 1e-12)), cmap="viridis", shading="flat")
+    ax.scatter(world.circ_c[:, 0], world.circ_c[:, 1], s=12, c="tab:red", label="reflectors")
+    for box in world.spawn:
+        ax.add_patch(plt.Rectangle((box.x[0], box.y[0]), box.x[1] - box.x[0], box.y[1] - box.y[0],
+                                   fill=False, ec="lime", lw=1.5))
+    ax.add_patch(plt.Circle(world.waypoint, GOAL_RADIUS, fill=False, ec="lime", lw=1.5))
+    s = res.summary[condition]
+    ax.set_title(f"{letter}) {condition}: {s['success']}/{s['runs']} reached, {s['collision']} collisions",
+                 fontsize=10, loc="left")
+    ax.set_aspect("equal")
+    ax.set_xlim(x_edges[0], x_edges[-1])
+    ax.set_ylim(y_edges[0], y_edges[-1])
+
+
+def box_panel(ax, res: ControlResult, key: str, ylabel: str, title: str) -> None:
+    """A box per condition of one per-run value (runs where it is undefined left out)."""
+    conds = list(res.episodes)
+    ax.boxplot([[r[key] for r in res.episodes[c] if np.isfinite(r[key])] or [np.nan] for c in conds],
+               tick_labels=conds)
+    ax.tick_params(axis="x", labelrotation=15)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=10, loc="left")
+
+
+def snr_panel(ax, res: ControlResult, letter: str) -> None:
+    """The effective SNR over the first 30 s of the first run with bursts."""
+    conds = list(res.episodes)
+    trace = next((r for c in conds if c != "clean" for r in res.episodes[c]), None) or res.episodes[conds[0]][0]
+    t = np.arange(len(trace["snr_db"])) * res.rig.frame_interval_s
+    ax.plot(t, np.clip(trace["snr_db"], -100, 40), lw=1)
+    ax.set_xlim(0, min(30, t[-1] if len(t) else 30))
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("SNR at the microphones [dB]")
+    ax.set_title(f"{letter}) effective SNR, run 0 of {trace['condition']}", fontsize=10, loc="left")
