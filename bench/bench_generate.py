@@ -20,7 +20,7 @@ import tempfile
 import time
 
 from sonarset.schema import Processing, SensorGrid
-from sonarset.sim.generate import generate, plan_runs, simulate_blocks
+from sonarset.sim import generate, plan_runs, simulate_blocks
 from sonarset.sim.sonar import beam_table, range_psf_table
 
 

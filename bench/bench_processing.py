@@ -24,7 +24,7 @@ import numpy as np
 from sonarset import open_store
 from sonarset.models.evaluate import evaluate
 from sonarset.schema import Processing, SensorGrid
-from sonarset.sim.generate import generate
+from sonarset.sim import generate
 from sonarset.sim.sonar import SonarModel
 from sonarset.sim.world import load_world
 

@@ -37,7 +37,7 @@ DRIVER = r"""
 import json, os, signal, sys, threading, uuid
 import zarr.storage._local as zlocal
 from sonarset.cli.app import app
-import sonarset.sim.generate
+import sonarset.sim.generation
 
 plan, argv = json.loads(sys.argv[1]), sys.argv[2:]
 orig, lock, count = zlocal._put, threading.Lock(), [0]

@@ -47,7 +47,7 @@ def test_wheel_installs_in_fresh_venv(tmp_path):
     # the sonarset that imports is the wheel's and never the checkout's.
     deps = sysconfig.get_paths()["purelib"]
     code = (f"import sys; sys.path.append({deps!r}); "
-            "import sonarset, sonarset.models, sonarset.cli.app, sonarset.store, sonarset.sim.generate, "
+            "import sonarset, sonarset.models, sonarset.cli.app, sonarset.store, sonarset.sim.generation, "
             "sonarset.models.experiments.control; "
             f"assert sonarset.__file__.startswith({str(venv)!r}), sonarset.__file__; "
             "import importlib.util as u; "
@@ -60,3 +60,63 @@ def test_wheel_installs_in_fresh_venv(tmp_path):
     res = subprocess.run([str(venv / "bin" / "sonarset"), "--version"], capture_output=True, text=True,
                          env={**os.environ, "PYTHONPATH": deps})
     assert res.returncode == 0 and "sonarset" in res.stdout, res.stderr
+
+
+def _imports(module: str, path: Path, modules: set[str]) -> set[str]:
+    """The modules of ``modules`` that ``module`` (its source at ``path``) imports, lazily or not;
+    imports under ``if TYPE_CHECKING:`` (annotations only) do not count."""
+    import ast
+
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    found, stack = set(), [ast.parse(path.read_text())]
+    while stack:
+        node = stack.pop()
+        if isinstance(node, ast.If) and getattr(node.test, "id", getattr(node.test, "attr", None)) == "TYPE_CHECKING":
+            stack.extend(node.orelse)
+            continue
+        stack.extend(ast.iter_child_nodes(node))
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = package.split(".")[: len(package.split(".")) - node.level + 1] if node.level else []
+            target = ".".join(base + ([node.module] if node.module else [])) if node.level else node.module
+            found |= {target} | {f"{target}.{a.name}" for a in node.names}
+    return (found & modules) - {module}
+
+
+def test_no_import_cycle_in_sonarset():
+    """No module of ``sonarset/`` imports, even lazily, one that imports it back (nor the package
+    itself, whose ``__init__`` imports the store)."""
+    root = ROOT / "sonarset"
+    paths = {}
+    for p in root.rglob("*.py"):
+        parts = ("sonarset", *p.relative_to(root).with_suffix("").parts)
+        paths[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = p
+    graph = {m: _imports(m, p, set(paths)) for m, p in paths.items()}
+    cycles = []
+    for start in graph:  # a depth-first walk from each module back to itself
+        stack, seen = [(start, [start])], set()
+        while stack:
+            node, trail = stack.pop()
+            for nxt in sorted(graph[node]):
+                if nxt == start:
+                    cycles.append(" -> ".join([*trail, start]))
+                elif nxt not in seen:
+                    seen.add(nxt)
+                    stack.append((nxt, [*trail, nxt]))
+    assert not cycles, "import cycles:\n" + "\n".join(sorted(set(cycles)))
+
+
+def test_no_package_attribute_shadows_one_of_its_modules():
+    """``from sonarset.sim import generate`` is the function: no module of that name hides behind it."""
+    import importlib
+    import types
+
+    for init in (ROOT / "sonarset").rglob("__init__.py"):
+        package = ".".join(("sonarset", *init.parent.relative_to(ROOT / "sonarset").parts))
+        if package.startswith(("sonarset.models", "sonarset.cli")):
+            continue
+        pkg = importlib.import_module(package)
+        for path in (p for p in init.parent.glob("*.py") if p.name != "__init__.py"):
+            value = getattr(pkg, path.stem, None)
+            assert value is None or isinstance(value, types.ModuleType), f"{package}.{path.stem} is shadowed by {value!r}"

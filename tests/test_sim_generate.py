@@ -80,7 +80,7 @@ def test_blocks_rendered_two_at_a_time_are_the_same_blocks():
     so the arrays do not change."""
     import threading
 
-    from sonarset.sim.generate import plan_runs, simulate_blocks
+    from sonarset.sim import plan_runs, simulate_blocks
 
     plan = plan_runs(1, 0, 0.9, seed=5)[0]  # 270 frames: 5 blocks, an odd count
     one = list(simulate_blocks(plan, SMALL))

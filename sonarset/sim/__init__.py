@@ -1,7 +1,8 @@
 """The sonar simulator: worlds, a differential-drive robot, and an eRTIS-like imaging sonar."""
 
-from .generate import generate, plan_runs, simulate_blocks
+from .generation import generate
 from .robot import ExplorationPolicy, apply_slip, integrate, sensor_pose
+from .runs import plan_runs, simulate_blocks
 from .sonar import SonarModel, visible_echoes
 from .world import World, WorldSpec, corridor_world, lab_world, load_world
 

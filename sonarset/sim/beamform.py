@@ -41,7 +41,8 @@ from scipy import signal
 
 from ..schema import SensorGrid
 from .energyscape import BEAMFORMERS, dmas3
-from .sonar import C_SOUND, envelope_lowpass
+from .ertis import C_SOUND
+from .sonar import envelope_lowpass
 
 FS_PROCESS = 200e3  # Hz: the reference's rate; the fast path's output runs at fs_in / floor(fs_in / this)
 UPSAMPLED_HZ = 3.2e6  # the fast path's steering grid: delays rounded to 1 / (2 x this)

@@ -1,8 +1,8 @@
 """Run generation tasks on a Dask distributed cluster (``sonarset generate --scheduler``).
 
-One task per run, exactly the function the local process pool runs: the task simulates its run
-from the run's own seed and writes the run group to the target store, so the store is the same
-bit for bit whatever the cluster. Progress comes back through a Dask ``Queue``.
+One task per run, exactly the function the local process pool runs (``runs.write_run``): the task
+simulates its run from the run's own seed and writes the run group to the target store, so the
+store is the same bit for bit whatever the cluster. Progress comes back through a Dask ``Queue``.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ import uuid
 
 from ..errors import SonarSetError
 from ..schema import SensorGrid
+from .runs import write_run
 
 CONNECT_TIMEOUT = "15s"  # how long to wait for a scheduler address to answer
 
@@ -40,13 +41,11 @@ def run_on_dask(scheduler, location: str, plans: list, grid: SensorGrid, workers
                 storage_options: dict | None, progress, store) -> None:
     from distributed import Queue
 
-    from .generate import _write_run
-
     client, cluster = connect(scheduler, workers)
     try:
         tag = uuid.uuid4().hex[:8]
         queue = Queue(f"sonarset-progress-{tag}", client=client)
-        futures = [client.submit(_write_run, location, p, grid, queue, storage_options,
+        futures = [client.submit(write_run, location, p, grid, queue, storage_options,
                                  key=f"sonarset-generate-{p.name}-{tag}", pure=False, retries=0) for p in plans]
         done = {p.name: 0 for p in plans}
         total = {p.name: p.n_frames for p in plans}

@@ -23,6 +23,7 @@ import numpy as np
 from scipy import ndimage, special
 
 from ..schema import Processing, SensorGrid
+from .ertis import C_SOUND, F_HI, F_LO, microphone_y
 
 #: Beamformers that the simulator implements.
 BEAMFORMERS = ("das", "dmas3-cf")
@@ -50,8 +51,6 @@ def dmas3_beam_table(n: int = 4001, n_phase: int = 24) -> tuple[np.ndarray, np.n
     includes the odd harmonics the cube roots make, which the envelope keeps). Tabulated coarsely
     in Δu and interpolated: the pattern is smooth on the 0.005 step used.
     """
-    from .sonar import C_SOUND, F_HI, F_LO, microphone_y
-
     y = microphone_y()
     du_coarse = np.linspace(-2, 2, 801)
     phase = 2 * np.pi * np.arange(n_phase) / n_phase

@@ -20,7 +20,8 @@ from scipy import fft as sfft
 from ..schema import SensorGrid
 from .beamform import band_bins, band_envelope, range_samples, steering, sweep_norm
 from .energyscape import BEAMFORMERS
-from .sonar import C_SOUND, F_HI, F_LO, SWEEP_S, Echoes, microphone_y, sweep
+from .ertis import C_SOUND, F_HI, F_LO, SWEEP_S, microphone_y
+from .sonar import Echoes, sweep
 
 FS_REF = 200e3  # Hz: above Nyquist for the 50 kHz top of the sweep
 

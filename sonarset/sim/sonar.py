@@ -30,10 +30,8 @@ peak of a perfect wall at normal incidence at the minimum range 0.5 m.
 
 from __future__ import annotations
 
-import csv
 import functools
 from dataclasses import dataclass, field
-from importlib import resources
 
 import numpy as np
 from scipy import fft as sfft
@@ -41,13 +39,12 @@ from scipy import signal, special
 
 from ..schema import Processing, SensorGrid
 from .energyscape import dmas3_beam_table, dmas3_noise_gain, postprocess, smooth
+from .ertis import C_SOUND, F_HI, F_LO, SWEEP_S, microphone_y
 from .kernels import accumulate_psf_coherence, coherence_amplitude, reflector_echoes
 from .robot import sensor_pose
 from .world import World
 
-C_SOUND = 343.0
 ABSORPTION_DB_PER_M = 1.3
-F_LO, F_HI, SWEEP_S = 25e3, 50e3, 2.5e-3
 ENVELOPE_LP_HZ = 6e3
 EMITTER_RADIUS = 0.004
 SPECULAR_N = 6
@@ -59,14 +56,6 @@ NOISE_FLOOR_DB = -55.0
 DYNAMIC_RANGE_DB = 60.0
 FS = 500e3  # sampling rate for tabulating the range PSF
 WALL_STEP = 0.02  # m between wall samples; energies are weighted by it, so images do not depend on it
-
-
-def microphone_y() -> np.ndarray:
-    """Horizontal (y, positive left) positions of the 32 eRTIS microphones, metres."""
-    text = resources.files("sonarset").joinpath("data/ertis32_microphones.csv").read_text()
-    rows = [r for r in csv.reader(text.splitlines()) if r and not r[0].startswith("#")]
-    header = rows[0]
-    return np.array([float(r[header.index("y")]) for r in rows[1:]])
 
 
 def sweep(fs: float = FS) -> np.ndarray:

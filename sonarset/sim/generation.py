@@ -1,0 +1,150 @@
+"""Generate SonarSet stores of simulated runs: parallel, deterministic, resumable.
+
+The runs are planned from the master seed (``runs``), then simulated by a local process pool
+(``local_pool``) or a Dask cluster (``distributed``), each task writing its own run group. Re-running
+the same command keeps every complete run (the plan recorded in its ``source`` must match) and
+redoes the others.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+from typing import Callable
+
+from ..atomic import aside_dir, remove_stale_asides, settle_zarr_writes
+from ..errors import SonarSetError, first_os_error, os_error_reason
+from ..schema import Processing, SensorGrid
+from ..store import SonarStore, create_store, open_or_create_store
+from ..version import __version__
+from ..zarrio import is_url
+from .runs import RunPlan, plan_runs, simulator_rig
+from .sonar import check_psf
+from .world import load_world
+
+DESCRIPTION = f"simulated by sonarset {__version__}"
+
+
+def generate(
+    out: str | os.PathLike,
+    *,
+    runs: int = 10,
+    test_runs: int = 1,
+    minutes: float = 25.0,
+    seed: int = 0,
+    world: str = "lab",
+    snr_db: float = 5.0,
+    psf: str = "array",
+    processing: Processing | str = "ertis",
+    workers: int | None = None,
+    grid: SensorGrid | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+    scheduler=None,
+    storage_options: dict | None = None,
+) -> list[str]:
+    """Simulate the runs into the store ``out`` (a path or any fsspec URL); returns the names of the
+    runs written now.
+
+    Runs go to a local process pool, or, with ``scheduler``, to a Dask distributed cluster: an
+    address (``tcp://host:8786``), ``"local"`` for a ``LocalCluster`` of ``workers`` processes, or a
+    ``distributed.Client``. Each task writes its own run group to ``out``, which every worker must
+    reach (a shared file system or object storage). The arrays are the same either way.
+
+    ``processing`` is a profile name (``ertis``, the default, or ``raw``) or ``Processing`` settings;
+    the store records it, with the robot's rig, in its attributes.
+    """
+    grid = grid or SensorGrid.default()
+    load_world(world, 0)  # fail fast on a bad world name or file, before any process starts
+    processing = _checked_processing(processing, psf)
+    plans = plan_runs(runs, test_runs, minutes, seed, world, snr_db, psf, processing)
+    loc = os.fspath(out).removeprefix("file://")  # a local path: the store is created aside and renamed
+    if not is_url(loc):
+        _prepare_local(Path(loc), grid, processing, [p.name for p in plans])
+    store = open_or_create_store(loc, grid, description=DESCRIPTION, storage_options=storage_options,
+                                 processing=processing, rig=simulator_rig())
+    todo = _runs_to_do(store, plans)
+    try:
+        _simulate_into(store, loc, todo, grid, workers, progress, scheduler, storage_options)
+    except OSError as exc:
+        settle_zarr_writes()
+        exc = first_os_error(exc)  # the run writer's clean-up failed too: report the cause
+        raise SonarSetError(f"{loc}: cannot write {exc.filename or 'the store'}: {os_error_reason(exc)} (complete "
+                            "runs are kept; re-run the same command to resume)") from None
+    return [p.name for p in todo]
+
+
+def _checked_processing(processing: Processing | str, psf: str) -> Processing:
+    """The processing settings of a profile name, and a PSF that can make such images."""
+    if isinstance(processing, str):
+        try:
+            processing = Processing.named(processing)
+        except ValueError as exc:
+            raise SonarSetError(f"--processing: {exc}") from None
+    try:
+        check_psf(psf, processing)
+    except ValueError as exc:
+        raise SonarSetError(f"--psf: {exc}") from None
+    return processing
+
+
+def _runs_to_do(store: SonarStore, plans: list[RunPlan]) -> list[RunPlan]:
+    """The plans whose run is not complete yet; a complete run made with other settings is an error."""
+    todo = []
+    for plan in plans:
+        if plan.name in store.runs():
+            have = {"processing": "raw", **store.run(plan.name).attrs.source}  # 1.0 runs were raw
+            if {k: have.get(k) for k in plan.source()} != plan.source():
+                raise SonarSetError(f"{store.location}: run {plan.name} was generated with other settings; "
+                                    "use a new output or the same options")
+            continue
+        todo.append(plan)
+    return todo
+
+
+def _simulate_into(store: SonarStore, loc: str, todo: list[RunPlan], grid: SensorGrid, workers: int | None,
+                   progress, scheduler, storage_options: dict | None) -> None:
+    if todo and scheduler is not None:
+        from .distributed import run_on_dask  # Dask is an optional dependency
+
+        run_on_dask(scheduler, loc, todo, grid, workers, storage_options, progress, store)
+    elif todo:
+        from .local_pool import run_locally
+
+        run_locally(loc, todo, grid, workers, storage_options, progress, store)
+    store.consolidate()
+
+
+def _prepare_local(dest: Path, grid: SensorGrid, processing: Processing, runs: list[str]) -> None:
+    """Clear what a killed generate left at ``dest``'s root, and create the store if it is missing.
+
+    A folder of one of ``runs`` without ``zarr.json`` (its group's first write never landed) is not
+    a zarr node: zarr would warn about it on every listing, so it goes before the first one.
+
+    The store is created aside and renamed into place: a kill during its first metadata writes
+    leaves no folder without ``zarr.json`` that the same command would then refuse.
+    """
+    dest = dest.resolve() if dest.is_symlink() else dest  # the store goes where the link points
+    remove_stale_asides(dest)
+    if dest.is_dir():
+        # zarr writes each file as zarr.<id>.partial, then renames it; a kill in between leaves
+        # the temp file. No worker has started yet: nothing else is writing here.
+        for debris in dest.glob("zarr.*.partial"):
+            debris.unlink(missing_ok=True)
+        for name in runs:
+            if (dest / name).is_dir() and not (dest / name / "zarr.json").exists():
+                shutil.rmtree(dest / name, ignore_errors=True)
+    if (dest / "zarr.json").exists():
+        return
+    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
+        raise SonarSetError(f"{dest}: exists and is not a SonarSet store (no zarr.json); choose another output")
+    tmp = aside_dir(dest)
+    try:
+        create_store(tmp / "store.zarr", grid, description=DESCRIPTION, processing=processing, rig=simulator_rig())
+        try:
+            os.replace(tmp / "store.zarr", dest)  # onto nothing or an empty directory
+        except OSError:
+            if not (dest / "zarr.json").exists():  # else another process created it first
+                raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

@@ -1,0 +1,79 @@
+"""Run generation tasks in a local process pool (``sonarset generate`` without ``--scheduler``).
+
+One task per run, exactly the function a Dask cluster runs (``runs.write_run``); progress comes
+back through a managed queue, and only this process writes the root's consolidated metadata.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import multiprocessing as mp
+import os
+
+from ..perf import keep_freed_memory
+from ..schema import SensorGrid
+from .runs import RunPlan, write_run
+
+
+def run_locally(location: str, plans: list[RunPlan], grid: SensorGrid, workers: int | None,
+                storage_options: dict | None, progress, store) -> None:
+    """Simulate ``plans`` into the store at ``location`` with up to ``workers`` processes (default:
+    all cores); ``store`` (open for writing) is consolidated as runs complete."""
+    total = {p.name: p.n_frames for p in plans}
+    workers = max(1, min(workers or os.cpu_count() or 1, len(plans)))
+    if workers == 1:
+        for plan in plans:
+            write_run(location, plan, grid, _Direct(progress, total), storage_options)
+            store.consolidate()
+        return
+    ctx = mp.get_context("spawn")  # no fork: zarr's event loop thread must not be copied
+    # One BLAS/OpenMP thread per worker: the workers already fill the cores.
+    saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+    os.environ.update({k: "1" for k in _THREAD_VARS if k not in os.environ})
+    try:
+        _run_pool(ctx, location, plans, grid, workers, total, progress, store, storage_options)
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+
+
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _run_pool(ctx, loc: str, todo: list[RunPlan], grid: SensorGrid, workers: int, total: dict,
+              progress, store, storage_options: dict | None = None) -> None:
+    """One task per run in a process pool; progress arrives through a managed queue."""
+    with ctx.Manager() as manager:
+        queue = manager.Queue()
+        spare = manager.Event()  # set once fewer runs remain than workers: a core is free
+        with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=keep_freed_memory) as pool:
+            pending = {pool.submit(write_run, loc, p, grid, queue, storage_options, spare) for p in todo}
+            done = {p.name: 0 for p in todo}
+            while pending:
+                if len(pending) < workers:
+                    spare.set()
+                finished, pending = cf.wait(pending, timeout=0.2)
+                while not queue.empty():
+                    name, n = queue.get()
+                    done[name] += n
+                    if progress:
+                        progress(name, done[name], total[name])
+                for f in finished:
+                    f.result()  # re-raise a worker's error here
+                if finished:
+                    # Only this process writes root metadata; zarr writes it atomically.
+                    store.consolidate()
+
+
+class _Direct:
+    """Queue stand-in for the single-process path: reports progress straight away."""
+
+    def __init__(self, progress, total):
+        self.progress, self.total, self.done = progress, total, {}
+
+    def put(self, item) -> None:
+        name, n = item
+        self.done[name] = self.done.get(name, 0) + n
+        if self.progress:
+            self.progress(name, self.done[name], self.total[name])
