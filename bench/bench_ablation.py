@@ -25,7 +25,8 @@ import time
 from pathlib import Path
 
 from sonarset import open_store
-from sonarset.models.evaluate import evaluate, write_report
+from sonarset.models.eval_report import write_report
+from sonarset.models.evaluate import evaluate
 from sonarset.models.train import TrainConfig, train
 
 #: The recipes: what differs between them. Everything else is shared (COMMON).

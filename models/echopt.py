@@ -31,7 +31,11 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from sonarset.errors import GridMismatchError
+from sonarset.schema import RobotRig
+from sonarset.windows import N_IN
 
+#: The robot a config describes when no store's rig is given (the record's defaults: the simulator's).
+_DEFAULT_RIG = RobotRig()
 V_SCALE, W_SCALE = 0.3, 1.0  # command ranges (m/s, rad/s): inputs are scaled to [-1, 1]
 
 
@@ -39,7 +43,7 @@ V_SCALE, W_SCALE = 0.3, 1.0  # command ranges (m/s, rad/s): inputs are scaled to
 class EchoPTConfig:
     n_range: int = 200
     n_azimuth: int = 90
-    n_in: int = 3
+    n_in: int = N_IN  # input frames: the paper's window
     patch: tuple[int, int] = (25, 5)
     d_embed: int = 376  # image part of a token; + 2 (n_in + 1) command values = d_model
     n_layers: int = 8
@@ -57,8 +61,8 @@ class EchoPTConfig:
     # The sensor grid's edges and the robot rig, which the flow prior needs (from the store).
     range_edges: tuple[float, float] = (0.5, 5.0)
     azimuth_edges: tuple[float, float] = (-math.pi / 2, math.pi / 2)
-    dt: float = 0.2
-    sensor_offset: float = 0.15
+    dt: float = _DEFAULT_RIG.frame_interval_s
+    sensor_offset: float = _DEFAULT_RIG.sensor_offset_m
 
     @property
     def n_cmd(self) -> int:

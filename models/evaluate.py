@@ -1,60 +1,39 @@
 """The evaluation engine: every method on the same seeded windows, the paper's metrics, statistics.
 
-``evaluate`` is the library API behind ``sonarset eval``; ``write_report`` writes metrics.json,
-per_window.csv, report.md and the figures. ``fade_summary`` is the "no fade" check: whether the
-rollouts keep the targets' peak pixel and echo energy at every step.
+``evaluate`` is the library API behind ``sonarset eval``; it returns an :class:`EvalResult`, which
+``models.eval_report`` renders (metrics.json, per_window.csv, report.md and the figures).
+``fade_summary`` is the "no fade" check: whether the rollouts keep the targets' peak pixel and echo
+energy at every step.
 """
 
 from __future__ import annotations
 
-import csv
-import json
-import os
 import time
 from dataclasses import dataclass, field
 from itertools import combinations
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from sonarset.report import format_p, horizon_name
-from sonarset.atomic import atomic_text, atomic_write
-from sonarset.ceiling import CEILING
 from sonarset.arrays import FRAME_INTERVAL_TOLERANCE
+from sonarset.ceiling import CEILING
 from sonarset.errors import FormatError, SonarSetError
 from sonarset.metrics import cc, nrmsd
+from sonarset.report import horizon_name
+from sonarset.schema import RobotRig
 from sonarset.stats import Comparison, compare, holm
 from sonarset.store import SonarStore
-from sonarset.windows import FrameBank, WindowIndex, gather
+from sonarset.windows import N_IN, FrameBank, WindowBatcher, WindowIndex
 
 from .baselines import Predictor, rollout
 
-#: The paper's Table 1: mean CC and NRMSD on 1000 test windows (one-shot, AR-3, AR-5, AR-10).
-PAPER = {
-    "naive": {"cc": {1: 0.85, 3: 0.66, 5: 0.56, 10: 0.38}, "nrmsd": {1: 0.42, 3: 0.76, 5: 0.83, 10: 1.34}},
-    "flow": {"cc": {1: 0.86, 3: 0.73, 5: 0.69, 10: 0.56}, "nrmsd": {1: 0.38, 3: 0.62, 5: 0.65, 10: 0.99}},
-    "echopt": {"cc": {1: 0.97, 3: 0.83, 5: 0.80, 10: 0.69}, "nrmsd": {1: 0.15, 3: 0.46, 5: 0.52, 10: 0.80}},
-}
 METRICS = ("cc", "nrmsd")
-LOWER_IS_BETTER = {"cc": False, "nrmsd": True}
 #: Echo energy counts the pixels above this value (images are in [0, 1]): what is left of an
 #: echo, not the faint interpolation haze or residual noise a rollout can smear over the image.
 ECHO_FLOOR = 0.05
 #: "No fade": the mean prediction / target ratios of peak pixel and echo energy stay within this
 #: fraction of 1 at every rollout step.
 FADE_TOLERANCE = 0.15
-FADE_MEANING = (f"Per rollout step h (1 .. longest horizon), for each method: peak = the brightest pixel "
-                f"of the image, echo energy = the sum of the pixels above {ECHO_FLOOR} (ECHO_FLOOR), for "
-                "the prediction and for the target of each window. Ratio = mean over windows of the "
-                "prediction's value / mean over the same windows of the target's (a ratio of means, "
-                "not a mean of per-window ratios, so that windows with little echo cannot dominate); "
-                "windows whose target has no echo energy at that step are left out. 'within_15pct': "
-                f"both ratios stay within {FADE_TOLERANCE:.0%} of 1 at every step (no fade, no "
-                "brightening). The noise ceiling is not a predictor and has no entry.")
-CEILING_MEANING = ("noise ceiling: each target frame re-rendered from its run's recorded world and poses "
-                   "with an independent noise draw, scored against the recorded frame; it shows how much "
-                   "of a frame is predictable at all (the same scene, only the noise differs).")
 
 
 @dataclass
@@ -79,6 +58,7 @@ class EvalResult:
     step_energy: dict[str, np.ndarray] = field(default_factory=dict)
     target_peak: np.ndarray | None = None
     target_energy: np.ndarray | None = None
+    n_in: int = N_IN  # input frames per window
 
     @property
     def predictors(self) -> list[str]:
@@ -143,13 +123,13 @@ def fade_summary(res: EvalResult, tolerance: float = FADE_TOLERANCE) -> dict:
     return out
 
 
-def _robot_geometry(store: SonarStore, bank: FrameBank) -> tuple[float, float, str | None]:
-    """(dt, sensor offset, note) for the baselines.
+def _baseline_rig(store: SonarStore, bank: FrameBank) -> tuple[RobotRig, str | None]:
+    """The robot the baselines turn commands into image motion with, and a note when it is assumed.
 
-    dt is the median spacing of the evaluated runs' time stamps, which the spec makes normative;
-    the declared interval (the rig's, else 1 / frame rate) must agree with it within
-    FRAME_INTERVAL_TOLERANCE, or the store is refused: naive and flow would warp every frame by
-    the wrong step, silently. Without a rig the sensor is assumed on the wheel axle, with a note.
+    Its frame interval is the median spacing of the evaluated runs' time stamps, which the spec
+    makes normative; the declared interval (the rig's, else 1 / frame rate) must agree with it
+    within FRAME_INTERVAL_TOLERANCE, or the store is refused: naive and flow would warp every frame
+    by the wrong step, silently. Without a rig the sensor is assumed on the wheel axle, with a note.
     """
     rig = store.rig
     declared = rig.frame_interval_s if rig is not None else 1.0 / store.attrs.frame_rate_hz
@@ -161,9 +141,10 @@ def _robot_geometry(store: SonarStore, bank: FrameBank) -> tuple[float, float, s
                           f"({what}); fix the store's frame rate or its time stamps")
     dt = measured if measured is not None else declared
     if rig is not None:
-        return dt, rig.sensor_offset_m, None
-    return dt, 0.0, (f"note: the store records no robot rig: naive and flow use the time stamps' {dt:.6g} s "
-                     "frames and assume the sensor on the wheel axle")
+        return rig.model_copy(update={"frame_interval_s": dt}), None
+    return RobotRig(frame_interval_s=dt, sensor_offset_m=0.0), (
+        f"note: the store records no robot rig: naive and flow use the time stamps' {dt:.6g} s "
+        "frames and assume the sensor on the wheel axle")
 
 
 def undefined_counts(res: "EvalResult") -> dict[str, dict[int, dict[str, int]]]:
@@ -232,76 +213,125 @@ def evaluate(
     re-render get NaN there, a reason in ``ceiling_skipped`` and a line in ``notes``; with none,
     the row is omitted.
     """
-    from .cards import training_notices
-    from .registry import make_predictor
-
     horizons = tuple(sorted(set(int(h) for h in horizons)))
     if not horizons or horizons[0] < 1:
         raise SonarSetError("horizons must be positive integers")
     bank = FrameBank.from_store(store, split=split, image_dtype=np.float32)
-    dt, offset, note = _robot_geometry(store, bank)
+    rig, note = _baseline_rig(store, bank)
     notes = [note] if note else []
-    preds: dict[str, Predictor] = dict(predictors or {})
+    preds, model_notes = _predictors(store, model_specs, rig, device, predictors)
+    notes += model_notes
+    index = _windows(store, bank, split, window_frames(preds), horizons[-1], samples, seed)
+    ids = [(bank.run_names[j], k) for j, k in (index.locate(i) for i in range(len(index)))]
+    scores = _Scores.of(preds, len(index), horizons)
+    examples = scores.roll_out(WindowBatcher.of(bank), index, preds, batch_size, progress)
+    examples["window"] = ids[0]
+    skipped: dict[str, str] = {}
+    if ceiling:
+        t0 = time.perf_counter()
+        ceiling_scores, skipped = _ceiling_scores(store, bank, index, ids, horizons, seed, batch_size, progress)
+        notes += [f"ceiling: run {r} not re-rendered: {why}" for r, why in skipped.items()]
+        if ceiling_scores is None:
+            notes.append(f"ceiling: no run of split {split!r} can be re-rendered; the ceiling row is omitted")
+        else:
+            scores.per_window[CEILING] = ceiling_scores
+            scores.seconds[CEILING] = time.perf_counter() - t0
+    result = EvalResult(store.location, split, bank.run_names, list(horizons), list(scores.per_window),
+                        index.starts, ids, scores.per_window, seconds=scores.seconds, examples=examples, notes=notes,
+                        ceiling_skipped=skipped, step_peak=scores.step_peak, step_energy=scores.step_energy,
+                        target_peak=scores.target_peak, target_energy=scores.target_energy, n_in=index.n_in)
+    result.notes += _undefined_notes(result)
+    result.comparisons = _compare_all(result, seed)
+    return result
+
+
+def _predictors(store: SonarStore, model_specs: list[str], rig: RobotRig, device: str,
+                given: dict[str, Predictor] | None) -> tuple[dict[str, Predictor], list[str]]:
+    """The predictors by name (``given`` first, then ``model_specs``), and notes on learned models
+    meeting other images than they were trained on."""
+    from .cards import training_notices
+    from .registry import make_predictor
+
+    preds: dict[str, Predictor] = dict(given or {})
     for spec in model_specs:
-        p = make_predictor(spec, store.grid, dt=dt, sensor_offset=offset, device=device)
+        p = make_predictor(spec, store.grid, rig, device=device)
         if p.name in preds:  # several checkpoints: each under its own label (echopt RUN/model)
             p.name = getattr(p, "label", spec)
             if p.name in preds:
                 p.name = spec
         preds[p.name] = p
-    for p in preds.values():  # a learned model meeting other images than it was trained on
+    notes = []
+    for p in preds.values():
         if isinstance(getattr(p, "card", None), dict):
             notes += training_notices(getattr(p, "label", p.name), p.card, store.processing, store.rig)
     if not preds:
         raise SonarSetError("no models to evaluate")
-    H = horizons[-1]
-    index = WindowIndex.build(bank, 3, H)
+    return preds, notes
+
+
+def window_frames(preds: dict[str, Predictor]) -> int:
+    """Input frames per window: the one count all predictors were built for (a learned model's is
+    in its config)."""
+    counts = {p.n_in for p in preds.values()}
+    if len(counts) != 1:
+        raise SonarSetError("the models take different numbers of input frames ("
+                            + ", ".join(f"{name} {p.n_in}" for name, p in preds.items()) + "); evaluate them apart")
+    return counts.pop()
+
+
+def _windows(store: SonarStore, bank: FrameBank, split: str, n_in: int, horizon: int, samples: int,
+             seed: int) -> WindowIndex:
+    """``samples`` windows (seeded) among those with room for ``horizon`` targets."""
+    index = WindowIndex.build(bank, n_in, horizon)
     if len(index) == 0:
-        raise SonarSetError(f"{store.location}: split {split!r} has no run long enough for horizon {H} "
-                            f"(needs {3 + H} frames)")
-    index = index.sample(samples, seed)
-    ids = [(bank.run_names[j], k) for j, k in (index.locate(i) for i in range(len(index)))]
-    per_window = {m: {h: {k: np.empty(len(index)) for k in METRICS} for h in horizons} for m in preds}
-    seconds = dict.fromkeys(preds, 0.0)
-    step_peak = {m: np.empty((len(index), H)) for m in preds}
-    step_energy = {m: np.empty((len(index), H)) for m in preds}
-    target_peak, target_energy = np.empty((len(index), H)), np.empty((len(index), H))
-    examples: dict = {"window": ids[0], "methods": {}}
-    for lo in range(0, len(index), batch_size):
-        sl = slice(lo, min(len(index), lo + batch_size))
-        batch = gather(bank, index, np.arange(sl.start, sl.stop))  # once for every method
-        if lo == 0:
-            examples["frames"], examples["targets"] = batch.frames[0], batch.targets[0]
-        target_peak[sl], target_energy[sl] = peak_and_energy(batch.targets[:, :H])
-        for name, predictor in preds.items():
-            t0 = time.perf_counter()
-            pred = rollout(predictor, batch.frames, batch.commands, H)
-            for h in horizons:
-                per_window[name][h]["cc"][sl] = cc(pred[:, h - 1], batch.targets[:, h - 1])
-                per_window[name][h]["nrmsd"][sl] = nrmsd(pred[:, h - 1], batch.targets[:, h - 1])
-            seconds[name] += time.perf_counter() - t0
-            step_peak[name][sl], step_energy[name][sl] = peak_and_energy(pred)
+        raise SonarSetError(f"{store.location}: split {split!r} has no run long enough for horizon {horizon} "
+                            f"(needs {index.span} frames)")
+    return index.sample(samples, seed)
+
+
+@dataclass
+class _Scores:
+    """Per-window scores of the predicting methods, filled batch by batch (N windows, H steps)."""
+
+    per_window: dict[str, dict[int, dict[str, np.ndarray]]]  # method -> horizon -> metric -> (N,)
+    seconds: dict[str, float]
+    step_peak: dict[str, np.ndarray]  # method -> (N, H)
+    step_energy: dict[str, np.ndarray]
+    target_peak: np.ndarray  # (N, H)
+    target_energy: np.ndarray
+
+    @classmethod
+    def of(cls, preds: dict[str, Predictor], n: int, horizons: tuple[int, ...]) -> "_Scores":
+        H = horizons[-1]
+        return cls({m: {h: {k: np.empty(n) for k in METRICS} for h in horizons} for m in preds},
+                   dict.fromkeys(preds, 0.0), {m: np.empty((n, H)) for m in preds}, {m: np.empty((n, H)) for m in preds},
+                   np.empty((n, H)), np.empty((n, H)))
+
+    def roll_out(self, batcher: WindowBatcher, index: WindowIndex, preds: dict[str, Predictor], batch_size: int,
+                 progress: Callable[[str, int, int], None] | None) -> dict:
+        """Roll every method out over every window, batch by batch, and score it; returns the first
+        window's frames, targets and predictions (the figures' example)."""
+        H = index.horizon
+        examples: dict = {"methods": {}}
+        for lo in range(0, len(index), batch_size):
+            sl = slice(lo, min(len(index), lo + batch_size))
+            batch = batcher.gather(index, np.arange(sl.start, sl.stop))  # once for every method
             if lo == 0:
-                examples["methods"][name] = pred[0]
-            if progress:
-                progress(name, sl.stop, len(index))
-    skipped: dict[str, str] = {}
-    if ceiling:
-        t0 = time.perf_counter()
-        scores, skipped = _ceiling_scores(store, bank, index, ids, horizons, seed, batch_size, progress)
-        notes += [f"ceiling: run {r} not re-rendered: {why}" for r, why in skipped.items()]
-        if scores is None:
-            notes.append(f"ceiling: no run of split {split!r} can be re-rendered; the ceiling row is omitted")
-        else:
-            per_window[CEILING] = scores
-            seconds[CEILING] = time.perf_counter() - t0
-    result = EvalResult(store.location, split, bank.run_names, list(horizons), list(per_window),
-                        index.starts, ids, per_window, seconds=seconds, examples=examples, notes=notes,
-                        ceiling_skipped=skipped, step_peak=step_peak, step_energy=step_energy,
-                        target_peak=target_peak, target_energy=target_energy)
-    result.notes += _undefined_notes(result)
-    result.comparisons = _compare_all(result, seed)
-    return result
+                examples["frames"], examples["targets"] = batch.frames[0], batch.targets[0]
+            self.target_peak[sl], self.target_energy[sl] = peak_and_energy(batch.targets[:, :H])
+            for name, predictor in preds.items():
+                t0 = time.perf_counter()
+                pred = rollout(predictor, batch.frames, batch.commands, H)
+                for h, metrics in self.per_window[name].items():
+                    metrics["cc"][sl] = cc(pred[:, h - 1], batch.targets[:, h - 1])
+                    metrics["nrmsd"][sl] = nrmsd(pred[:, h - 1], batch.targets[:, h - 1])
+                self.seconds[name] += time.perf_counter() - t0
+                self.step_peak[name][sl], self.step_energy[name][sl] = peak_and_energy(pred)
+                if lo == 0:
+                    examples["methods"][name] = pred[0]
+                if progress:
+                    progress(name, sl.stop, len(index))
+        return examples
 
 
 def _ceiling_scores(store: SonarStore, bank: FrameBank, index: WindowIndex, ids: list[tuple[str, int]],
@@ -365,163 +395,3 @@ def _compare_all(res: EvalResult, seed: int) -> list[Comparison]:
     for c, p in zip(comps, holm([c.t_paired_p for c in comps])):
         c.p_holm = p
     return comps
-
-
-# ---- outputs -------------------------------------------------------------------------------------
-
-def write_report(res: EvalResult, out: str | os.PathLike, *, figures: bool = True) -> Path:
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    summary = res.summary()
-    fade = fade_summary(res)
-    doc = {
-        "results": summary,
-        "tests": [c.to_dict() for c in res.comparisons],
-        "store": res.store,
-        "split": res.split,
-        "runs": res.runs,
-        "windows": {"n": len(res.window_ids), "n_in": 3, "horizons": res.horizons,
-                    "ids": [[r, k] for r, k in res.window_ids]},
-        "seconds": res.seconds,
-        "notes": res.notes,
-        "undefined_windows": {m: {str(h): v for h, v in d.items()} for m, d in undefined_counts(res).items()},
-        **({"ceiling": {"method": CEILING, "meaning": CEILING_MEANING, "skipped_runs": res.ceiling_skipped}}
-           if CEILING in res.methods or res.ceiling_skipped else {}),
-        **({"fade": _json_finite(fade),
-            "fade_definition": {"echo_floor": ECHO_FLOOR, "tolerance": FADE_TOLERANCE,
-                                "steps": list(range(1, len(next(iter(fade.values()))["peak_ratio"]) + 1)),
-                                "meaning": FADE_MEANING}} if fade else {}),
-        "paper": {m: {k: {str(h): v for h, v in d.items()} for k, d in t.items()} for m, t in PAPER.items()},
-    }
-    atomic_text(out / "metrics.json", json.dumps(doc, indent=2) + "\n")
-    rows = [(m, h, f"{r}:{k}", float(res.per_window[m][h]["cc"][i]), float(res.per_window[m][h]["nrmsd"][i]))
-            for m in res.methods for h in res.horizons for i, (r, k) in enumerate(res.window_ids)
-            if m != CEILING or r not in res.ceiling_skipped]  # the ceiling has no row for runs it skipped
-    def write_csv(path: Path) -> None:
-        with open(path, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(["method", "horizon", "window", "cc", "nrmsd"])
-            w.writerows(rows)
-
-    atomic_write(out / "per_window.csv", write_csv)
-    figs = []
-    if figures:
-        from .figures import write_figures
-
-        figs = write_figures(res, out)
-    atomic_text(out / "report.md", render_report(res, figs))
-    return out
-
-
-def _json_finite(x):
-    """``x`` with every non-finite float replaced by None (JSON has no NaN)."""
-    if isinstance(x, dict):
-        return {k: _json_finite(v) for k, v in x.items()}
-    if isinstance(x, list):
-        return [_json_finite(v) for v in x]
-    if isinstance(x, float) and not np.isfinite(x):
-        return None
-    return x
-
-
-def fade_table(res: EvalResult, fade: dict | None = None) -> str:
-    """The "no fade" table: per method, the range of its peak and echo-energy ratios over the
-    rollout steps, and the verdict."""
-    fade = fade_summary(res) if fade is None else fade
-    lines = ["| method | peak ratio min | peak ratio max | energy ratio min | energy ratio max | verdict |",
-             "|---|---|---|---|---|---|"]
-
-    def rng(v):
-        v = np.asarray(v, float)
-        v = v[np.isfinite(v)]
-        return (f"{v.min():.3f}", f"{v.max():.3f}") if len(v) else ("n/a", "n/a")
-
-    for m, f in fade.items():
-        if f["within_15pct"]:
-            verdict = f"no fade (within {FADE_TOLERANCE:.0%} at every step)"
-        else:
-            h = f["first_out"]
-            p, e = f["peak_ratio"][h - 1], f["energy_ratio"][h - 1]
-            if np.isfinite(p) and np.isfinite(e):
-                kind = "fades" if max((p, e), key=lambda r: abs(r - 1)) < 1 else "brightens"
-            else:
-                kind = "no window with echo energy"
-            verdict = f"{kind} from step {h}"
-        lines.append(f"| {m} | " + " | ".join([*rng(f["peak_ratio"]), *rng(f["energy_ratio"])]) + f" | {verdict} |")
-    return "\n".join(lines)
-
-
-def results_table(res: EvalResult, with_paper: bool = True) -> str:
-    s = res.summary()
-    head = "| method | " + " | ".join(f"CC {horizon_name(h)}" for h in res.horizons) + " | " + \
-           " | ".join(f"NRMSD {horizon_name(h)}" for h in res.horizons) + " |"
-    lines = [head, "|---" * (1 + 2 * len(res.horizons)) + "|"]
-    for m in res.methods:
-        cells = [_cell(s[m][str(h)][k]) for k in METRICS for h in res.horizons]
-        label = f"*{m} (noise ceiling, not a predictor)*" if m == CEILING else m
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
-        if with_paper and m in PAPER:
-            p = PAPER[m]
-            cells = [f"{p['cc'].get(h, float('nan')):.2f}" if h in p["cc"] else "-" for h in res.horizons]
-            cells += [f"{p['nrmsd'].get(h, float('nan')):.2f}" if h in p["nrmsd"] else "-" for h in res.horizons]
-            lines.append(f"| *{m} (paper)* | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
-
-
-def _cell(entry: dict) -> str:
-    if entry["mean"] is None:
-        return "undefined"
-    return f"{entry['mean']:.3f} ({entry['std']:.3f})"
-
-
-def render_report(res: EvalResult, figures: list[str]) -> str:
-    n = len(res.window_ids)
-    parts = [
-        "# Evaluation report",
-        "",
-        f"Store `{res.store}`, split `{res.split}` ({', '.join(res.runs)}); {n} windows drawn once "
-        f"(seeded) and shared by every method and horizon. Mean (std) over windows; the paper's "
-        "Table 1 values in italics below ours (its simulator differs: compare orderings and gaps, "
-        "not absolute values). CC higher is better; NRMSD lower is better.",
-        "",
-        *[f"> {n}\n" for n in res.notes],
-        results_table(res),
-        *(["", f"*{CEILING}* is the {CEILING_MEANING} It is not a predictor and is left out of the "
-               "statistics below."] if CEILING in res.methods else []),
-        "",
-        "## Statistics",
-        "",
-        "Per horizon and metric, each pair of methods on the same windows: mean difference (a - b) "
-        "with a bootstrap 95% CI (BCa, 2000 resamples); the paper's two-sample t-test (Welch); the "
-        "paired t-test and Wilcoxon signed-rank test on per-window differences; the paired t-test's "
-        f"p adjusted by Holm over all {len(res.comparisons)} comparisons.",
-        "",
-        "| horizon | metric | a | b | mean(a-b) | 95% CI | 2-sample t p | paired t p | Wilcoxon p | Holm p | better |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for c in res.comparisons:
-        better = "-"
-        if c.p_holm is not None and np.isfinite(c.p_holm) and c.p_holm < 0.05:
-            a_better = (c.mean_diff < 0) if LOWER_IS_BETTER[c.metric] else (c.mean_diff > 0)
-            better = c.a if a_better else c.b
-        parts.append(f"| {horizon_name(c.horizon)} | {c.metric} | {c.a} | {c.b} | {c.mean_diff:+.4f} | "
-                     f"[{c.ci_low:+.4f}, {c.ci_high:+.4f}] | {format_p(c.t_two_sample_p)} | {format_p(c.t_paired_p)} | "
-                     f"{format_p(c.wilcoxon_p)} | {format_p(c.p_holm)} | {better} |")
-    fade = fade_summary(res)
-    if fade:
-        steps = len(next(iter(fade.values()))["peak_ratio"])
-        parts += ["", "## No fade", "",
-                  f"Over the rollouts to {steps} steps: mean prediction / target ratio of the peak pixel "
-                  f"and of the echo energy (the sum of the pixels above {ECHO_FLOOR}), a ratio of means over "
-                  "the windows whose target has echo energy at that step; min and max over the steps. "
-                  f"No fade: both ratios within {FADE_TOLERANCE:.0%} of 1 at every step "
-                  "(per step in metrics.json, `fade`" +
-                  ("; the figure `fade.png`)." if any(Path(f).name == "fade.png" for f in figures) else ")."),
-                  "", fade_table(res, fade)]
-    parts += ["", "## Timing", ""]
-    parts += [f"- {m}: {t:.2f} s to re-render the target frames" if m == CEILING else
-              f"- {m}: {t:.2f} s for {n} windows rolled out to {max(res.horizons)} steps" for m, t in res.seconds.items()]
-    if figures:
-        parts += ["", "## Figures", ""]
-        parts += [f"![{Path(f).stem}]({Path(f).name})" for f in figures]
-    return "\n".join(parts) + "\n"

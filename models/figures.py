@@ -22,15 +22,22 @@ def correlogram(pred: np.ndarray, target: np.ndarray, max_lag: tuple[int, int] =
 
 
 def write_figures(res, out: Path) -> list[str]:
-    plt = pyplot()
+    """Every figure of an evaluation result into ``out``; their paths."""
     from sonarset.store import open_store
 
     grid = open_store(res.store).grid
+    paths = [prediction_figure(res, grid, out / "fig_prediction.png"),
+             autoregressive_figure(res, out / "fig_autoregressive.png"),
+             horizon_figure(res, out / "fig_horizon.png"),
+             fade_figure(res, out / "fade.png")]
+    return [str(p) for p in paths if p is not None]
+
+
+def prediction_figure(res, grid, path: Path) -> Path:
+    """Fig. 3 of the paper, one row per method: target, prediction, difference, correlogram."""
+    plt = pyplot()
     ex = res.examples
     target = ex["targets"]
-    paths = []
-
-    # Fig. 3 of the paper, one row per method: target, prediction, difference, correlogram.
     methods = list(ex["methods"])
     fig, axes = plt.subplots(len(methods), 4, figsize=(16, 3.6 * len(methods)), constrained_layout=True, squeeze=False)
     for row, m in zip(axes, methods):
@@ -48,11 +55,16 @@ def write_figures(res, out: Path) -> list[str]:
         row[3].set_title(f"2D correlogram (peak {c.max():.2f})")
         row[3].set_xlabel("azimuth lag [bins]")
         row[3].set_ylabel("range lag [bins]")
-    p = out / "fig_prediction.png"
-    save_figure(fig, p, dpi=90)
-    paths.append(str(p))
+    save_figure(fig, path, dpi=90)
+    return path
 
-    # Auto-regressive strip: measured frames, then each method's predictions and differences.
+
+def autoregressive_figure(res, path: Path) -> Path:
+    """Auto-regressive strip: measured frames, then each method's predictions and differences."""
+    plt = pyplot()
+    ex = res.examples
+    target = ex["targets"]
+    methods = list(ex["methods"])
     H = target.shape[0]
     # at most 10 columns (the paper's appendix strip); longer horizons are shown evenly spaced
     steps = sorted(set(np.linspace(0, H - 1, min(H, 10)).round().astype(int).tolist()))
@@ -72,11 +84,13 @@ def write_figures(res, out: Path) -> list[str]:
     for a in axes.ravel():
         a.set_xticks([])
         a.set_yticks([])
-    p = out / "fig_autoregressive.png"
-    save_figure(fig, p, dpi=90)
-    paths.append(str(p))
+    save_figure(fig, path, dpi=90)
+    return path
 
-    # Metrics against horizon.
+
+def horizon_figure(res, path: Path) -> Path:
+    """CC and NRMSD against the horizon, one line per method (95% intervals of the mean)."""
+    plt = pyplot()
     s = res.summary()
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), constrained_layout=True)
     for k, ax in zip(("cc", "nrmsd"), axes):
@@ -93,14 +107,8 @@ def write_figures(res, out: Path) -> list[str]:
         ax.set_xticks(res.horizons)
         ax.grid(alpha=0.3)
     axes[0].legend()
-    p = out / "fig_horizon.png"
-    save_figure(fig, p, dpi=100)
-    paths.append(str(p))
-
-    p = fade_figure(res, out / "fade.png")
-    if p is not None:
-        paths.append(str(p))
-    return paths
+    save_figure(fig, path, dpi=100)
+    return path
 
 
 def fade_figure(res, path: Path, fade: dict | None = None) -> Path | None:

@@ -42,18 +42,19 @@ from typing import Callable
 import numpy as np
 import torch
 import torch.nn.functional as F
-from safetensors.torch import load_file, save_file
 
 from sonarset import __version__
-from sonarset.atomic import atomic_text, atomic_write
+from sonarset.atomic import atomic_text
 from sonarset.errors import SonarSetError
 from sonarset.store import SonarStore
-from sonarset.windows import FrameBank, WindowIndex
+from sonarset.torchdata import torch_batcher
+from sonarset.windows import FrameBank, WindowBatcher, WindowIndex
 
 from .checkpoint import load_checkpoint, resolve_device, save_checkpoint
+from .distributed import Dist, destroy_process_group, init_distributed
 from .echopt import PRIORS, EchoPT, grid_and_rig, make_config
+from .train_state import STATE, load_state, save_state, write_metrics
 
-STATE = "state.safetensors"
 #: Called with a phase name after each write of a checkpoint (tests kill training there).
 _AFTER_WRITE: Callable[[str], None] | None = None
 
@@ -172,32 +173,6 @@ def _lr_at(cfg: TrainConfig, step: int, total: int) -> float:
     return cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * t)))
 
 
-class _Batches:
-    """Windows gathered from the in-memory bank, on the training device."""
-
-    def __init__(self, bank: FrameBank, device: str):
-        self.device = device
-        self.gpu = device.startswith("cuda")
-        if self.gpu:
-            self.images = torch.from_numpy(bank.images).to(device)  # float16 stays float16 on the GPU
-            self.velocity = torch.from_numpy(bank.velocity).to(device)
-        else:
-            self.images, self.velocity = bank.images, bank.velocity
-
-    def get(self, index: WindowIndex, which: np.ndarray, k: int = 1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Input frames (B, n_in, R, A), commands (B, n_in + k, 2) and targets (B, k, R, A) of the
-        windows ``index[which]`` (whose horizon must be at least ``k``)."""
-        rows = index.rows(which)[:, :index.n_in + k]
-        if self.gpu:
-            rows_t = torch.as_tensor(rows, device=self.device)
-            block, cmds = self.images[rows_t].float(), self.velocity[rows_t]
-        else:
-            block = torch.from_numpy(self.images[rows]).float()
-            cmds = torch.from_numpy(self.velocity[rows])
-        n_in = index.n_in
-        return block[:, :n_in], cmds, block[:, n_in:]
-
-
 def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch.Tensor, terms: dict[str, float],
                    pushforward: bool = False, amp: bool = False) -> list[torch.Tensor]:
     """One loss per rollout step: step h predicts target h from the last n_in frames, measured or
@@ -217,96 +192,9 @@ def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch
     return losses
 
 
-def _save_state(out: Path, model: EchoPT, opt: torch.optim.Optimizer, meta: dict) -> None:
-    """The whole training state in one file, replaced atomically: weights, Adam moments and, in
-    the header, step, best loss, config and metrics history."""
-    tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    sd = opt.state_dict()
-    for idx, st in sd["state"].items():
-        for k, v in st.items():
-            tensors[f"opt.{idx}.{k}"] = (v if torch.is_tensor(v) else torch.tensor(v)).detach().cpu().contiguous()
-    meta = {**meta, "param_groups": [{k: v for k, v in g.items() if k != "params"} for g in sd["param_groups"]]}
-    atomic_write(out / STATE, lambda p: save_file(tensors, str(p), metadata={"state": json.dumps(meta)}))
-
-
-def _load_state(out: Path, model: EchoPT, opt: torch.optim.Optimizer) -> dict:
-    from safetensors import safe_open
-
-    path = out / STATE
-    try:
-        with safe_open(str(path), "pt") as f:
-            meta = json.loads(f.metadata()["state"])
-        tensors = load_file(str(path))
-    except Exception as exc:  # safetensors raises its own error types
-        raise SonarSetError(f"{path}: unreadable training state ({type(exc).__name__}: {exc})") from None
-    model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
-    sd = opt.state_dict()
-    state: dict = {}
-    for k, v in tensors.items():
-        if k.startswith("opt."):
-            _, idx, name = k.split(".", 2)
-            state.setdefault(int(idx), {})[name] = v
-    sd["state"] = state
-    for g, saved in zip(sd["param_groups"], meta["param_groups"]):
-        g.update(saved)
-    opt.load_state_dict(sd)
-    return meta
-
-
-def _write_metrics(out: Path, history: list[dict]) -> None:
-    atomic_text(out / "metrics.jsonl", "".join(json.dumps(h) + "\n" for h in history))
-
-
-@dataclass(frozen=True)
-class _Dist:
-    """This process's place in a torchrun job (rank 0 of 1 when not distributed)."""
-
-    rank: int = 0
-    world: int = 1
-    local_rank: int = 0
-
-    @property
-    def main(self) -> bool:
-        return self.rank == 0
-
-    def all_sum(self, *values: float) -> list[float]:
-        if self.world == 1:
-            return list(values)
-        import torch.distributed as dist
-
-        t = torch.tensor(values, dtype=torch.float64)
-        if dist.get_backend() == "nccl":
-            t = t.cuda()
-        dist.all_reduce(t)
-        return t.cpu().tolist()
-
-    def barrier(self) -> None:
-        if self.world > 1:
-            import torch.distributed as dist
-
-            dist.barrier()
-
-
-def _init_distributed(device: str) -> tuple[_Dist, str, bool]:
-    """(rank info, this process's device, whether this call started the process group)."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
-        return _Dist(), device, False
-    import torch.distributed as dist
-
-    local = int(os.environ.get("LOCAL_RANK", "0"))
-    if device == "cuda":
-        torch.cuda.set_device(local)
-        device = f"cuda:{local}"
-    started = not dist.is_initialized()
-    if started:
-        dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
-    return _Dist(dist.get_rank(), dist.get_world_size(), local), device, started
-
-
 @torch.no_grad()
-def validation_loss(model: EchoPT, batches: _Batches, index: WindowIndex, horizon: int = 1, batch_size: int = 128,
-                    dist: _Dist = _Dist(), terms: dict[str, float] | None = None) -> float:
+def validation_loss(model: EchoPT, batcher: WindowBatcher, index: WindowIndex, horizon: int = 1,
+                    batch_size: int = 128, dist: Dist = Dist(), terms: dict[str, float] | None = None) -> float:
     """The training loss (``terms``, default MSE) per pixel over ``index``, averaged over a rollout
     of ``horizon`` steps; each process takes every world-th batch. The kept model is the best by
     the objective it was trained for: with a sharpness term, the MSE alone would prefer the
@@ -315,10 +203,10 @@ def validation_loss(model: EchoPT, batches: _Batches, index: WindowIndex, horizo
     total, n = 0.0, 0
     starts = range(0, len(index), batch_size)
     for lo in list(starts)[dist.rank::dist.world]:
-        f, c, t = batches.get(index, np.arange(lo, min(len(index), lo + batch_size)), horizon)
-        losses = rollout_losses(model, f, c, t, terms or {"mse": 1.0})
-        total += float(sum(losses)) / horizon * len(f)
-        n += len(f)
+        b = batcher.gather(index, np.arange(lo, min(len(index), lo + batch_size)), horizon)
+        losses = rollout_losses(model, b.frames, b.commands, b.targets, terms or {"mse": 1.0})
+        total += float(sum(losses)) / horizon * len(b)
+        n += len(b)
     model.train()
     total, n = dist.all_sum(total, n)
     return total / n
@@ -334,7 +222,7 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
     parse_loss(cfg.loss)
     if cfg.prior and cfg.prior not in PRIORS:
         raise SonarSetError(f"--prior must be one of {', '.join(PRIORS)}, got {cfg.prior!r}")
-    dist, device, started = _init_distributed(resolve_device(cfg.device))
+    dist, device, started = init_distributed(resolve_device(cfg.device))
     try:
         if cfg.batch_size % dist.world:
             raise SonarSetError(f"--batch-size {cfg.batch_size} is not a multiple of the {dist.world} processes")
@@ -342,9 +230,7 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
         return _train(store, out, cfg, resume, progress, dist, device)
     finally:
         if started:
-            import torch.distributed
-
-            torch.distributed.destroy_process_group()
+            destroy_process_group()
 
 
 def _init_from(model: EchoPT, spec: str, store: SonarStore) -> None:
@@ -363,14 +249,14 @@ def _init_from(model: EchoPT, spec: str, store: SonarStore) -> None:
     model.load_state_dict(trained.state_dict())
 
 
-def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progress, dist: _Dist,
-           device: str) -> TrainResult:
+def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[EchoPT, torch.optim.Optimizer]:
+    """The network for the store's grid and robot (seeded, or --init's weights) on ``device``, and
+    its optimizer."""
     torch.manual_seed(cfg.seed)
     overrides = grid_and_rig(store.grid, store.rig)
     if cfg.prior:
         overrides["prior"] = cfg.prior
-    model_cfg = make_config(cfg.preset, *store.grid.shape, **overrides)
-    model = EchoPT(model_cfg)
+    model = EchoPT(make_config(cfg.preset, *store.grid.shape, **overrides))
     if cfg.init:
         _init_from(model, cfg.init, store)
     model = model.to(device).to(memory_format=torch.channels_last)
@@ -378,35 +264,45 @@ def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progres
         raise SonarSetError(f"--optimizer must be adam or adamw, got {cfg.optimizer!r}")
     opt_cls = torch.optim.AdamW if cfg.optimizer == "adamw" else torch.optim.Adam
     opt = opt_cls(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=cfg.weight_decay)
-    terms = parse_loss(cfg.loss)
-    val_horizon = cfg.val_horizon or cfg.k_max
+    return model, opt
 
-    bank = FrameBank.from_store(store, split="train")
-    index = WindowIndex.build(bank, 3, max(cfg.k_max, val_horizon))
-    train_idx, val_idx = index.split(cfg.n_val, seed=cfg.seed)
-    if dist.main:
-        out.mkdir(parents=True, exist_ok=True)
-    batches = _Batches(bank, device)
-    steps_per_epoch = len(train_idx) // cfg.batch_size  # drop the last partial batch
-    if steps_per_epoch == 0:
-        raise SonarSetError(f"{store.location}: {len(train_idx)} training windows, fewer than one batch")
-    total_steps = cfg.epochs * steps_per_epoch
-    if cfg.max_steps:
-        total_steps = min(total_steps, cfg.max_steps)
-    eval_every = cfg.eval_every or steps_per_epoch
 
-    step, best, history = 0, float("inf"), []
-    if resume and (out / STATE).is_file():
-        meta = _load_state(out, model, opt)
-        step, best, history = int(meta["step"]), float(meta["best_val_loss"]), list(meta["history"])
-        saved = meta["train_config"]
-        for key in _RESUME_KEYS:
-            if saved.get(key, getattr(TrainConfig, key, None)) != getattr(cfg, key):
-                raise SonarSetError(f"{out}: --resume with {key}={getattr(cfg, key)!r}, but the run used {saved.get(key)!r}")
-        if dist.main:  # derived from the state: whatever a kill left behind, rewrite it
-            _write_metrics(out, history)
+@dataclass(frozen=True)
+class _Plan:
+    """A run's length in optimizer steps, and how often it validates and saves."""
 
-    amp = device.startswith("cuda") and cfg.bf16
+    steps_per_epoch: int
+    total_steps: int
+    eval_every: int
+
+    @classmethod
+    def of(cls, cfg: TrainConfig, n_train: int, location: str) -> "_Plan":
+        steps_per_epoch = n_train // cfg.batch_size  # drop the last partial batch
+        if steps_per_epoch == 0:
+            raise SonarSetError(f"{location}: {n_train} training windows, fewer than one batch")
+        total_steps = cfg.epochs * steps_per_epoch
+        if cfg.max_steps:
+            total_steps = min(total_steps, cfg.max_steps)
+        return cls(steps_per_epoch, total_steps, cfg.eval_every or steps_per_epoch)
+
+
+def _resumed(out: Path, model: EchoPT, opt: torch.optim.Optimizer, cfg: TrainConfig,
+             dist: Dist) -> tuple[int, float, list[dict]]:
+    """(step, best validation loss, history) of the saved state, loaded into ``model`` and ``opt``,
+    after checking that the settings that shape the run are the saved ones."""
+    meta = load_state(out, model, opt)
+    saved = meta["train_config"]
+    for key in _RESUME_KEYS:
+        if saved.get(key, getattr(TrainConfig, key, None)) != getattr(cfg, key):
+            raise SonarSetError(f"{out}: --resume with {key}={getattr(cfg, key)!r}, but the run used {saved.get(key)!r}")
+    if dist.main:  # derived from the state: whatever a kill left behind, rewrite it
+        write_metrics(out, list(meta["history"]))
+    return int(meta["step"]), float(meta["best_val_loss"]), list(meta["history"])
+
+
+def _forward(model: EchoPT, cfg: TrainConfig, dist: Dist, device: str):
+    """The model as a training step calls it: under DistributedDataParallel across processes,
+    compiled on request (GPU)."""
     fwd = model
     if dist.world > 1:
         from torch.nn.parallel import DistributedDataParallel
@@ -414,80 +310,170 @@ def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progres
         fwd = DistributedDataParallel(model, device_ids=[dist.local_rank] if device.startswith("cuda") else None)
     if cfg.compile and device.startswith("cuda"):
         fwd = torch.compile(fwd)
-    local = cfg.batch_size // dist.world  # this process's slice of each global batch
-    card_base = {
+    return fwd
+
+
+def _card_base(store: SonarStore, cfg: TrainConfig, bank: FrameBank, n_train: int, n_val: int,
+               steps_per_epoch: int) -> dict:
+    """What every checkpoint's card says about the model's data and training."""
+    return {
         "format": "echopt-card/1", "preset": cfg.preset, "grid": store.grid.model_dump(),
         # what the model knows: the images' processing and the robot (models/cards.py reads them)
         "processing": store.processing.model_dump(mode="json"),
         "rig": store.rig.model_dump(mode="json") if store.rig is not None else None,
         "training": {"store": store.location, "runs": bank.run_names, "command": cfg.command,
-                     "sonarset": __version__, "config": asdict(cfg), "windows_train": len(train_idx),
-                     "windows_val": len(val_idx), "steps_per_epoch": steps_per_epoch},
+                     "sonarset": __version__, "config": asdict(cfg), "windows_train": n_train,
+                     "windows_val": n_val, "steps_per_epoch": steps_per_epoch},
     }
-    t_start = time.perf_counter()
-    model.train()
-    run_loss, run_n, t_window, samples_window = 0.0, 0, time.perf_counter(), 0
-    stop = False
-    while step < total_steps and not stop:
-        epoch, pos = divmod(step, steps_per_epoch)
-        order = np.random.default_rng([cfg.seed, epoch]).permutation(len(train_idx))
-        for b in range(pos, steps_per_epoch):
+
+
+@dataclass
+class _Tally:
+    """Training loss and throughput since the last validation."""
+
+    loss: float = 0.0
+    n: int = 0
+    samples: int = 0
+    t0: float = field(default_factory=time.perf_counter)
+
+
+@dataclass
+class _Run:
+    """What every step of one training run needs."""
+
+    cfg: TrainConfig
+    out: Path
+    dist: Dist
+    model: EchoPT
+    fwd: Callable
+    opt: torch.optim.Optimizer
+    terms: dict[str, float]
+    batcher: WindowBatcher
+    train_idx: WindowIndex
+    val_idx: WindowIndex
+    plan: _Plan
+    val_horizon: int
+    amp: bool
+    card_base: dict
+    progress: Callable[[dict], None] | None
+    t_start: float = field(default_factory=time.perf_counter)
+
+    def batch(self, step: int, which: np.ndarray, k: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Input frames, commands and ``k`` rollout targets of the training windows ``which``."""
+        b = self.batcher.gather(self.train_idx, which, k)
+        frames = b.frames
+        if self.cfg.context_noise:
+            # drawn from (seed, step): a resumed run adds the same noise
+            gen = torch.Generator().manual_seed(self.cfg.seed * 1_000_003 + step)
+            noise = torch.randn(frames.shape, generator=gen) * self.cfg.context_noise
+            frames = (frames + noise.to(frames.device)).clamp_(0, 1)
+        return frames, b.commands, b.targets
+
+    def optimizer_step(self, step: int, which: np.ndarray, k: int) -> torch.Tensor:
+        """One step on the windows ``which`` with a ``k``-step rollout; returns its loss."""
+        frames, cmds, targets = self.batch(step, which, k)
+        for g in self.opt.param_groups:
+            g["lr"] = _lr_at(self.cfg, step, self.plan.total_steps)
+        losses = rollout_losses(self.fwd, frames, cmds, targets, self.terms, self.cfg.pushforward, self.amp)
+        loss = sum(losses) / len(losses)
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        return loss
+
+    def out_of_time(self) -> bool:
+        """Whether --max-minutes is spent; every rank agrees, so that all stop at the same step."""
+        late = bool(self.cfg.max_minutes) and (time.perf_counter() - self.t_start) > 60 * self.cfg.max_minutes
+        if self.dist.world > 1 and self.cfg.max_minutes:
+            late = bool(self.dist.all_sum(float(late))[0])
+        return late
+
+    def validate(self, step: int, k: int, tally: _Tally, history: list[dict], best: float) -> float:
+        """Validate, append to ``history``, save (rank 0) and report; returns the best loss so far."""
+        dist = self.dist
+        val = validation_loss(self.model, self.batcher, self.val_idx, self.val_horizon, dist=dist, terms=self.terms)
+        run_loss, run_n = dist.all_sum(tally.loss, tally.n)
+        rate = tally.samples / (time.perf_counter() - tally.t0)
+        rec = {"step": step, "epoch": step / self.plan.steps_per_epoch, "train_loss": run_loss / max(run_n, 1),
+               "val_loss": val, "rollout_k": k, "lr": self.opt.param_groups[0]["lr"], "samples_per_s": rate,
+               "elapsed_s": time.perf_counter() - self.t_start}
+        history.append(rec)
+        if dist.main:
+            self.save(step, val, best, history)
+            if self.progress:
+                self.progress({**rec, "total_steps": self.plan.total_steps, "best_val_loss": min(best, val)})
+        return min(best, val)
+
+    def save(self, step: int, val: float, best: float, history: list[dict]) -> None:
+        """Rank 0's writes. Order matters for a kill at any point: the best model first (a resumed
+        run redoes these steps and rewrites it identically), then the state, the commit point, then
+        the metrics derived from it."""
+        if val < best:
+            save_checkpoint(self.out / "model.safetensors", self.model, {
+                **self.card_base, "epochs": step / self.plan.steps_per_epoch, "steps": step, "val_loss": val,
+                "val_horizon": self.val_horizon, "processes": self.dist.world}, after_weights=_written)
+            _written("best")
+        save_state(self.out, self.model, self.opt, {"step": step, "best_val_loss": min(best, val),
+                                                    "train_config": asdict(self.cfg), "history": history})
+        _written("state")
+        write_metrics(self.out, history)
+        _written("metrics")
+
+
+def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progress, dist: Dist,
+           device: str) -> TrainResult:
+    model, opt = _build_model(store, cfg, device)
+    terms = parse_loss(cfg.loss)
+    val_horizon = cfg.val_horizon or cfg.k_max
+    bank = FrameBank.from_store(store, split="train")
+    # a window holds the model's input frames and the longest rollout's targets
+    index = WindowIndex.build(bank, model.cfg.n_in, max(cfg.k_max, val_horizon))
+    train_idx, val_idx = index.split(cfg.n_val, seed=cfg.seed)
+    if dist.main:
+        out.mkdir(parents=True, exist_ok=True)
+    batcher = torch_batcher(bank, device)
+    plan = _Plan.of(cfg, len(train_idx), store.location)
+    step, best, history = 0, float("inf"), []
+    if resume and (out / STATE).is_file():
+        step, best, history = _resumed(out, model, opt, cfg, dist)
+    run = _Run(cfg, out, dist, model, _forward(model, cfg, dist, device), opt, terms, batcher, train_idx, val_idx,
+               plan, val_horizon, device.startswith("cuda") and cfg.bf16,
+               _card_base(store, cfg, bank, len(train_idx), len(val_idx), plan.steps_per_epoch), progress)
+    step, best = _steps(run, step, best, history)
+    dist.barrier()  # rank 0's last checkpoint is on disk before any process returns
+    return TrainResult(out, step, step / plan.steps_per_epoch, best, history)
+
+
+def _steps(run: _Run, step: int, best: float, history: list[dict]) -> tuple[int, float]:
+    """Train from ``step`` to the plan's end or --max-minutes; returns (step reached, best loss).
+
+    Each epoch's window order is drawn from (seed, epoch), and each process takes its slice of
+    every global batch: a resumed run replays the steps an uninterrupted one would have taken.
+    """
+    cfg, plan, dist = run.cfg, run.plan, run.dist
+    local = cfg.batch_size // dist.world  # this process's slice of each global batch
+    run.model.train()
+    tally = _Tally()
+    while step < plan.total_steps:
+        epoch, pos = divmod(step, plan.steps_per_epoch)
+        order = np.random.default_rng([cfg.seed, epoch]).permutation(len(run.train_idx))
+        for b in range(pos, plan.steps_per_epoch):
             which = order[b * cfg.batch_size:(b + 1) * cfg.batch_size][dist.rank * local:(dist.rank + 1) * local]
             k = cfg.k_at(step)
-            frames, cmds, targets = batches.get(train_idx, which, k)
-            if cfg.context_noise:
-                # drawn from (seed, step): a resumed run adds the same noise
-                gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
-                noise = torch.randn(frames.shape, generator=gen) * cfg.context_noise
-                frames = (frames + noise.to(frames.device)).clamp_(0, 1)
-            for g in opt.param_groups:
-                g["lr"] = _lr_at(cfg, step, total_steps)
-            losses = rollout_losses(fwd, frames, cmds, targets, terms, cfg.pushforward, amp)
-            loss = sum(losses) / len(losses)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
+            loss = run.optimizer_step(step, which, k)
             step += 1
-            run_loss += loss.item() * len(which)
-            run_n += len(which)
-            samples_window += cfg.batch_size
-            out_of_time = cfg.max_minutes and (time.perf_counter() - t_start) > 60 * cfg.max_minutes
-            if dist.world > 1 and cfg.max_minutes:  # every rank must agree to stop at the same step
-                out_of_time = bool(dist.all_sum(float(bool(out_of_time)))[0])
-            if step % eval_every == 0 or step == total_steps or out_of_time:
-                val = validation_loss(model, batches, val_idx, val_horizon, dist=dist, terms=terms)
-                run_loss, run_n = dist.all_sum(run_loss, run_n)
-                rate = samples_window / (time.perf_counter() - t_window)
-                rec = {"step": step, "epoch": step / steps_per_epoch, "train_loss": run_loss / max(run_n, 1),
-                       "val_loss": val, "rollout_k": k, "lr": opt.param_groups[0]["lr"], "samples_per_s": rate,
-                       "elapsed_s": time.perf_counter() - t_start}
-                history.append(rec)
-                if dist.main:
-                    # Order matters for a kill at any point: the best model first (a resumed run
-                    # redoes these steps and rewrites it identically), then the state, the commit
-                    # point, then the metrics derived from it.
-                    if val < best:
-                        save_checkpoint(out / "model.safetensors", model, {
-                            **card_base, "epochs": step / steps_per_epoch, "steps": step, "val_loss": val,
-                            "val_horizon": val_horizon, "processes": dist.world}, after_weights=_written)
-                        _written("best")
-                    best = min(best, val)
-                    _save_state(out, model, opt, {"step": step, "best_val_loss": best, "train_config": asdict(cfg),
-                                                  "history": history})
-                    _written("state")
-                    _write_metrics(out, history)
-                    _written("metrics")
-                    if progress:
-                        progress({**rec, "total_steps": total_steps, "best_val_loss": best})
-                best = min(best, val)
-                run_loss, run_n, t_window, samples_window = 0.0, 0, time.perf_counter(), 0
-            elif progress and dist.main and step % 10 == 0:
-                progress({"step": step, "total_steps": total_steps, "train_loss": loss.item()})
-            if step >= total_steps or out_of_time:
-                stop = True
-                break
-    dist.barrier()  # rank 0's last checkpoint is on disk before any process returns
-    return TrainResult(out, step, step / steps_per_epoch, best, history)
+            tally.loss += loss.item() * len(which)
+            tally.n += len(which)
+            tally.samples += cfg.batch_size
+            out_of_time = run.out_of_time()
+            if step % plan.eval_every == 0 or step == plan.total_steps or out_of_time:
+                best = run.validate(step, k, tally, history, best)
+                tally = _Tally()
+            elif run.progress and dist.main and step % 10 == 0:
+                run.progress({"step": step, "total_steps": plan.total_steps, "train_loss": loss.item()})
+            if step >= plan.total_steps or out_of_time:
+                return step, best
+    return step, best
 
 
 def add_test_metrics(out_dir: str | os.PathLike, store: SonarStore, samples: int = 1000, seed: int = 0,

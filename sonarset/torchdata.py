@@ -1,14 +1,51 @@
-"""PyTorch access to windows. Imports torch; ``import sonarset`` alone never does."""
+"""PyTorch access to windows. Imports torch; ``import sonarset`` alone never does.
+
+Both the trainer (frames held on its device) and the DataLoader path batch through the one
+:class:`~sonarset.windows.WindowBatcher`, over tensors instead of NumPy arrays.
+"""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
 import torch
 from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler, SequentialSampler
 
-from .windows import FrameBank, WindowIndex
+from .windows import FrameBank, WindowBatcher, WindowIndex
+
+
+@dataclass(frozen=True)
+class _RowsOn:
+    """Row indices as a tensor on the frames' device (a class, not a lambda: DataLoader workers
+    started by spawn pickle the dataset)."""
+
+    device: torch.device
+
+    def __call__(self, rows: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(rows, device=self.device)
+
+
+@dataclass(frozen=True)
+class _CastTo:
+    dtype: torch.dtype
+
+    def __call__(self, block: torch.Tensor) -> torch.Tensor:
+        return block.to(self.dtype)
+
+
+def torch_batcher(bank: FrameBank, device: str | torch.device = "cpu",
+                  dtype: torch.dtype = torch.float32) -> WindowBatcher:
+    """Batches of tensors on ``device``, images as ``dtype``.
+
+    The frames stay in their stored dtype on the device (float16 stays float16: half the memory)
+    and each batch is converted after the gather; on the CPU the tensors share the bank's memory.
+    """
+    device = torch.device(device)
+    images = torch.from_numpy(bank.images).to(device)  # no copy on the CPU
+    velocity = torch.from_numpy(bank.velocity).to(device)
+    return WindowBatcher(images, velocity, to_rows=_RowsOn(device), cast=_CastTo(dtype))
 
 
 class SonarWindowDataset(Dataset):
@@ -21,6 +58,7 @@ class SonarWindowDataset(Dataset):
 
     def __init__(self, bank: FrameBank, index: WindowIndex, dtype: torch.dtype = torch.float32):
         self.bank, self.index, self.dtype = bank, index, dtype
+        self.batcher = torch_batcher(bank, "cpu", dtype)
 
     def __len__(self) -> int:
         return len(self.index)
@@ -30,14 +68,8 @@ class SonarWindowDataset(Dataset):
         which = np.atleast_1d(np.asarray(k, dtype=np.int64))
         if which.size and (which.min() < -len(self) or which.max() >= len(self)):
             raise IndexError(f"window index out of range for {len(self)} windows")
-        rows = self.index.rows(which)
-        # One gather and one dtype conversion for inputs and targets together; both are views.
-        block = torch.from_numpy(self.bank.images[rows]).to(self.dtype)
-        out = {
-            "frames": block[:, :self.index.n_in],
-            "commands": torch.from_numpy(self.bank.velocity[rows]).to(self.dtype),
-            "targets": block[:, self.index.n_in:],
-        }
+        batch = self.batcher.gather(self.index, which)
+        out = {"frames": batch.frames, "commands": batch.commands.to(self.dtype), "targets": batch.targets}
         return {k2: v[0] for k2, v in out.items()} if single else out
 
 

@@ -4,6 +4,10 @@ Layout after Diffusion Policy's replay buffer: the frames of all runs are concat
 flat in-memory array (a :class:`FrameBank`), and a window is just the global index of its first
 frame (a :class:`WindowIndex`). Gathering a batch is then one vectorised NumPy take.
 
+One batcher, :class:`WindowBatcher`, turns windows into batches for every consumer: NumPy arrays
+for evaluation (:func:`gather`, :func:`iter_batches`), and torch tensors, on the training device or
+behind a DataLoader (``sonarset.torchdata``), from the same row arithmetic.
+
 Alignment (DESIGN.md §2): the window starting at frame i of a run uses frames i..i+n_in-1 and
 commands i..i+n_in-1+H, and targets frames i+n_in..i+n_in-1+H. ``velocity[k]`` moved the robot
 from frame k-1 to k, so command i+n_in is the one that leads to the first target. Windows never
@@ -13,7 +17,7 @@ cross runs.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -21,6 +25,8 @@ from .errors import SonarSetError
 from .schema import SensorGrid
 from .store import SonarStore
 
+#: Input frames of a window: the paper's geometry (DESIGN.md §2), the one definition. A learned
+#: model's own count is in its config (EchoPT's defaults to this); the baselines are fed these windows.
 N_IN = 3
 
 
@@ -135,10 +141,14 @@ class WindowIndex:
         pick = np.sort(np.random.default_rng(seed).choice(len(self), size=n, replace=False))
         return self.subset(pick)
 
-    def rows(self, which: np.ndarray | slice | None = None) -> np.ndarray:
-        """Global frame indices (B, n_in + H) of the windows ``index[which]``: inputs, then targets."""
+    def rows(self, which: np.ndarray | slice | None = None, horizon: int | None = None) -> np.ndarray:
+        """Global frame indices (B, n_in + h) of the windows ``index[which]``: inputs, then the first
+        ``h = horizon`` targets (default: all of the index's horizon)."""
+        h = self.horizon if horizon is None else horizon
+        if not 1 <= h <= self.horizon:
+            raise SonarSetError(f"horizon {h}: these windows hold 1 to {self.horizon} targets")
         starts = np.atleast_1d(self.starts if which is None else self.starts[which])
-        return starts[:, None] + np.arange(self.span)
+        return starts[:, None] + np.arange(self.n_in + h)
 
     def locate(self, k: int) -> tuple[int, int]:
         """(run position in the bank, frame index within that run) of window ``k``."""
@@ -174,7 +184,7 @@ class WindowIndex:
 
 @dataclass
 class WindowBatch:
-    """A batch of windows as NumPy arrays (B windows)."""
+    """A batch of B windows: NumPy arrays, or torch tensors from a torch batcher."""
 
     frames: np.ndarray  # (B, n_in, R, A) measured input frames
     commands: np.ndarray  # (B, n_in + H, 2) commands i .. i+n_in-1+H
@@ -185,15 +195,44 @@ class WindowBatch:
         return int(self.frames.shape[0])
 
 
+@dataclass(frozen=True)
+class WindowBatcher:
+    """The one batcher over a :class:`WindowIndex` (after Diffusion Policy's sequence sampler):
+    flat frame and command arrays, and windows as precomputed rows into them.
+
+    The arrays are whatever the consumer computes with: a bank's NumPy arrays (evaluation), or
+    torch tensors on the training device or on the CPU behind a DataLoader
+    (``sonarset.torchdata.torch_batcher``). ``to_rows`` turns NumPy row indices into the arrays'
+    index type (a tensor on their device); ``cast`` converts the gathered image block (dtype).
+    Inputs and targets are gathered as one block, and both are views of it.
+    """
+
+    images: Any  # (N, R, A)
+    velocity: Any  # (N, 2)
+    to_rows: Callable[[np.ndarray], Any] | None = None
+    cast: Callable[[Any], Any] | None = None
+
+    @classmethod
+    def of(cls, bank: FrameBank, image_dtype: str | np.dtype | None = None) -> "WindowBatcher":
+        """NumPy batches from ``bank``, images converted to ``image_dtype`` when given."""
+        cast = None if image_dtype is None else (lambda block: block.astype(image_dtype, copy=False))
+        return cls(bank.images, bank.velocity, cast=cast)
+
+    def gather(self, index: WindowIndex, which: np.ndarray | slice | None = None,
+               horizon: int | None = None) -> WindowBatch:
+        """The windows ``index[which]`` with their first ``horizon`` targets (default: all)."""
+        rows = index.rows(which, horizon)
+        at = rows if self.to_rows is None else self.to_rows(rows)
+        block = self.images[at]  # (B, n_in + h, R, A)
+        if self.cast is not None:
+            block = self.cast(block)
+        return WindowBatch(block[:, :index.n_in], self.velocity[at], block[:, index.n_in:], rows[:, 0])
+
+
 def gather(bank: FrameBank, index: WindowIndex, which: np.ndarray | slice | None = None,
            image_dtype: str | np.dtype | None = None) -> WindowBatch:
-    """The windows ``index[which]`` as one batch (a single vectorised gather per array)."""
-    rows = index.rows(which)
-    block = bank.images[rows]  # (B, n_in + H, R, A)
-    if image_dtype is not None:
-        block = block.astype(image_dtype, copy=False)
-    commands = bank.velocity[rows]
-    return WindowBatch(block[:, :index.n_in], commands, block[:, index.n_in:], rows[:, 0])
+    """The windows ``index[which]`` as one NumPy batch (a single vectorised gather per array)."""
+    return WindowBatcher.of(bank, image_dtype).gather(index, which)
 
 
 def iter_batches(
@@ -211,8 +250,9 @@ def iter_batches(
     n = len(index)
     order = np.random.default_rng([seed, epoch]).permutation(n) if shuffle else np.arange(n)
     stop = n - n % batch_size if drop_last else n
+    batcher = WindowBatcher.of(bank, image_dtype)
     for lo in range(0, stop, batch_size):
-        yield gather(bank, index, order[lo:lo + batch_size], image_dtype)
+        yield batcher.gather(index, order[lo:lo + batch_size])
 
 
 def load_windows(store: SonarStore, split: str | None = "train", n_in: int = N_IN, horizon: int = 1,

@@ -11,7 +11,8 @@ from typer.testing import CliRunner
 from sonarset import open_store
 from sonarset.ceiling import CeilingUnavailable, RunRenderer, rerender
 from sonarset.cli.app import app
-from sonarset.models.evaluate import evaluate, write_report
+from sonarset.models.eval_report import write_report
+from sonarset.models.evaluate import evaluate
 from sonarset.schema import SensorGrid
 from sonarset.sim import generate
 from sonarset.sim import sonar

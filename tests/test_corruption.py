@@ -465,7 +465,8 @@ def test_eval_takes_dt_from_the_time_stamps(tmp_path, monkeypatch):
 
 
 def test_eval_counts_windows_whose_cc_is_undefined(tmp_path):
-    from sonarset.models.evaluate import evaluate, results_table
+    from sonarset.models.eval_report import results_table
+    from sonarset.models.evaluate import evaluate
     from sonarset.store import create_store
     from tests.conftest import TINY, make_run
 

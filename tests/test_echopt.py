@@ -200,7 +200,7 @@ def test_rollout_training_options_and_priors(tiny_store, tmp_path):
     rng = np.random.default_rng(0)
     f = rng.random((4, 3, *TINY_GRID.shape)).astype(np.float32)
     c = np.stack([rng.uniform(-0.3, 0.3, (4, 4)), rng.uniform(-1, 1, (4, 4))], -1).astype(np.float32)
-    flow = AcousticFlow(TINY_GRID, dt=tiny_store.rig.frame_interval_s, sensor_offset=tiny_store.rig.sensor_offset_m)
+    flow = AcousticFlow(TINY_GRID, tiny_store.rig)
     with torch.no_grad():
         np.testing.assert_allclose(model(torch.from_numpy(f), torch.from_numpy(c)).numpy(), flow.predict(f, c), atol=1e-6)
     # rollout, pushforward and a weighted loss train and record what they did

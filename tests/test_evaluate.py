@@ -10,7 +10,8 @@ from typer.testing import CliRunner
 
 from sonarset import open_store
 from sonarset.cli.app import app
-from sonarset.models.evaluate import evaluate, write_report
+from sonarset.models.eval_report import write_report
+from sonarset.models.evaluate import evaluate
 from sonarset.schema import SensorGrid
 from sonarset.sim import generate
 

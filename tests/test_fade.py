@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 
 from sonarset import open_store
-from sonarset.models.evaluate import (ECHO_FLOOR, FADE_TOLERANCE, EvalResult, evaluate, fade_summary,
-                                      peak_and_energy, write_report)
+from sonarset.models.eval_report import write_report
+from sonarset.models.evaluate import ECHO_FLOOR, FADE_TOLERANCE, EvalResult, evaluate, fade_summary, peak_and_energy
 from sonarset.schema import SensorGrid
 from sonarset.sim import generate
+from sonarset.windows import N_IN
 
 # The model's grid (as in test_echopt): 50 x 30 divides into the 25 x 5 patches.
 TINY_GRID = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=50, azimuth_min_rad=-math.pi / 2,
@@ -25,6 +26,7 @@ class Fader:
 
     grid: SensorGrid
     name: str = "fader"
+    n_in: int = N_IN
 
     def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:
         return 0.8 * frames[:, -1]

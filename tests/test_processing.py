@@ -147,7 +147,8 @@ def ertis_model(tmp_path):
 
 
 def test_eval_notes_a_model_trained_on_other_images(store, ertis_model, tmp_path):
-    from sonarset.models.evaluate import evaluate, write_report
+    from sonarset.models.eval_report import write_report
+    from sonarset.models.evaluate import evaluate
 
     res = evaluate(store, ["persistence", f"echopt:{ertis_model}"], horizons=(1,), samples=5)
     assert res.notes[0].startswith("note: the store records no robot rig")
