@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from sonarset import RobotRig, open_store
-from sonarset.windows import FrameBank, WindowIndex, gather
+from sonarset.windows import N_IN, FrameBank, WindowIndex, gather
 
 
 def main() -> None:
@@ -37,7 +37,7 @@ def main() -> None:
 
     store = open_store(args.store)
     bank = FrameBank.from_store(store, split="test", image_dtype=np.float32)
-    index = WindowIndex.build(bank, 3, args.horizon)
+    index = WindowIndex.build(bank, N_IN, args.horizon)
     pick = np.sort(np.random.default_rng(args.seed).choice(len(index), min(args.windows, len(index)), replace=False))
     batch = gather(bank, index, pick)
     targets = batch.targets.astype(np.float32)

@@ -24,7 +24,7 @@ import numpy as np
 
 from sonarset.schema import SensorGrid
 from sonarset.store import create_store, open_store
-from sonarset.windows import FrameBank, WindowIndex, iter_batches
+from sonarset.windows import N_IN, FrameBank, WindowIndex, iter_batches
 
 
 def synthetic_run(T: int, grid: SensorGrid, seed: int, sparse: bool = False) -> dict[str, np.ndarray]:
@@ -79,7 +79,7 @@ def main() -> None:
         t_load = time.perf_counter() - t0
         print(f"load       {rate(n_frames, t_load)} frames   ({bank.nbytes / 2**20:.0f} MiB in memory, {t_load:.2f} s)")
 
-        index = WindowIndex.build(bank, 3, args.horizon)
+        index = WindowIndex.build(bank, N_IN, args.horizon)
         n = len(index)
         t0 = time.perf_counter()
         got = sum(len(b) for b in iter_batches(bank, index, args.batch, seed=0))
@@ -92,7 +92,7 @@ def main() -> None:
         frames = np.concatenate([d["images"] for d in data])
         vel = np.concatenate([d["velocity"] for d in data])
         order = np.random.default_rng(0).permutation(index.starts)
-        span = np.arange(3 + args.horizon)
+        span = np.arange(index.span)
         t0 = time.perf_counter()
         for lo in range(0, n, args.batch):
             rows = order[lo:lo + args.batch, None] + span

@@ -11,6 +11,8 @@ from scipy import signal
 from sonarset.atomic import save_figure
 from sonarset.plots import draw_energyscape, pyplot
 
+from .evaluate import ECHO_FLOOR, FADE_TOLERANCE, fade_summary
+
 
 def correlogram(pred: np.ndarray, target: np.ndarray, max_lag: tuple[int, int] = (20, 15)) -> np.ndarray:
     """Normalised 2D cross-correlation of two images for lags up to ``max_lag`` (range, azimuth)."""
@@ -114,8 +116,6 @@ def horizon_figure(res, path: Path) -> Path:
 def fade_figure(res, path: Path, fade: dict | None = None) -> Path | None:
     """The "no fade" figure: peak-pixel and echo-energy ratios (prediction / target) against the
     rollout step, one line per method, the +-15% band shaded. None when there is nothing to draw."""
-    from .evaluate import ECHO_FLOOR, FADE_TOLERANCE, fade_summary
-
     fade = fade_summary(res) if fade is None else fade
     if not fade:
         return None

@@ -2,7 +2,8 @@
 
 Paper defaults: Adam, lr 5e-5, batch 64, L2 1e-4, 1600 random validation windows, best validation
 loss kept. All frames of the training runs are held in memory (on the GPU when there is one), and
-each batch is one gather from them, so the loader never starves the model.
+each batch is one gather from them (sonarset.torchdata.torch_batcher), so the loader never starves
+the model.
 
 For auto-regressive use (beyond the paper): an unrolled loss over k steps, each step fed the
 model's own previous predictions, with a curriculum on k (``curriculum="0:1,400:2,800:4"``: from
@@ -13,18 +14,18 @@ weighted sum such as ``mse=1,gdl=0.5``). Validation is the mean MSE over a rollo
 ``val_horizon`` steps (1: the paper's one-step loss).
 
 Crash-safe and resumable: the whole training state (weights, Adam moments, step, best loss,
-metrics history) is one file, ``state.safetensors`` (tensors plus a JSON header), replaced
+metrics history) is one file, ``state.safetensors`` (models/train_state.py), replaced
 atomically every ``eval_every`` steps; a kill at any point leaves either the previous state or the
 new one. ``metrics.jsonl`` and the best model are derived from it and rewritten on resume. The
 batch order and the augmentation noise are pure functions of (seed, epoch, step), so a resumed
 run replays exactly the steps an uninterrupted one would have taken.
 
-Distributed: started by ``torchrun`` (WORLD_SIZE > 1), every process draws the same global batch
-order and trains on its own contiguous slice of each global batch of ``batch_size`` windows, under
-DistributedDataParallel (NCCL on GPUs, gloo on CPUs). DDP averages the gradients of the slices,
-which is the gradient of the global batch's mean loss: the same optimizer steps as one process
-with that batch, up to floating-point summation order. Validation is sharded and all-reduced;
-only rank 0 writes checkpoints, logs and reports progress.
+Distributed (models/distributed.py): started by ``torchrun`` (WORLD_SIZE > 1), every process
+draws the same global batch order and trains on its own contiguous slice of each global batch of
+``batch_size`` windows, under DistributedDataParallel (NCCL on GPUs, gloo on CPUs). DDP averages
+the gradients of the slices, which is the gradient of the global batch's mean loss: the same
+optimizer steps as one process with that batch, up to floating-point summation order. Validation
+is sharded and all-reduced; only rank 0 writes checkpoints, logs and reports progress.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """PyTorch access to windows. Imports torch; ``import sonarset`` alone never does.
 
-Both the trainer (frames held on its device) and the DataLoader path batch through the one
-:class:`~sonarset.windows.WindowBatcher`, over tensors instead of NumPy arrays.
+The trainer (frames held on its device) and the DataLoader both batch through the one
+:class:`~sonarset.windows.WindowBatcher`, configured here to hand out tensors.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from .windows import FrameBank, WindowBatcher, WindowIndex
 
 @dataclass(frozen=True)
 class _RowsOn:
-    """Row indices as a tensor on the frames' device (a class, not a lambda: DataLoader workers
+    """Row indices as a tensor on the frames' device (classes, not lambdas: DataLoader workers
     started by spawn pickle the dataset)."""
 
     device: torch.device
@@ -28,24 +28,29 @@ class _RowsOn:
 
 
 @dataclass(frozen=True)
-class _CastTo:
+class _As:
+    """A gathered block as a tensor of ``dtype`` (NumPy blocks without a copy)."""
+
     dtype: torch.dtype
 
-    def __call__(self, block: torch.Tensor) -> torch.Tensor:
-        return block.to(self.dtype)
+    def __call__(self, block: np.ndarray | torch.Tensor) -> torch.Tensor:
+        return torch.as_tensor(block).to(self.dtype)
 
 
 def torch_batcher(bank: FrameBank, device: str | torch.device = "cpu",
                   dtype: torch.dtype = torch.float32) -> WindowBatcher:
-    """Batches of tensors on ``device``, images as ``dtype``.
+    """Batches of ``dtype`` tensors on ``device``.
 
-    The frames stay in their stored dtype on the device (float16 stays float16: half the memory)
-    and each batch is converted after the gather; on the CPU the tensors share the bank's memory.
+    On a GPU the frames are held there in their stored dtype (float16 stays float16: half the
+    memory) and each batch is gathered there; on the CPU NumPy gathers each batch from the bank
+    (faster than torch indexing) and the block becomes a tensor without a copy.
     """
     device = torch.device(device)
-    images = torch.from_numpy(bank.images).to(device)  # no copy on the CPU
+    if device.type == "cpu":
+        return WindowBatcher(bank.images, bank.velocity, images_as=_As(dtype), commands_as=_As(dtype))
+    images = torch.from_numpy(bank.images).to(device)
     velocity = torch.from_numpy(bank.velocity).to(device)
-    return WindowBatcher(images, velocity, to_rows=_RowsOn(device), cast=_CastTo(dtype))
+    return WindowBatcher(images, velocity, to_rows=_RowsOn(device), images_as=_As(dtype), commands_as=_As(dtype))
 
 
 class SonarWindowDataset(Dataset):
@@ -69,7 +74,7 @@ class SonarWindowDataset(Dataset):
         if which.size and (which.min() < -len(self) or which.max() >= len(self)):
             raise IndexError(f"window index out of range for {len(self)} windows")
         batch = self.batcher.gather(self.index, which)
-        out = {"frames": batch.frames, "commands": batch.commands.to(self.dtype), "targets": batch.targets}
+        out = {"frames": batch.frames, "commands": batch.commands, "targets": batch.targets}
         return {k2: v[0] for k2, v in out.items()} if single else out
 
 

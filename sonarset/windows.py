@@ -200,25 +200,39 @@ class WindowBatcher:
     """The one batcher over a :class:`WindowIndex` (after Diffusion Policy's sequence sampler):
     flat frame and command arrays, and windows as precomputed rows into them.
 
-    The arrays are whatever the consumer computes with: a bank's NumPy arrays (evaluation), or
-    torch tensors on the training device or on the CPU behind a DataLoader
-    (``sonarset.torchdata.torch_batcher``). ``to_rows`` turns NumPy row indices into the arrays'
-    index type (a tensor on their device); ``cast`` converts the gathered image block (dtype).
-    Inputs and targets are gathered as one block, and both are views of it.
+    Every consumer batches through it: evaluation (NumPy arrays), training and the DataLoader
+    (``sonarset.torchdata.torch_batcher``: tensors, on the training device or converted from the
+    gathered NumPy block). ``to_rows`` turns the NumPy row indices into the arrays' index type (a
+    tensor on their device); ``images_as`` and ``commands_as`` convert what was gathered (dtype,
+    array kind). Inputs and targets are gathered as one block, and both are views of it.
     """
 
     images: Any  # (N, R, A)
     velocity: Any  # (N, 2)
     to_rows: Callable[[np.ndarray], Any] | None = None
-    cast: Callable[[Any], Any] | None = None
+    images_as: Callable[[Any], Any] | None = None
+    commands_as: Callable[[Any], Any] | None = None
 
     @classmethod
     def of(cls, bank: FrameBank, image_dtype: str | np.dtype | None = None) -> "WindowBatcher":
         """NumPy batches from ``bank``, images converted to ``image_dtype`` when given."""
-        cast = None if image_dtype is None else (lambda block: block.astype(image_dtype, copy=False))
-        return cls(bank.images, bank.velocity, cast=cast)
+        images_as = None if image_dtype is None else (lambda block: block.astype(image_dtype, copy=False))
+        return cls(bank.images, bank.velocity, images_as=images_as)
 
     def gather(self, index: WindowIndex, which: np.ndarray | slice | None = None,
+               horizon: int | None = None) -> WindowBatch:
+        """The windows ``index[which]`` with their first ``horizon`` targets (default: all)."""
+        rows = index.rows(which, horizon)
+        at = rows if self.to_rows is None else self.to_rows(rows)
+        block, commands = self.images[at], self.velocity[at]  # (B, n_in + h, R, A), (B, n_in + h, 2)
+        if self.images_as is not None:
+            block = self.images_as(block)
+        if self.commands_as is not None:
+            commands = self.commands_as(commands)
+        return WindowBatch(block[:, :index.n_in], commands, block[:, index.n_in:], rows[:, 0])
+
+
+def gather(self, index: WindowIndex, which: np.ndarray | slice | None = None,
                horizon: int | None = None) -> WindowBatch:
         """The windows ``index[which]`` with their first ``horizon`` targets (default: all)."""
         rows = index.rows(which, horizon)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from sonarset import open_store
+from sonarset import SonarSetError, open_store
 from sonarset.cli.app import app
-from sonarset.models.eval_report import write_report
+from sonarset.models.eval_report import metrics_document, write_report
 from sonarset.models.evaluate import evaluate
 from sonarset.schema import SensorGrid
 from sonarset.sim import generate
@@ -118,3 +118,16 @@ def test_eval_cli(stores, tmp_path):
     assert r.exit_code == 1 and "unknown model 'magic'" in r.output
     r = CliRunner().invoke(app, ["eval", stores["array"].location, "--horizons", "1,5000", "--out", str(tmp_path / "q")])
     assert r.exit_code == 1 and "no run long enough" in r.output
+
+
+def test_models_that_take_other_windows_are_refused_together(stores):
+    from sonarset.models.baselines import Persistence
+
+    class FourFrames(Persistence):
+        n_in = 4
+
+    with pytest.raises(SonarSetError, match="different numbers of input frames.*four 4"):
+        evaluate(stores["mainlobe"], ["naive"], predictors={"four": FourFrames(GRID)}, samples=5)
+    # alone, a model sets the windows' input frames, and metrics.json records them
+    res = evaluate(stores["mainlobe"], [], predictors={"four": FourFrames(GRID)}, horizons=(1,), samples=5)
+    assert res.examples["frames"].shape[0] == 4 and metrics_document(res)["windows"]["n_in"] == 4

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from sonarset import SonarSetError
-from sonarset.windows import FrameBank, WindowIndex, gather, iter_batches, load_windows
+from sonarset.windows import FrameBank, WindowBatcher, WindowIndex, gather, iter_batches, load_windows
 from tests.conftest import TINY
 
 
@@ -85,3 +85,31 @@ def test_torch_dataset_and_loader(store):
     assert batches[0]["frames"].dtype == torch.float32
     with pytest.raises(IndexError):
         ds[len(ds)]
+
+
+def test_batcher_takes_the_first_k_targets_of_longer_windows():
+    bank = coded_bank()
+    idx = WindowIndex.build(bank, 3, 4)
+    b = WindowBatcher.of(bank).gather(idx, np.arange(5), horizon=2)
+    i = b.frames[:, 0, 0, 0]
+    assert b.frames.shape[1] == 3 and b.commands.shape[1] == 5 and b.targets.shape[1] == 2
+    np.testing.assert_array_equal(b.targets[:, :, 0, 0], i[:, None] + 3 + np.arange(2))
+    np.testing.assert_array_equal(b.commands[:, :, 0], i[:, None] + np.arange(5))
+    with pytest.raises(SonarSetError, match="hold 1 to 4 targets"):
+        WindowBatcher.of(bank).gather(idx, np.arange(5), horizon=5)
+
+
+def test_torch_batcher_gives_the_numpy_batch_as_tensors(store):
+    torch = pytest.importorskip("torch")
+    from sonarset.torchdata import torch_batcher
+
+    bank = FrameBank.from_store(store, split="train", image_dtype="float16")
+    idx = WindowIndex.build(bank, 3, 3)
+    which = np.array([7, 0, 21])
+    ref = gather(bank, idx, which, image_dtype=np.float32)
+    got = torch_batcher(bank).gather(idx, which, horizon=2)
+    assert got.frames.dtype == torch.float32 and got.commands.dtype == torch.float32
+    np.testing.assert_array_equal(got.frames.numpy(), ref.frames)
+    np.testing.assert_array_equal(got.targets.numpy(), ref.targets[:, :2])
+    np.testing.assert_array_equal(got.commands.numpy(), ref.commands[:, :5])
+    np.testing.assert_array_equal(got.starts, idx.starts[which])
