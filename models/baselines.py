@@ -82,21 +82,26 @@ def _xp(backend: str):
     return np, (lambda a: np.asarray(a, dtype=np.float64))
 
 
+class LastFrameBaseline:
+    """A baseline that reads only the last input frame (and the last command); it is fed the
+    windows of the paper's geometry all the same."""
+
+    n_in: ClassVar[int] = N_IN
+
+
 @dataclass
-class Persistence:
+class Persistence(LastFrameBaseline):
     """The last frame, unchanged: the floor every predictor must beat."""
 
     grid: SensorGrid
     name: str = "persistence"
-    # The baselines read only the last frame; they are fed the paper's windows.
-    n_in: ClassVar[int] = N_IN
 
     def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:
         return np.array(frames[:, -1], dtype=np.float32)
 
 
 @dataclass
-class NaiveShift:
+class NaiveShift(LastFrameBaseline):
     """Shift the last frame by -v dt in range and -omega dt in azimuth (sub-bin, bilinear).
 
     Exact for a rotation about the sensor, wrong for translation (objects off-axis move along flow
@@ -106,8 +111,6 @@ class NaiveShift:
     grid: SensorGrid
     rig: RobotRig
     name: str = "naive"
-    n_in: ClassVar[int] = N_IN
-
     backend: str = "torch"
 
     def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:
@@ -121,7 +124,7 @@ class NaiveShift:
 
 
 @dataclass
-class AcousticFlow:
+class AcousticFlow(LastFrameBaseline):
     """Exact SE(2) warp of the last frame's pixels under the commanded motion (acoustic flow).
 
     Each pixel of the predicted frame is a point in the new sensor frame; moving it back through
@@ -134,8 +137,6 @@ class AcousticFlow:
     grid: SensorGrid
     rig: RobotRig
     name: str = "flow"
-    n_in: ClassVar[int] = N_IN
-
     backend: str = "torch"
 
     def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:

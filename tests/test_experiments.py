@@ -87,6 +87,21 @@ def test_one_rollout_serves_every_horizon():
         np.testing.assert_allclose(got[h][t], slip_error(ref, images[t]), rtol=1e-5)
 
 
+def test_slip_signals_take_the_window_from_the_model(tmp_path):
+    """A model trained on windows of 4 frames is fed 4 (its config's n_in), the baselines 3."""
+    ckpt = save_checkpoint(tmp_path / "four", EchoPT(make_config("tiny", *SMALL.shape, n_in=4)),
+                           {"grid": SMALL.model_dump(), "preset": "tiny"})
+    rng = np.random.default_rng(5)
+    images = rng.random((12, *SMALL.shape)).astype(np.float32)
+    commands = rng.uniform(-0.3, 0.3, (12, 2)).astype(np.float32)
+    for spec, n_in in ((f"echopt:{ckpt}", 4), ("flow", N_IN)):
+        pred = predictor(spec, SMALL)
+        assert pred.n_in == n_in
+        eps = slip_signals(pred, images, commands, (1, 2))
+        for h in (1, 2):
+            assert np.isnan(eps[h][:n_in - 1 + h]).all() and np.isfinite(eps[h][n_in - 1 + h:]).all()
+
+
 def test_slip_labels_follow_the_horizon():
     slip = np.ones((20, 2))
     slip[8:10] = (0.2, 1.0)

@@ -100,12 +100,12 @@ def test_baselines_take_the_rig_and_the_window_geometry():
         assert p.n_in == N_IN and getattr(p, "rig", rig) is rig
     frames = np.random.default_rng(4).random((1, 3, *GRID.shape)).astype(np.float32)
     cmds = np.array([[[0, 0]] * 3 + [[0.3, 0.5]]])
-    # the same motion: twice the speed over half the time
-    np.testing.assert_allclose(AcousticFlow(GRID, rig).predict(frames, cmds),
-                               AcousticFlow(GRID, RobotRig(frame_interval_s=0.2, sensor_offset_m=0.05))
-                               .predict(frames, cmds / 2), atol=1e-5)
-    assert not np.allclose(AcousticFlow(GRID, rig).predict(frames, cmds),
-                           AcousticFlow(GRID, RobotRig(frame_interval_s=0.1, sensor_offset_m=0.0)).predict(frames, cmds))
+    moved = AcousticFlow(GRID, rig).predict(frames, cmds)
+    # the same motion: half the speed over twice the time
+    slower = AcousticFlow(GRID, RobotRig(frame_interval_s=0.2, sensor_offset_m=0.05)).predict(frames, cmds / 2)
+    np.testing.assert_allclose(moved, slower, atol=1e-5)
+    on_axle = AcousticFlow(GRID, RobotRig(frame_interval_s=0.1, sensor_offset_m=0.0)).predict(frames, cmds)
+    assert not np.allclose(moved, on_axle)  # the offset matters
 
 
 def test_auc_wilson_and_mcnemar():

@@ -1,14 +1,17 @@
 """What both experiments share: predictors built once per worker process, a deterministic parallel
-map over seeded tasks, and bootstrap confidence intervals."""
+map over seeded tasks, bootstrap confidence intervals, and how their outputs are written."""
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import json
 import multiprocessing as mp
 import os
+from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
+from sonarset.atomic import atomic_text, save_figure
 from sonarset.perf import keep_freed_memory
 from sonarset.errors import SonarSetError
 from sonarset.schema import Processing, SensorGrid
@@ -112,6 +115,17 @@ def mean_ci(x: np.ndarray, seed: int = 0) -> tuple[float, float, float]:
     if len(x) == 0:
         return float("nan"), float("nan"), float("nan")
     return (float(x.mean()), *bootstrap_ci(x, seed=seed))
+
+
+def write_outputs(out: str | os.PathLike, metrics: dict, figure, figure_name: str, report: list[str]) -> Path:
+    """An experiment's outputs in ``out`` (created): metrics.json (NaNs as null), the figure, and
+    report.md from the report's lines."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_text(out / "metrics.json", json.dumps(finite_or_none(metrics), indent=2) + "\n")
+    save_figure(figure, out / figure_name)
+    atomic_text(out / "report.md", "\n".join(report) + "\n")
+    return out
 
 
 def finite_or_none(x):

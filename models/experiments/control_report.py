@@ -3,20 +3,18 @@
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
 
-from sonarset.atomic import atomic_text, save_figure
 from sonarset.control import BurstDetector
 from sonarset.plots import pyplot
 from sonarset.report import format_p
 from sonarset.sim.world import World, corridor_world
 
-from .common import finite_or_none
+from .common import write_outputs
 from .control import GOAL_RADIUS, ControlResult
 
 FIGURE = "fig6_control.png"
@@ -26,14 +24,9 @@ PER_RUN_KEYS = ("index", "condition", "outcome", "travel_time_s", "midline_devia
 
 def write_control_report(res: ControlResult, out: str | os.PathLike) -> Path:
     """metrics.json, fig6_control.png and report.md in ``out`` (created)."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_text(out / "metrics.json", json.dumps(finite_or_none(control_metrics(res)), indent=2) + "\n")
-    save_figure(fig6(res), out / FIGURE)
     lines = [*outcome_table(res), *tests_table(res), *detector_and_gains(res),
              "", f"![Fig. 6]({FIGURE})", "", f"{res.seconds:.0f} s in all."]
-    atomic_text(out / "report.md", "\n".join(lines) + "\n")
-    return out
+    return write_outputs(out, control_metrics(res), fig6(res), FIGURE, lines)
 
 
 def control_metrics(res: ControlResult) -> dict:

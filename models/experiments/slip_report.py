@@ -3,17 +3,15 @@
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
 import numpy as np
 
-from sonarset.atomic import atomic_text, save_figure
 from sonarset.plots import pyplot
 from sonarset.report import format_p, horizon_name
 
-from .common import finite_or_none
+from .common import write_outputs
 from .slip import DETECTORS, HORIZONS, KINDS, SlipPeriod, SlipResult
 
 DETECTOR_TEXT = {
@@ -25,14 +23,9 @@ FIGURE = "fig5_slip.png"
 
 def write_slip_report(res: SlipResult, out: str | os.PathLike) -> Path:
     """metrics.json, fig5_slip.png and report.md in ``out`` (created)."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_text(out / "metrics.json", json.dumps(finite_or_none(slip_metrics(res)), indent=2) + "\n")
-    save_figure(fig5(res), out / FIGURE)
     lines = [*auc_table(res), *tests_table(res), *paper_trajectory_table(res),
              "", f"![Fig. 5]({FIGURE})", "", f"{res.seconds:.0f} s in all."]
-    atomic_text(out / "report.md", "\n".join(lines) + "\n")
-    return out
+    return write_outputs(out, slip_metrics(res), fig5(res), FIGURE, lines)
 
 
 def slip_metrics(res: SlipResult) -> dict:
