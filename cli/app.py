@@ -6,22 +6,24 @@ exit, never a traceback. Set SONARSET_DEBUG=1 to see the traceback of an unexpec
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import sys
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Optional
 
 import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from sonarset import __version__
-from sonarset.errors import SonarSetError
 
+from .choices import Beamformer, Device, Optimizer, Preset, Prior, ProcessingProfile, Psf, Schedule, SchemaKind, value
 from .common import err, fail, out, per_name_progress, progress_bar, user_errors
 from .experiment import experiment_app
+from .options import MetaPath, Model, ModelDevice, OutStore, Overwrite, RunName, RunSplit
 
 app = typer.Typer(
     name="sonarset",
@@ -43,16 +45,6 @@ def _root(version: bool = typer.Option(False, "--version", callback=_version, is
     pass
 
 
-def _human(n: int | None) -> str:
-    if n is None:
-        return "n/a"
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
-        if n < 1024 or unit == "TiB":
-            return f"{n:.1f} {unit}" if unit != "B" else f"{n} B"
-        n /= 1024
-    return str(n)
-
-
 @app.command()
 @user_errors
 def info(
@@ -60,41 +52,24 @@ def info(
     as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
 ) -> None:
     """Summarise a store: format version, grid, runs, frames and size."""
+    from sonarset.overview import describe_sensing, human_bytes, store_summary
     from sonarset.store import open_store
 
     s = open_store(store, check=True)
-    complete = s.runs()  # listing runs reads every run's attributes: once, not once per run
-    runs = [s.run(n) for n in complete]
-    incomplete = sorted(set(s.runs(include_incomplete=True)) - set(complete))
-    g = s.grid
-    summary = {
-        "store": s.location, "format_version": s.format_version, "grid": g.model_dump(),
-        "frame_rate_hz": s.attrs.frame_rate_hz, "created_by": s.attrs.created_by,
-        "processing": s.processing.model_dump(mode="json"),
-        "rig": s.rig.model_dump(mode="json") if s.rig is not None else None,
-        "rig_recorded": s.attrs.rig is not None,
-        "runs": [{"name": r.name, "split": r.split, "frames": r.n_frames,
-                  "duration_s": float(r.read_time()[-1] - r.read_time()[0]),
-                  "image_dtype": str(r.images.dtype),
-                  "optional": [k for k in ("pose", "snr_db", "slip") if r.has(k)]} for r in runs],
-        "incomplete_runs": incomplete, "frames": sum(r.n_frames for r in runs), "bytes": s.nbytes_stored(),
-    }
+    summary = store_summary(s)
     if as_json:
         print(json.dumps(summary, indent=2))
         return
     out.print(f"[bold]{s.location}[/]  SonarSet {s.format_version}  ({s.attrs.created_by or 'unknown writer'})")
-    out.print(f"grid: {g.describe()}, bins {g.range_step * 100:.3g} cm x {math.degrees(g.azimuth_step):.3g} deg")
-    out.print(f"processing: {s.processing.describe()}", highlight=False)
-    rig = s.rig
-    out.print(f"rig: {rig.describe() if rig is not None else 'not recorded'}"
-              + (" (from the simulator's run provenance)" if rig is not None and s.attrs.rig is None else ""),
-              highlight=False)
+    for line in describe_sensing(s):
+        out.print(line, highlight=False)
     table = Table("run", "split", "frames", "duration", "images", "optional")
     for r in summary["runs"]:
         table.add_row(r["name"], r["split"], str(r["frames"]), f"{r['duration_s']:.1f} s", r["image_dtype"],
                       ", ".join(r["optional"]) or "-")
     out.print(table)
-    out.print(f"{len(runs)} complete run(s), {summary['frames']} frames, {_human(summary['bytes'])} on disk")
+    out.print(f"{len(summary['runs'])} complete run(s), {summary['frames']} frames, {human_bytes(summary['bytes'])} on disk")
+    incomplete = summary["incomplete_runs"]
     if incomplete:
         out.print(f"[yellow]{len(incomplete)} incomplete run(s) ignored: {', '.join(incomplete)}[/]")
 
@@ -142,12 +117,8 @@ def validate(
 @app.command("import")
 @user_errors
 def import_(
-    src: Path = typer.Argument(..., help="A .npz file, or a directory of .npy files with recording.json."),
-    out_store: str = typer.Argument(..., metavar="OUT", help="Store to create or append to."),
-    meta: Optional[Path] = typer.Option(None, "--meta", help="Metadata JSON (default: SRC.json / SRC/recording.json)."),
-    name: Optional[str] = typer.Option(None, "--name", help="Run name (default: metadata name or file stem)."),
-    split: Optional[str] = typer.Option(None, "--split", help="Split of the run (default: metadata split)."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a run of the same name (only once the new one is complete)."),
+    src: Annotated[Path, typer.Argument(help="A .npz file, or a directory of .npy files with recording.json.")],
+    out_store: OutStore, meta: MetaPath = None, name: RunName = None, split: RunSplit = None, overwrite: Overwrite = False,
     allow_implausible: bool = typer.Option(False, "--allow-implausible",
                                            help="Import values the plausibility checks question (unit mistakes?); "
                                                 "each is printed as a warning."),
@@ -166,23 +137,20 @@ def import_(
 @app.command("import-raw")
 @user_errors
 def import_raw_(
-    src: Path = typer.Argument(..., help="Microphone signals: a .npz, or a directory of .npy files with recording.json."),
-    out_store: str = typer.Argument(..., metavar="OUT", help="Store to create or append to."),
-    meta: Optional[Path] = typer.Option(None, "--meta", help="Sidecar JSON (default: SRC.json / SRC/recording.json)."),
-    name: Optional[str] = typer.Option(None, "--name", help="Run name (default: sidecar name or file stem)."),
-    split: Optional[str] = typer.Option(None, "--split", help="Split of the run (default: sidecar split)."),
-    processing: str = typer.Option("ertis", "--processing", help="Energyscape profile: ertis (default) or raw."),
-    beamformer: Optional[str] = typer.Option(None, "--beamformer", help="das or dmas3-cf (default: the profile's)."),
+    src: Annotated[Path, typer.Argument(help="Microphone signals: a .npz, or a directory of .npy files with "
+                                             "recording.json.")],
+    out_store: OutStore, meta: MetaPath = None, name: RunName = None, split: RunSplit = None, overwrite: Overwrite = False,
+    processing: ProcessingProfile = typer.Option("ertis", "--processing", help="Energyscape profile."),
+    beamformer: Optional[Beamformer] = typer.Option(None, "--beamformer", help="Default: the profile's."),
     workers: int = typer.Option(2, "--workers", min=1, help="Threads beamforming measurements."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a run of the same name."),
 ) -> None:
     """Beamform raw microphone recordings into energyscapes, validated completely, as one run of a store."""
     from sonarset.rawimport import import_raw
 
     with progress_bar() as bar:
         task = bar.add_task("beamforming", total=None)
-        run = import_raw(src, out_store, meta_path=meta, name=name, split=split, processing=processing,
-                         beamformer=beamformer, overwrite=overwrite, workers=workers,
+        run = import_raw(src, out_store, meta_path=meta, name=name, split=split, processing=processing.value,
+                         beamformer=value(beamformer), overwrite=overwrite, workers=workers,
                          progress=lambda done, total: bar.update(task, completed=done, total=total))
     out.print(f"imported {src} -> {out_store}/{run.name} ({run.n_frames} frames, split {run.split}, "
               f"{run.store.processing.describe()})", highlight=False)
@@ -191,14 +159,12 @@ def import_raw_(
 @app.command()
 @user_errors
 def schema(
-    kind: str = typer.Argument("store", help="store | run | recording | raw-recording"),
+    kind: SchemaKind = typer.Argument("store", help="The document."),
 ) -> None:
     """Print the JSON Schema of a SonarSet document (root, run or import-sidecar attributes)."""
-    from sonarset.schema import SCHEMAS, json_schema_text
+    from sonarset.schema import json_schema_text
 
-    if kind not in SCHEMAS:
-        fail(f"unknown schema {kind!r}; choose from {', '.join(SCHEMAS)}", 2)
-    sys.stdout.write(json_schema_text(kind))
+    sys.stdout.write(json_schema_text(kind.value))
 
 
 @app.command()
@@ -212,10 +178,12 @@ def generate(
     seed: int = typer.Option(0, "--seed", help="Master seed; same seed, same arrays, whatever the workers."),
     world: str = typer.Option("lab", "--world", help="Built-in world (lab, corridor) or a JSON/TOML world file."),
     snr_db: float = typer.Option(5.0, "--snr-db", help="SNR at the microphones, dB."),
-    psf: str = typer.Option("array", "--psf", help="Azimuth PSF: array (eRTIS delay-and-sum, with side lobes) or mainlobe."),
-    processing: str = typer.Option("ertis", "--processing",
-                                   help="Images: ertis (DMAS3 + coherence factor, energyscape post-processing, "
-                                        "the sensor toolchain's) or raw (delay-and-sum energy, format 1.0's)."),
+    psf: Psf = typer.Option("array", "--psf", help="Azimuth PSF: array (eRTIS delay-and-sum, with side lobes) or "
+                                                  "mainlobe."),
+    processing: ProcessingProfile = typer.Option("ertis", "--processing",
+                                                 help="Images: ertis (DMAS3 + coherence factor, energyscape "
+                                                      "post-processing, the sensor toolchain's) or raw (delay-and-sum "
+                                                      "energy, format 1.0's)."),
     n_range: int = typer.Option(200, "--n-range", min=2, help="Range bins over 0.5-5 m."),
     n_azimuth: int = typer.Option(90, "--n-azimuth", min=2, help="Azimuth bins over -90..+90 deg."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler",
@@ -247,7 +215,7 @@ def generate(
             bar.update(tasks[name], completed=done, rate=f"{rate:,.0f} frames/s")
 
         written = gen(out_store, runs=runs, test_runs=test_runs, minutes=minutes, seed=seed, world=world,
-                      snr_db=snr_db, psf=psf, processing=processing, workers=workers, grid=grid,
+                      snr_db=snr_db, psf=psf.value, processing=processing.value, workers=workers, grid=grid,
                       progress=progress, scheduler=scheduler)
     dt = time.perf_counter() - t0
     out.print(f"{out_store}: wrote {len(written)} run(s) in {dt:.1f} s"
@@ -263,23 +231,10 @@ def show(
     out_png: Path = typer.Option(Path("sonarset-show.png"), "--out", help="PNG to write."),
 ) -> None:
     """Plot the world and trajectory of a run and one energyscape (image and polar fan)."""
-    from sonarset.plots import show_run
-    from sonarset.sim.world import load_world
+    from sonarset.overview import show as show_store
     from sonarset.store import open_store
 
-    s = open_store(store, check=True)
-    name = run or (s.runs() or [None])[0]
-    if name is None:
-        fail(f"{store}: no complete runs")
-    src = s.run(name).attrs.source
-    world = None
-    if src.get("kind") == "simulator":
-        try:
-            world = load_world(src["world"], int(src["world_seed"]))
-        except (SonarSetError, KeyError, ValueError, TypeError):
-            world = None  # a world file that moved, or odd provenance: plot the trajectory alone
-    path = show_run(s, name, frame, out_png, world)
-    out.print(f"wrote {path}")
+    out.print(f"wrote {show_store(open_store(store, check=True), run, frame, out_png)}")
 
 
 def _int_list(text: str, what: str) -> list[int]:
@@ -303,7 +258,7 @@ def eval_(
     out_dir: Path = typer.Option(Path("eval-out"), "--out", help="Directory for metrics.json, per_window.csv, report.md, figures."),
     split: str = typer.Option("test", "--split", help="Split to evaluate on."),
     seed: int = typer.Option(0, "--seed", help="Seed of the window draw and the bootstrap."),
-    device: str = typer.Option("cpu", "--device", help="Device for learned models: cpu, cuda, auto."),
+    device: ModelDevice = Device("cpu"),
     figures: bool = typer.Option(True, "--figures/--no-figures", help="Write the PNG figures."),
     ceiling: bool = typer.Option(False, "--ceiling",
                                  help="Add the noise ceiling: target frames of simulated runs re-rendered with "
@@ -311,14 +266,15 @@ def eval_(
 ) -> None:
     """Evaluate predictors on the same windows: the paper's table, statistics and figures."""
     from sonarset.store import open_store
-    from sonarset.models.evaluate import evaluate, results_table, write_report
+    from sonarset.models.eval_report import results_table, write_report
+    from sonarset.models.evaluate import evaluate
 
     specs = [m.strip() for m in models.split(",") if m.strip()]
     s = open_store(store, check=True)
     with progress_bar() as bar:
         progress = per_name_progress(bar)
         res = evaluate(s, specs, horizons=tuple(_int_list(horizons, "--horizons")), samples=samples,
-                       split=split, seed=seed, device=device, progress=progress, ceiling=ceiling)
+                       split=split, seed=seed, device=device.value, progress=progress, ceiling=ceiling)
     write_report(res, out_dir, figures=figures)
     _print_notes(res.notes)
     out.print(results_table(res, with_paper=False))
@@ -334,21 +290,43 @@ def _print_notes(notes: list[str]) -> None:
         out.print(note, style="yellow", markup=False, highlight=False)
 
 
+@contextlib.contextmanager
+def _training_bar(show: bool):
+    """The progress callback of a training run: loss, validation and speed on a terminal, a line
+    per validation otherwise."""
+    from rich.progress import MofNCompleteColumn, TimeElapsedColumn
+
+    columns = [TextColumn("[bold]training"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
+               TimeElapsedColumn(), TimeRemainingColumn()]
+    with Progress(*columns, console=err, disable=not (err.is_terminal and show)) as bar:
+        task = bar.add_task("train", total=None, info="")
+
+        def progress(rec: dict) -> None:
+            info = f"loss {rec['train_loss']:.5f}"
+            if "val_loss" in rec:
+                info += f" val {rec['val_loss']:.5f} (best {rec['best_val_loss']:.5f}) {rec['samples_per_s']:.0f} samples/s"
+                if not err.is_terminal:
+                    err.print(f"step {rec['step']}/{rec['total_steps']} epoch {rec['epoch']:.2f} {info}", highlight=False)
+            bar.update(task, completed=rec["step"], total=rec["total_steps"], info=info)
+
+        yield progress
+
+
 @app.command()
 @user_errors
 def train(
     store: str = typer.Argument(..., help="Training store (its 'train' split; 'test' is never used for training)."),
-    preset: str = typer.Option("small", "--preset", help="small (trains on a CPU), paper (~9 M parameters), tiny (tests)."),
+    preset: Preset = typer.Option("small", "--preset", help="small (trains on a CPU), paper (~9 M parameters), tiny (tests)."),
     out_dir: Path = typer.Option(..., "--out", help="Run directory: model.safetensors + model.json, metrics.jsonl, state.safetensors"),
     epochs: int = typer.Option(1000, "--epochs", min=1, help="Passes over the training windows (paper: 1000)."),
     batch_size: int = typer.Option(64, "--batch-size", min=1),
     lr: float = typer.Option(5e-5, "--lr", help="Adam learning rate (paper: 5e-5)."),
     weight_decay: float = typer.Option(1e-4, "--weight-decay", help="L2 regularisation (paper: 1e-4)."),
-    optimizer: str = typer.Option("adam", "--optimizer", help="adam (paper: L2 in the gradient) or adamw "
-                                                              "(decoupled decay; use it with a prior)."),
-    schedule: str = typer.Option("none", "--schedule", help="none (paper) or cosine."),
+    optimizer: Optimizer = typer.Option("adam", "--optimizer", help="adam (paper: L2 in the gradient) or adamw "
+                                                                    "(decoupled decay; use it with a prior)."),
+    schedule: Schedule = typer.Option("none", "--schedule", help="none (paper) or cosine."),
     seed: int = typer.Option(0, "--seed"),
-    device: str = typer.Option("auto", "--device", help="auto, cpu or cuda."),
+    device: Device = typer.Option("auto", "--device"),
     resume: bool = typer.Option(False, "--resume", help="Continue a killed run exactly where it stopped."),
     eval_every: int = typer.Option(0, "--eval-every", min=0, help="Steps between validations/checkpoints (0: each epoch)."),
     max_steps: int = typer.Option(0, "--max-steps", min=0, help="Stop after this many steps (0: no limit)."),
@@ -356,8 +334,9 @@ def train(
     compile_: bool = typer.Option(False, "--compile", help="torch.compile the model (GPU)."),
     test_samples: int = typer.Option(1000, "--test-samples", min=0, help="Test windows for the card's metrics (0: skip)."),
     n_val: int = typer.Option(1600, "--n-val", min=1, help="Random validation windows (paper: 1600)."),
-    prior: str = typer.Option("", "--prior", help="What the model corrects: none (paper), last (frame) or flow "
-                                                  "(its acoustic-flow warp). Default: the preset's (paper none, small flow)."),
+    prior: Optional[Prior] = typer.Option(None, "--prior", help="What the model corrects: none (paper), last (frame) "
+                                                                 "or flow (its acoustic-flow warp). Default: the "
+                                                                 "preset's (paper none, small flow)."),
     loss: str = typer.Option("mse", "--loss", help="mse, l1, gdl (image-gradient difference), cc (1 - CC), or "
                                                    "a weighted sum: mse=1,gdl=0.5."),
     curriculum: str = typer.Option("1", "--curriculum", help="Rollout steps k of the unrolled loss: k, or "
@@ -376,32 +355,14 @@ def train(
     from sonarset.models.train import train as run_training
     from sonarset.store import open_store
 
-    if schedule not in ("none", "cosine"):
-        fail(f"--schedule must be none or cosine, got {schedule!r}", 2)
-    if preset not in ("small", "paper", "tiny"):
-        fail(f"--preset must be small, paper or tiny, got {preset!r}", 2)
     s = open_store(store, check=True)
-    cfg = TrainConfig(preset=preset, epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
-                      schedule=schedule, seed=seed, device=device, eval_every=eval_every, max_steps=max_steps,
-                      max_minutes=max_minutes, compile=compile_, test_samples=test_samples, n_val=n_val,
-                      prior=prior, loss=loss, curriculum=curriculum, pushforward=pushforward, optimizer=optimizer,
-                      context_noise=context_noise, val_horizon=val_horizon, init=init)
-    from rich.progress import MofNCompleteColumn, TimeElapsedColumn
-
-    columns = [TextColumn("[bold]training"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
-               TimeElapsedColumn(), TimeRemainingColumn()]
+    cfg = TrainConfig(preset=preset.value, epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
+                      schedule=schedule.value, seed=seed, device=device.value, eval_every=eval_every,
+                      max_steps=max_steps, max_minutes=max_minutes, compile=compile_, test_samples=test_samples,
+                      n_val=n_val, prior=value(prior) or "", loss=loss, curriculum=curriculum, pushforward=pushforward,
+                      optimizer=optimizer.value, context_noise=context_noise, val_horizon=val_horizon, init=init)
     main = int(os.environ.get("RANK", "0")) == 0  # under torchrun only rank 0 reports
-    with Progress(*columns, console=err, disable=not (err.is_terminal and main)) as bar:
-        task = bar.add_task("train", total=None, info="")
-
-        def progress(rec: dict) -> None:
-            info = f"loss {rec['train_loss']:.5f}"
-            if "val_loss" in rec:
-                info += f" val {rec['val_loss']:.5f} (best {rec['best_val_loss']:.5f}) {rec['samples_per_s']:.0f} samples/s"
-                if not err.is_terminal:
-                    err.print(f"step {rec['step']}/{rec['total_steps']} epoch {rec['epoch']:.2f} {info}", highlight=False)
-            bar.update(task, completed=rec["step"], total=rec["total_steps"], info=info)
-
+    with _training_bar(main) as progress:
         res = run_training(s, out_dir, cfg, resume=resume, progress=progress)
     if not main:
         return
@@ -422,48 +383,35 @@ def demo(
     minutes: float = typer.Option(25.0, "--minutes", min=0.5, help="Length of the fresh test run."),
     samples: int = typer.Option(1000, "--samples", min=10, help="Test windows."),
     seed: int = typer.Option(2026, "--seed", help="Seed of the fresh run (the shipped model was trained on seed 0)."),
-    model: str = typer.Option("pretrained", "--model", help="EchoPT checkpoint: pretrained or a path."),
-    device: str = typer.Option("auto", "--device"),
+    model: Model = "pretrained",
+    device: ModelDevice = Device("auto"),
 ) -> None:
     """Simulate a fresh test run and compare the pretrained EchoPT with persistence, naive and flow
     (and the noise ceiling)."""
     import time
 
-    from sonarset.models.evaluate import evaluate, results_table, write_report
-    from sonarset.schema import SensorGrid
-    from sonarset.sim import generate as gen
-    from sonarset.store import open_store
+    from sonarset.models import demo as pipeline
+    from sonarset.models.eval_report import results_table, write_report
 
-    from sonarset.models.cards import card_processing, describe_images, read_card
-    from sonarset.models.checkpoint import load_checkpoint
-
-    load_checkpoint(model, SensorGrid.default())  # a bad model fails now, not after the simulation
+    pipeline.check_model(model)  # a bad model fails now, not after the simulation
     t0 = time.perf_counter()
     store_path = out_dir / "test.zarr"
     out.print(f"simulating a fresh {minutes:g}-minute test run (seed {seed}) -> {store_path}")
     with progress_bar() as bar:
         task = bar.add_task("simulating", total=None)
-        gen(store_path, runs=0, test_runs=1, minutes=minutes, seed=seed, workers=1, grid=SensorGrid.default(),
-            progress=lambda name, done, total: bar.update(task, completed=done, total=total))
-    s = open_store(store_path)
-
-    out.print(f"EchoPT ({model}) was trained on {describe_images(card_processing(read_card(model)))}; "
-              f"the fresh run has {describe_images(s.processing)}", highlight=False)
+        s = pipeline.simulate_fresh_run(store_path, minutes=minutes, seed=seed,
+                                        progress=lambda name, done, total: bar.update(task, completed=done, total=total))
+    out.print(pipeline.images_note(model, s), highlight=False)
     out.print(f"evaluating persistence, naive, flow and EchoPT ({model}) on {samples} windows, horizons 1, 3, 5, 10, "
               "with the noise ceiling")
     with progress_bar() as bar:
-        progress = per_name_progress(bar)
-        res = evaluate(s, ["persistence", "naive", "flow", f"echopt:{model}"], samples=samples,
-                       device=device, progress=progress, ceiling=True)
+        res = pipeline.evaluate_fresh_run(s, model, samples=samples, device=device.value,
+                                          progress=per_name_progress(bar))
     write_report(res, out_dir)
     _print_notes(res.notes)
     out.print(results_table(res, with_paper=True))
-    one = {c.metric: c for c in res.comparisons if c.horizon == 1 and {c.a, c.b} == {"flow", "echopt"}}
-    from sonarset.report import format_p
-
-    for k, c in one.items():
-        out.print(f"one-shot {k}: EchoPT - flow = {(-c.mean_diff if c.a == 'flow' else c.mean_diff):+.4f}, "
-                  f"paired t-test p {format_p(c.t_paired_p)} (Holm {format_p(c.p_holm)})")
+    for line in pipeline.echopt_against_flow(res):
+        out.print(line)
     out.print(f"report: {out_dir / 'report.md'} (figures beside it); {time.perf_counter() - t0:.0f} s in all")
 
 

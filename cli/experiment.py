@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable
 
 import typer
 from rich.progress import Progress
 from rich.table import Table
 
+from .choices import Device, value
 from .common import out, progress_bar, user_errors
+from .options import ExperimentProcessing, Model, ModelDevice, Workers
 
 experiment_app = typer.Typer(help="The paper's robot experiments: wheel-slip detection, corridor control.",
                              no_args_is_help=True)
@@ -32,15 +34,13 @@ def _count_progress(bar: Progress, name: str) -> Callable[[int, int], None]:
 @user_errors
 def experiment_slip(
     out_dir: Path = typer.Option(..., "--out", help="Directory for metrics.json, report.md and fig5_slip.png."),
-    model: str = typer.Option("pretrained", "--model", help="EchoPT checkpoint: pretrained or a path."),
+    model: Model = "pretrained",
     baselines: str = typer.Option("naive,flow", "--baselines", help="Comma-separated baselines to compare."),
     trials: int = typer.Option(20, "--trials", min=1, help="Random trajectories for the ROC analysis."),
     seed: int = typer.Option(0, "--seed", help="Master seed: trajectories, slip periods, sensor noise."),
-    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Processes (default: all cores)."),
-    processing: Optional[str] = typer.Option(None, "--processing",
-                                             help="Images to simulate: ertis or raw. Default: those the EchoPT "
-                                                  "model was trained on (its card); a different profile is refused."),
-    device: str = typer.Option("cpu", "--device", help="Device for EchoPT: cpu, cuda, auto."),
+    workers: Workers = None,
+    processing: ExperimentProcessing = None,
+    device: ModelDevice = Device("cpu"),
 ) -> None:
     """Wheel-slip detection (paper Fig. 5) and its ROC AUC over random trajectories."""
     from sonarset.models.experiments.slip import run_slip_experiment
@@ -48,8 +48,8 @@ def experiment_slip(
 
     models = [*_specs(baselines), _echopt_spec(model)]
     with progress_bar() as bar:
-        res = run_slip_experiment(models, trials=trials, seed=seed, workers=workers, device=device, processing=processing,
-                                  progress=_count_progress(bar, "trajectories"))
+        res = run_slip_experiment(models, trials=trials, seed=seed, workers=workers, device=device.value,
+                                  processing=value(processing), progress=_count_progress(bar, "trajectories"))
     write_slip_report(res, out_dir)
     table = Table("predictor", "horizon", "AUC both (eps)", "AUC one (eps)", "AUC both (ratio)", "AUC one (ratio)")
     by = {(x["predictor"], x["horizon"], x["kind"], x["detector"]): x["auc_mean"] for x in res.summary}
@@ -65,17 +65,15 @@ def experiment_slip(
 @user_errors
 def experiment_control(
     out_dir: Path = typer.Option(..., "--out", help="Directory for metrics.json, report.md and fig6_control.png."),
-    model: str = typer.Option("pretrained", "--model", help="EchoPT checkpoint: pretrained or a path."),
+    model: Model = "pretrained",
     compare: str = typer.Option("flow", "--compare",
                                 help="Comma-separated other predictors that also bridge the bursts ('' for none)."),
     runs: int = typer.Option(50, "--runs", min=1, help="Runs per condition."),
     seed: int = typer.Option(0, "--seed", help="Master seed: spawn poses, burst schedules, sensor noise."),
     max_time: float = typer.Option(120.0, "--max-time", min=1.0, help="Seconds before a run times out."),
-    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Processes (default: all cores)."),
-    processing: Optional[str] = typer.Option(None, "--processing",
-                                             help="Images to simulate: ertis or raw. Default: those the EchoPT "
-                                                  "model was trained on (its card); a different profile is refused."),
-    device: str = typer.Option("cpu", "--device", help="Device for EchoPT: cpu, cuda, auto."),
+    workers: Workers = None,
+    processing: ExperimentProcessing = None,
+    device: ModelDevice = Device("cpu"),
 ) -> None:
     """Corridor control through noise bursts (paper Fig. 6): clean, bursts, bursts bridged by EchoPT."""
     from sonarset.models.experiments.control import run_control_experiment
@@ -83,8 +81,8 @@ def experiment_control(
 
     models = [_echopt_spec(model), *_specs(compare)]
     with progress_bar() as bar:
-        res = run_control_experiment(models, runs=runs, seed=seed, workers=workers, device=device, processing=processing,
-                                     max_time_s=max_time, progress=_count_progress(bar, "runs"))
+        res = run_control_experiment(models, runs=runs, seed=seed, workers=workers, device=device.value,
+                                     processing=value(processing), max_time_s=max_time, progress=_count_progress(bar, "runs"))
     write_control_report(res, out_dir)
     table = Table("condition", "success", "collision", "timeout", "travel time [s]", "midline dev. [m]")
     for c, x in res.summary.items():

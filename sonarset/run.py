@@ -50,6 +50,8 @@ class Run:
 
     def __init__(self, store: "SonarStore", name: str, attrs: RunAttrs):
         self.store, self.name, self.attrs = store, name, attrs
+        #: Frames in the run (the length of every per-frame array), and the split it belongs to.
+        self.n_frames, self.split = attrs.n_frames, attrs.split
         self.where = f"{store.location}/{name}"
         try:
             self.group = store.group[name]
@@ -59,14 +61,6 @@ class Run:
         self._arrays: dict[str, zarr.Array] = {}
         self._checkers: dict[str, ChunkChecker] = {}
         self._time: np.ndarray | None = None
-
-    @property
-    def n_frames(self) -> int:
-        return self.attrs.n_frames
-
-    @property
-    def split(self) -> str:
-        return self.attrs.split
 
     def _member_names(self) -> set[str]:
         if self._members is None:

@@ -69,22 +69,39 @@ class RunWriter:
                 raise SonarSetError(f"{store.location}: run {name!r} already exists (pass overwrite to replace it)")
             del root[name]
         self.group = root.create_group(name, attributes={NAMESPACE: self.attrs.model_dump(mode="json")})
-        T, (R, A) = self.n_frames, store.grid.shape
+        self.arrays = self._create_frame_arrays(optional, image_dtype, chunk_frames)
+        self._write_coordinates()
+        self._written = np.zeros(self.n_frames, dtype=bool)
+        # Per-frame vectors are one chunk each: written block by block, every block would rewrite
+        # (decompress and compress) the whole chunk. They are a few bytes a frame, so they are
+        # kept here and written once, at commit, before the completion flag.
+        self._small = {k: np.full(a.shape, np.nan, a.dtype) for k, a in self.arrays.items() if k != "images"}
+
+    def _create_frame_arrays(self, optional: tuple[str, ...], image_dtype: str,
+                             chunk_frames: int) -> dict[str, zarr.Array]:
+        """The run's per-frame arrays, empty (NaN): images in chunks of ``chunk_frames`` frames,
+        the small per-frame vectors in one chunk each."""
+        T, (R, A) = self.n_frames, self.store.grid.shape
         cf = max(1, min(chunk_frames, T))
-        self.arrays: dict[str, zarr.Array] = {}
-        sparse = store.attrs.processing.clip_at_zero  # images mostly exact zeros
+        arrays: dict[str, zarr.Array] = {}
+        sparse = self.store.attrs.processing.clip_at_zero  # images mostly exact zeros
         for key in ("images", "velocity", "time", *optional):
             spec = ARRAYS[key]
             dtype = image_dtype if key == "images" else spec.write_dtype
             shape = expected_shape(key, T, (R, A))
             chunks = (cf, R, A) if key == "images" else shape
-            self.arrays[key] = self.group.create_array(
+            arrays[key] = self.group.create_array(
                 key, shape=shape, chunks=chunks, dtype=dtype, dimension_names=spec.dims,
                 compressors=compressor(np.dtype(dtype), sparse and key == "images"),
                 fill_value=np.nan,
                 attributes={"units": spec.units, "description": spec.description},
             )
-        for key, values in (("range", store.grid.range_centres()), ("azimuth", store.grid.azimuth_centres())):
+        return arrays
+
+    def _write_coordinates(self) -> None:
+        """The range and azimuth bin centres of the store's grid."""
+        grid = self.store.grid
+        for key, values in (("range", grid.range_centres()), ("azimuth", grid.azimuth_centres())):
             spec = ARRAYS[key]
             arr = self.group.create_array(
                 key, shape=values.shape, chunks=values.shape, dtype=spec.write_dtype, dimension_names=spec.dims,
@@ -92,11 +109,6 @@ class RunWriter:
                 attributes={"units": spec.units, "description": spec.description},
             )
             arr[:] = values
-        self._written = np.zeros(T, dtype=bool)
-        # Per-frame vectors are one chunk each: written block by block, every block would rewrite
-        # (decompress and compress) the whole chunk. They are a few bytes a frame, so they are
-        # kept here and written once, at commit, before the completion flag.
-        self._small = {k: np.full(a.shape, np.nan, a.dtype) for k, a in self.arrays.items() if k != "images"}
 
     def write(self, start: int, checked: bool = False, **blocks: np.ndarray | None) -> None:
         """Write frames ``start .. start+len-1`` of the given arrays (images, velocity, time...)."""

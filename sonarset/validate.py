@@ -170,13 +170,24 @@ def _check_run(store, name: str, check_data: bool, progress: ProgressFn | None) 
         return out + [Problem(where, line) for line in pydantic_problems(exc, f"attributes.{NAMESPACE}.")]
     if not attrs.complete:
         return out + [Problem(where, "incomplete run: its writer did not finish (re-run it or delete the group)")]
+    arrays = _conforming_arrays(where, group, attrs.n_frames, store.grid, out)
+    for key, centres in (("range", store.grid.range_centres()), ("azimuth", store.grid.azimuth_centres())):
+        if key in arrays:
+            out += _coordinate_problems(f"{where}/{key}", arrays.pop(key), centres, "m" if key == "range" else "rad")
+    if check_data:
+        for key, arr in arrays.items():
+            out += _guarded(f"{where}/{key}", lambda: _check_data(f"{where}/{key}", key, arr, progress,
+                                                               store.attrs.frame_rate_hz))
+    return out
 
-    grid = store.grid
-    T = attrs.n_frames
+
+def _conforming_arrays(where: str, group: zarr.Group, n_frames: int, grid, out: list[Problem]) -> dict[str, zarr.Array]:
+    """The run's arrays whose metadata lets their values be read (dtype and shape as the spec says);
+    a problem in ``out`` for every array missing, unreadable or not conforming."""
     try:
         present = set(group.array_keys())
     except Exception:  # one member's metadata is unreadable: open each below to say which
-            present = set(child_names(group))
+        present = set(child_names(group))
     arrays: dict[str, zarr.Array] = {}
     for key, spec in ARRAYS.items():
         if key not in present:
@@ -194,35 +205,28 @@ def _check_run(store, name: str, check_data: bool, progress: ProgressFn | None) 
         except Exception as exc:
             out.append(Problem(aw, f"unreadable zarr metadata ({one_line(exc)})"))
             continue
-        expected = expected_shape(key, T, grid.shape)
-        found = array_meta_problems(key, dtype, dims, shape, expected)
-        out += [Problem(aw, f"{line} (n_frames={T}, grid {grid.shape[0]}x{grid.shape[1]})" if line.startswith("shape")
-                        else line) for line in found]
+        found = array_meta_problems(key, dtype, dims, shape, expected_shape(key, n_frames, grid.shape))
+        out += [Problem(aw, f"{line} (n_frames={n_frames}, grid {grid.shape[0]}x{grid.shape[1]})"
+                        if line.startswith("shape") else line) for line in found]
         if not any(line.startswith(("dtype", "shape")) for line in found):
             arrays[key] = arr
-    for key, centres in (("range", grid.range_centres()), ("azimuth", grid.azimuth_centres())):
-        if key in arrays:
-            arr = arrays.pop(key)
-            damaged = _damaged_chunks(f"{where}/{key}", arr)
-            if damaged:
-                out += damaged
-                continue
-            try:
-                values = arr[:]
-            except Exception as exc:
-                out.append(Problem(f"{where}/{key}", f"unreadable ({one_line(exc)})"))
-                continue
-            tol = 1e-6 * max(1.0, float(np.max(np.abs(centres))))
-            if not np.allclose(values, centres, rtol=0, atol=tol):
-                unit = "m" if key == "range" else "rad"
-                out.append(Problem(f"{where}/{key}",
-                                   f"coordinates do not match the store grid (got {values[0]:.6g}..{values[-1]:.6g} {unit}, "
-                                   f"grid {centres[0]:.6g}..{centres[-1]:.6g} {unit})"))
-    if check_data:
-        for key, arr in arrays.items():
-            out += _guarded(f"{where}/{key}", lambda: _check_data(f"{where}/{key}", key, arr, progress,
-                                                               store.attrs.frame_rate_hz))
-    return out
+    return arrays
+
+
+def _coordinate_problems(aw: str, arr: zarr.Array, centres: np.ndarray, unit: str) -> list[Problem]:
+    """A coordinate array's chunks, and its values against the store grid's bin centres."""
+    damaged = _damaged_chunks(aw, arr)
+    if damaged:
+        return damaged
+    try:
+        values = arr[:]
+    except Exception as exc:
+        return [Problem(aw, f"unreadable ({one_line(exc)})")]
+    tol = 1e-6 * max(1.0, float(np.max(np.abs(centres))))
+    if np.allclose(values, centres, rtol=0, atol=tol):
+        return []
+    return [Problem(aw, f"coordinates do not match the store grid (got {values[0]:.6g}..{values[-1]:.6g} {unit}, "
+                        f"grid {centres[0]:.6g}..{centres[-1]:.6g} {unit})")]
 
 
 def _damaged_chunks(aw: str, arr: zarr.Array) -> list[Problem]:

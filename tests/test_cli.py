@@ -87,3 +87,26 @@ def test_demo_on_a_short_fresh_run(tmp_path):
     assert "| echopt |" in (tmp_path / "d" / "report.md").read_text() and "one-shot cc: EchoPT - flow" in r.output
     bad = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "e"), "--model", str(tmp_path / "nope")])
     assert bad.exit_code == 1 and "no EchoPT checkpoint" in bad.output and not (tmp_path / "e").exists()
+
+
+def test_closed_choices_are_the_librarys():
+    """typer checks these choices and lists them in --help; where the library's lists live in modules
+    that --help must not import (torch, the simulator), cli/choices.py repeats them, and this says
+    they agree."""
+    import pytest
+
+    from sonarset.cli import choices
+    from sonarset.models.echopt import PRESETS, PRIORS
+    from sonarset.schema import Processing
+    from sonarset.sim.energyscape import BEAMFORMERS
+    from sonarset.sim.sonar import BEAMS
+
+    values = lambda enum: {c.value for c in enum}  # noqa: E731
+    assert values(choices.Preset) == set(PRESETS) and values(choices.Prior) == set(PRIORS)
+    assert values(choices.Psf) == set(BEAMS) and values(choices.Beamformer) == set(BEAMFORMERS)
+    for profile in values(choices.ProcessingProfile):
+        Processing.named(profile)
+    with pytest.raises(ValueError, match="choose from " + ", ".join(c.value for c in choices.ProcessingProfile) + "$"):
+        Processing.named("nope")
+    r = runner.invoke(app, ["train", "x", "--out", "y", "--preset", "huge"])
+    assert r.exit_code == 2 and "small" in r.output and "tiny" in r.output

@@ -1,0 +1,25 @@
+"""Arguments and options that several commands share, each with one help text."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from .choices import Device, ProcessingProfile
+
+OutStore = Annotated[str, typer.Argument(metavar="OUT", help="Store to create or append to.")]
+MetaPath = Annotated[Optional[Path], typer.Option("--meta", help="Metadata (sidecar) JSON (default: SRC.json / "
+                                                                   "SRC/recording.json).")]
+RunName = Annotated[Optional[str], typer.Option("--name", help="Run name (default: the metadata's name, else the "
+                                                               "file stem).")]
+RunSplit = Annotated[Optional[str], typer.Option("--split", help="Split of the run (default: the metadata's split).")]
+Overwrite = Annotated[bool, typer.Option("--overwrite", help="Replace a run of the same name (only once the new one "
+                                                             "is complete).")]
+Model = Annotated[str, typer.Option("--model", help="EchoPT checkpoint: pretrained or a path.")]
+Workers = Annotated[Optional[int], typer.Option("--workers", min=1, help="Processes (default: all cores).")]
+ModelDevice = Annotated[Device, typer.Option("--device", help="Device for learned models.")]
+ExperimentProcessing = Annotated[Optional[ProcessingProfile], typer.Option(
+    "--processing", help="Images to simulate. Default: those the EchoPT model was trained on (its card); a "
+                         "different profile is refused.")]
