@@ -1,0 +1,44 @@
+"""The training loss terms: what each one sees and what it is blind to."""
+
+import pytest
+import torch
+
+from sonarset.errors import SonarSetError
+from sonarset.models.train import LOSSES, image_loss, parse_loss, value_distribution_loss
+
+
+def _echo(centre: int, width: float, amplitude: float = 1.0) -> torch.Tensor:
+    """One echo on a (1, 40, 12) image: a Gaussian bump in range at azimuth bin 6."""
+    r = torch.arange(40.0)[:, None]
+    img = torch.zeros(40, 12)
+    img[:, 6:7] = amplitude * torch.exp(-0.5 * ((r - centre) / width) ** 2)
+    return img[None]
+
+
+def test_parse_loss_terms_and_errors():
+    assert parse_loss("mse") == {"mse": 1.0}
+    assert parse_loss("mse=1,w1=0.3") == {"mse": 1.0, "w1": 0.3}
+    assert set(LOSSES) == {"mse", "l1", "gdl", "cc", "w1"}
+    with pytest.raises(SonarSetError, match="unknown term 'wasserstein'"):
+        parse_loss("mse,wasserstein")
+    with pytest.raises(SonarSetError, match="weight of 'w1' is not a number"):
+        parse_loss("w1=x")
+
+
+def test_value_distribution_loss_sees_blur_not_position():
+    target = _echo(20, 1.5)
+    moved = _echo(26, 1.5)  # the same echo elsewhere: the same pixel values
+    # The energy-preserving blur MSE prefers: the average of the echo at three possible ranges.
+    blurred = (_echo(17, 1.5) + _echo(20, 1.5) + _echo(23, 1.5)) / 3
+    assert value_distribution_loss(moved, target).item() == pytest.approx(0.0, abs=1e-7)
+    assert value_distribution_loss(blurred, target).item() > 1e-3
+    # MSE prefers the blur to the moved echo; the value-distribution term penalises only the blur.
+    assert image_loss(blurred, target, {"mse": 1}) < image_loss(moved, target, {"mse": 1})
+    assert image_loss(blurred, target, {"w1": 1}) > image_loss(moved, target, {"w1": 1})
+
+
+def test_value_distribution_loss_is_a_distance_per_image():
+    a, b = _echo(10, 2.0), _echo(30, 1.0, 0.5)
+    batch = value_distribution_loss(torch.cat([a, b]), torch.cat([b, a]))
+    assert batch.item() == pytest.approx(value_distribution_loss(a, b).item())  # symmetric, averaged
+    assert value_distribution_loss(a, a).item() == 0.0
