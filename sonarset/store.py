@@ -18,26 +18,25 @@ import numpy as np
 import zarr
 from pydantic import ValidationError
 
+from .arrays import OPTIONAL_ARRAYS, check_run_arrays
+from .errors import FormatError, GridMismatchError, InputValidationError, SonarSetError, one_line
+from .run import Run, RunData
+from .runwriter import DEFAULT_CHUNK_FRAMES, RunWriter
+from .schema import (
+    FORMAT_VERSION, NAMESPACE, SUPPORTED_MAJOR, Processing, RobotRig, RunAttrs, SensorGrid,
+    StoreAttrs, parse_version, pydantic_problems,
+)
 from .version import __version__
+from .zarrio import cached_remote, child_names, first_unreadable_node, is_url, open_group, url_exists
+
+__all__ = ["DEFAULT_CHUNK_FRAMES", "Run", "RunData", "RunWriter", "SonarStore", "create_store", "open_or_create_store",
+           "open_store", "read_store_attrs"]
 
 # Listing a group while another process writes into it atomically shows that writer's temp file
 # ("zarr.<id>.partial"); it is not a node, zarr skips it, and the warning is noise.
 # Other strays (a junk folder, a killed writer's leftovers) are not nodes either: readers ignore
 # them, as the spec says of anything that is not a node.
 warnings.filterwarnings("ignore", message=r"Object at .* is not recognized", category=UserWarning)
-from .errors import FormatError, GridMismatchError, InputValidationError, SonarSetError, one_line  # noqa: E402
-from .arrays import OPTIONAL_ARRAYS, check_run_arrays  # noqa: E402
-from .run import Run, RunData  # noqa: E402
-from .runwriter import DEFAULT_CHUNK_FRAMES, RunWriter  # noqa: E402
-from .schema import (  # noqa: E402
-    FORMAT_VERSION, NAMESPACE, SUPPORTED_MAJOR, Processing, RobotRig, RunAttrs, SensorGrid,
-    StoreAttrs, parse_version, pydantic_problems,
-)
-from .zarrio import cached_remote, child_names, first_unreadable_node, is_url, open_group, url_exists  # noqa: E402
-
-__all__ = ["DEFAULT_CHUNK_FRAMES", "Run", "RunData", "RunWriter", "SonarStore", "create_store", "open_or_create_store",
-           "open_store", "read_store_attrs"]
-
 # zarr-python warns on every consolidation that consolidated metadata is not yet in the v3 spec;
 # the spec (FORMAT.md §6) makes it optional and advisory, so the warning is noise to our users.
 warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part")
