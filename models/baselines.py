@@ -82,6 +82,11 @@ def _xp(backend: str):
     return np, (lambda a: np.asarray(a, dtype=np.float64))
 
 
+def _pixel_polar(grid: SensorGrid, arr) -> tuple:
+    """The pixel centres' range (1, R, 1) and azimuth (1, 1, A), as ``arr`` (from :func:`_xp`) makes arrays."""
+    return arr(grid.range_centres())[None, :, None], arr(grid.azimuth_centres())[None, None, :]
+
+
 class LastFrameBaseline:
     """A baseline that reads only the last input frame (and the last command); it is fed the
     windows of the paper's geometry all the same."""
@@ -117,8 +122,7 @@ class NaiveShift(LastFrameBaseline):
         _, arr = _xp(self.backend)
         v = arr(commands[:, -1, 0])[:, None, None]
         w = arr(commands[:, -1, 1])[:, None, None]
-        r = arr(self.grid.range_centres())[None, :, None]
-        th = arr(self.grid.azimuth_centres())[None, None, :]
+        r, th = _pixel_polar(self.grid, arr)
         dt = self.rig.frame_interval_s
         return _sample(frames[:, -1], self.grid, r + v * dt, th + w * dt, self.backend)
 
@@ -151,8 +155,7 @@ class AcousticFlow(LastFrameBaseline):
         dx = np.where(small, v * dt, v / w_safe * np.sin(phi))
         dy = np.where(small, 0.0, v / w_safe * (1 - np.cos(phi)))
         c, s_, dx, dy = (arr(a)[:, None, None] for a in (np.cos(phi), np.sin(phi), dx, dy))
-        r = arr(self.grid.range_centres())[None, :, None]
-        th = arr(self.grid.azimuth_centres())[None, None, :]
+        r, th = _pixel_polar(self.grid, arr)
         # point in the new sensor frame -> new robot frame -> old robot frame -> old sensor frame
         xn, yn = r * xp.cos(th) + offset, r * xp.sin(th)
         xo = c * xn - s_ * yn + dx - offset
