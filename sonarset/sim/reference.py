@@ -14,6 +14,8 @@ an image operation that both use. The beamforming is ``beamform``'s exact path, 
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from scipy import fft as sfft
 
@@ -106,7 +108,7 @@ def _echo_spectra(echoes: Echoes, f: np.ndarray, y: np.ndarray, n_real: int, coh
 
 
 def write_raw_recording(run, out_dir, *, frames: slice | None = None, fs: float = FS_REF, seed: int = 0,
-                        snr_db: float | None = None, name: str | None = None) -> "Path":
+                        snr_db: float | None = None, name: str | None = None) -> Path:
     """Render the scene of a simulated run (its world and poses) as a raw recording that
     ``sonarset import-raw`` reads: a directory of ``.npy`` files (``signals`` written frame by frame
     into a memory map, ``velocity``, ``time``, ``pose``) with its ``recording.json``.
@@ -115,7 +117,6 @@ def write_raw_recording(run, out_dir, *, frames: slice | None = None, fs: float 
     and the frame index; microphone noise at ``snr_db`` when given).
     """
     import json
-    from pathlib import Path
 
     from .robot import sensor_pose
     from .sonar import visible_echoes
