@@ -42,7 +42,6 @@ from typing import Callable
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from sonarset import __version__
 from sonarset.atomic import atomic_text
@@ -54,6 +53,7 @@ from sonarset.windows import FrameBank, WindowBatcher, WindowIndex
 from .checkpoint import load_checkpoint, resolve_device, save_checkpoint
 from .distributed import Dist, destroy_process_group, init_distributed
 from .echopt import PRIORS, EchoPT, grid_and_rig, make_config
+from .losses import image_loss, parse_loss
 from .train_state import STATE, load_state, save_state, write_metrics
 
 #: Called with a phase name after each write of a checkpoint (tests kill training there).
@@ -117,56 +117,9 @@ class TrainConfig:
         return max(k for _, k in self.stages())
 
 
-LOSSES = ("mse", "l1", "gdl", "cc", "w1")
 #: Settings that must not change when a run is resumed.
 _RESUME_KEYS = ("preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps", "prior", "loss",
                 "curriculum", "pushforward", "context_noise", "val_horizon", "optimizer", "weight_decay", "init")
-
-
-def parse_loss(spec: str) -> dict[str, float]:
-    """``"mse"`` -> {"mse": 1}; ``"mse=1,gdl=0.5"`` -> {"mse": 1.0, "gdl": 0.5}."""
-    terms: dict[str, float] = {}
-    for part in spec.split(","):
-        name, _, w = part.strip().partition("=")
-        if name not in LOSSES:
-            raise SonarSetError(f"--loss {spec!r}: unknown term {name!r}; choose from {', '.join(LOSSES)}")
-        try:
-            terms[name] = float(w) if w else 1.0
-        except ValueError:
-            raise SonarSetError(f"--loss {spec!r}: weight of {name!r} is not a number") from None
-    return terms
-
-
-def value_distribution_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """1-D Wasserstein distance between each forecast's and its target's pixel values (mean absolute
-    difference of the sorted values), averaged over the batch.
-
-    Blind to where the energy is (MSE's job), it sees only how it is distributed: the conditional
-    mean of an uncertain echo position, which MSE converges to, spreads a bright echo into a wider,
-    dimmer one, and so has too many middling pixels and too few bright ones. Penalising that keeps a
-    rollout's peak and echo energy, which is what fades otherwise.
-    """
-    return (pred.flatten(1).sort(dim=1).values - target.flatten(1).sort(dim=1).values).abs().mean()
-
-
-def image_loss(pred: torch.Tensor, target: torch.Tensor, terms: dict[str, float]) -> torch.Tensor:
-    """Weighted sum of per-pixel losses over (B, R, A) images."""
-    total = pred.new_zeros(())
-    for name, w in terms.items():
-        if name == "mse":
-            v = F.mse_loss(pred, target)
-        elif name == "l1":
-            v = F.l1_loss(pred, target)
-        elif name == "gdl":  # image-gradient difference (Mathieu et al. 2016): keeps edges sharp
-            v = (F.l1_loss(pred.diff(dim=-1), target.diff(dim=-1)) + F.l1_loss(pred.diff(dim=-2), target.diff(dim=-2))) / 2
-        elif name == "w1":
-            v = value_distribution_loss(pred, target)
-        else:  # 1 - CC (the paper's metric) per image
-            p = pred.flatten(1) - pred.flatten(1).mean(1, keepdim=True)
-            t = target.flatten(1) - target.flatten(1).mean(1, keepdim=True)
-            v = 1 - ((p * t).sum(1) / (p.norm(dim=1) * t.norm(dim=1) + 1e-8)).mean()
-        total = total + w * v
-    return total
 
 
 @dataclass
