@@ -338,8 +338,9 @@ def train(
                                                                  "or flow (its acoustic-flow warp). Default: the "
                                                                  "preset's (paper none, small flow)."),
     loss: str = typer.Option("mse", "--loss", help="mse, l1, gdl (image-gradient difference), cc (1 - CC), "
-                                                   "w1 (1-D Wasserstein of the pixel values), or a weighted "
-                                                   "sum: cc=1,w1=50."),
+                                                   "w1 (1-D Wasserstein of the pixel values), energy (the "
+                                                   "batch's echo-energy deficit), or a weighted sum: "
+                                                   "cc=1,w1=50."),
     curriculum: str = typer.Option("1", "--curriculum", help="Rollout steps k of the unrolled loss: k, or "
                                                              "step:k,... (e.g. 0:1,300:2,600:4,900:6)."),
     pushforward: bool = typer.Option(False, "--pushforward", help="Only the last rollout step carries gradient."),

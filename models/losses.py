@@ -7,7 +7,11 @@ import torch.nn.functional as F
 
 from sonarset.errors import SonarSetError
 
-LOSSES = ("mse", "l1", "gdl", "cc", "w1")
+from .evaluate import ECHO_FLOOR
+
+LOSSES = ("mse", "l1", "gdl", "cc", "w1", "energy")
+
+
 def parse_loss(spec: str) -> dict[str, float]:
     """``"mse"`` -> {"mse": 1}; ``"mse=1,gdl=0.5"`` -> {"mse": 1.0, "gdl": 0.5}."""
     terms: dict[str, float] = {}
@@ -34,6 +38,22 @@ def value_distribution_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.T
     return (pred.flatten(1).sort(dim=1).values - target.flatten(1).sort(dim=1).values).abs().mean()
 
 
+def echo_energy_loss(pred: torch.Tensor, target: torch.Tensor, floor: float = ECHO_FLOOR) -> torch.Tensor:
+    """The batch's relative echo-energy deficit or excess: |sum E(pred) - sum E(target)| / sum E(target),
+    with E an image's echo energy, the sum of its pixels above ``floor`` (the quantity of the "no
+    fade" check, ``models.evaluate.peak_and_energy``).
+
+    A forecast cannot know which echoes will enter the field of view during a rollout; any loss
+    that scores each pixel draws such an echo as faint as its probability, so a deterministic model
+    loses a little energy at every step. This term calibrates the total over the batch, not any
+    one image or pixel. Its gradient reaches only pixels above the floor, so it brightens echoes the
+    model already draws and never lifts the background into new ones.
+    """
+    e_pred = (pred * (pred > floor)).sum()
+    e_target = (target * (target > floor)).sum()
+    return (e_pred - e_target).abs() / e_target.clamp_min(1e-6)
+
+
 def image_loss(pred: torch.Tensor, target: torch.Tensor, terms: dict[str, float]) -> torch.Tensor:
     """Weighted sum of per-pixel losses over (B, R, A) images."""
     total = pred.new_zeros(())
@@ -46,6 +66,8 @@ def image_loss(pred: torch.Tensor, target: torch.Tensor, terms: dict[str, float]
             v = (F.l1_loss(pred.diff(dim=-1), target.diff(dim=-1)) + F.l1_loss(pred.diff(dim=-2), target.diff(dim=-2))) / 2
         elif name == "w1":
             v = value_distribution_loss(pred, target)
+        elif name == "energy":
+            v = echo_energy_loss(pred, target)
         else:  # 1 - CC (the paper's metric) per image
             p = pred.flatten(1) - pred.flatten(1).mean(1, keepdim=True)
             t = target.flatten(1) - target.flatten(1).mean(1, keepdim=True)

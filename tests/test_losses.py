@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from sonarset.errors import SonarSetError
-from sonarset.models.losses import LOSSES, image_loss, parse_loss, value_distribution_loss
+from sonarset.models.losses import LOSSES, echo_energy_loss, image_loss, parse_loss, value_distribution_loss
 
 
 def _echo(centre: int, width: float, amplitude: float = 1.0) -> torch.Tensor:
@@ -18,7 +18,7 @@ def _echo(centre: int, width: float, amplitude: float = 1.0) -> torch.Tensor:
 def test_parse_loss_terms_and_errors():
     assert parse_loss("mse") == {"mse": 1.0}
     assert parse_loss("mse=1,w1=0.3") == {"mse": 1.0, "w1": 0.3}
-    assert set(LOSSES) == {"mse", "l1", "gdl", "cc", "w1"}
+    assert set(LOSSES) == {"mse", "l1", "gdl", "cc", "w1", "energy"}
     with pytest.raises(SonarSetError, match="unknown term 'wasserstein'"):
         parse_loss("mse,wasserstein")
     with pytest.raises(SonarSetError, match="weight of 'w1' is not a number"):
@@ -42,3 +42,26 @@ def test_value_distribution_loss_is_a_distance_per_image():
     batch = value_distribution_loss(torch.cat([a, b]), torch.cat([b, a]))
     assert batch.item() == pytest.approx(value_distribution_loss(a, b).item())  # symmetric, averaged
     assert value_distribution_loss(a, a).item() == 0.0
+
+
+def test_echo_energy_loss_sees_fading_not_position_and_never_lifts_the_background():
+    target = _echo(20, 1.5)
+    assert echo_energy_loss(_echo(26, 1.5), target).item() == pytest.approx(0.0, abs=1e-6)  # moved: same energy
+    faded = _echo(20, 1.5, amplitude=0.7)
+    assert echo_energy_loss(faded, target).item() == pytest.approx(0.3, rel=0.05)  # 30% of the energy gone
+    # A haze below the echo floor is no echo energy: the term neither counts it nor pushes it up.
+    haze = faded + 0.04 * (faded < 0.04)
+    pred = haze.clone().requires_grad_(True)
+    echo_energy_loss(pred, target).backward()
+    below = haze <= 0.05
+    assert torch.all(pred.grad[below] == 0)
+    assert torch.all(pred.grad[~below] < 0)  # descending the loss brightens the drawn echo
+
+
+def test_echo_energy_loss_calibrates_the_batch_not_each_image():
+    a, b = _echo(10, 2.0), _echo(30, 2.0)
+    # One echo too bright, the other as much too dim: the batch keeps its energy.
+    pred = torch.cat([1.2 * a, 0.8 * b])
+    assert echo_energy_loss(1.2 * a, a).item() > 0.19 and echo_energy_loss(0.8 * b, b).item() > 0.19
+    # ~0, but for the echo tails that the scaling moves across the floor.
+    assert echo_energy_loss(pred, torch.cat([a, b])).item() < 0.02
