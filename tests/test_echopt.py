@@ -205,11 +205,14 @@ def test_rollout_training_options_and_priors(tiny_store, tmp_path):
         np.testing.assert_allclose(model(torch.from_numpy(f), torch.from_numpy(c)).numpy(), flow.predict(f, c), atol=1e-6)
     # rollout, pushforward and a weighted loss train and record what they did
     res = train(tiny_store, tmp_path / "ro", _cfg(max_steps=4, curriculum="0:1,2:3", pushforward=True,
-                                                 loss="mse=1,gdl=0.5,cc=0.1", prior="last", val_horizon=2))
+                                                 loss="mse=1,gdl=0.5,cc=0.1,w1=1,energy=0.5", prior="last",
+                                                 val_horizon=2))
     assert [r["rollout_k"] for r in res.history] == [1, 3, 3, 3][: len(res.history)] or res.history[-1]["rollout_k"] == 3
     _, card = load_checkpoint(tmp_path / "ro", TINY_GRID)
     assert card["config"]["prior"] == "last" and card["val_horizon"] == 2
     assert card["training"]["config"]["curriculum"] == "0:1,2:3"
+    assert card["training"]["config"]["loss"] == "mse=1,gdl=0.5,cc=0.1,w1=1,energy=0.5"
+    assert all(np.isfinite(r["train_loss"]) for r in res.history)
     for bad, msg in ((dict(curriculum="2:3"), "start at step 0"), (dict(loss="mse,fancy"), "unknown term"),
                      (dict(prior="magic"), "--prior")):
         with pytest.raises(SonarSetError, match=msg):
