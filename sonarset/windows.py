@@ -232,17 +232,6 @@ class WindowBatcher:
         return WindowBatch(block[:, :index.n_in], commands, block[:, index.n_in:], rows[:, 0])
 
 
-def gather(self, index: WindowIndex, which: np.ndarray | slice | None = None,
-               horizon: int | None = None) -> WindowBatch:
-        """The windows ``index[which]`` with their first ``horizon`` targets (default: all)."""
-        rows = index.rows(which, horizon)
-        at = rows if self.to_rows is None else self.to_rows(rows)
-        block = self.images[at]  # (B, n_in + h, R, A)
-        if self.cast is not None:
-            block = self.cast(block)
-        return WindowBatch(block[:, :index.n_in], self.velocity[at], block[:, index.n_in:], rows[:, 0])
-
-
 def gather(bank: FrameBank, index: WindowIndex, which: np.ndarray | slice | None = None,
            image_dtype: str | np.dtype | None = None) -> WindowBatch:
     """The windows ``index[which]`` as one NumPy batch (a single vectorised gather per array)."""
