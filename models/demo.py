@@ -14,8 +14,7 @@ from sonarset.store import SonarStore, open_store
 from .cards import card_processing, describe_images, read_card
 from .checkpoint import load_checkpoint
 from .evaluate import EvalResult, evaluate
-
-BASELINES = ("persistence", "naive", "flow")
+from .registry import BASELINES
 
 
 def check_model(model: str) -> None:

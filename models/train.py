@@ -448,9 +448,10 @@ def add_test_metrics(out_dir: str | os.PathLike, store: SonarStore, samples: int
                      device: str = "cpu") -> dict:
     """Evaluate the best model against the baselines on the store's test split; record in the card."""
     from .evaluate import evaluate
+    from .registry import BASELINES
 
     path = Path(out_dir) / "model.safetensors"
-    res = evaluate(store, ["persistence", "naive", "flow", f"echopt:{path}"], samples=samples, seed=seed, device=device)
+    res = evaluate(store, [*BASELINES, f"echopt:{path}"], samples=samples, seed=seed, device=device)
     card_path = path.with_suffix(".json")
     card = json.loads(card_path.read_text())
     card["test"] = {"store": store.location, "split": "test", "windows": len(res.window_ids), "seed": seed,
