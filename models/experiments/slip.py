@@ -167,11 +167,14 @@ def _run_trial(task: _Task) -> dict:
     out = {"trial": asdict(task.trial), "auc": {}, "signals": {}, "labels": {}}
     still = predictor("persistence", task.grid)
     base = slip_signals(still, data["images"], data["commands"])
+    labels: dict[tuple[int, int], dict[str, np.ndarray]] = {}  # per (horizon, n_in): the same for every model
     for spec in task.models:
         pred = predictor(spec, task.grid, task.device)
         eps = slip_signals(pred, data["images"], data["commands"])
         for h in HORIZONS:
-            lab = frame_labels(data["slip"], h, pred.n_in)
+            if (h, pred.n_in) not in labels:
+                labels[h, pred.n_in] = frame_labels(data["slip"], h, pred.n_in)
+            lab = labels[h, pred.n_in]
             for det, signal in (("eps", eps[h]), ("ratio", eps[h] / base[h])):
                 for kind in KINDS:
                     out["auc"][f"{pred.name}|{h}|{kind}|{det}"] = auc(signal[lab[kind]], signal[lab["clean"]])
