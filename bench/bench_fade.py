@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from sonarset import RobotRig, open_store
+from sonarset import open_store
 from sonarset.windows import N_IN, FrameBank, WindowIndex, gather
 
 
@@ -33,6 +33,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     from sonarset.models.baselines import rollout
+    from sonarset.models.evaluate import baseline_rig
     from sonarset.models.registry import make_predictor
 
     store = open_store(args.store)
@@ -41,9 +42,7 @@ def main() -> None:
     pick = np.sort(np.random.default_rng(args.seed).choice(len(index), min(args.windows, len(index)), replace=False))
     batch = gather(bank, index, pick)
     targets = batch.targets.astype(np.float32)
-    rig = store.rig
-    dt = bank.frame_interval_s or (rig.frame_interval_s if rig else 1 / store.attrs.frame_rate_hz)
-    baselines_rig = RobotRig(frame_interval_s=dt, sensor_offset_m=rig.sensor_offset_m if rig else 0.0)
+    baselines_rig, _ = baseline_rig(store, bank)  # what evaluate warps the baselines with
     print(f"# bench_fade  {platform.node()}  {os.cpu_count()} cores  {time.strftime('%Y-%m-%d %H:%M')}  "
           f"{store.location}, {len(pick)} test windows, seed {args.seed}")
     print("| predictor | step | peak | energy > 0.05 | energy > 0.2 | pixel sum | pixels > 0.05 |")

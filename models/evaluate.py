@@ -123,7 +123,7 @@ def fade_summary(res: EvalResult, tolerance: float = FADE_TOLERANCE) -> dict:
     return out
 
 
-def _baseline_rig(store: SonarStore, bank: FrameBank) -> tuple[RobotRig, str | None]:
+def baseline_rig(store: SonarStore, bank: FrameBank) -> tuple[RobotRig, str | None]:
     """The robot the baselines turn commands into image motion with, and a note when it is assumed.
 
     Its frame interval is the median spacing of the evaluated runs' time stamps, which the spec
@@ -217,7 +217,7 @@ def evaluate(
     if not horizons or horizons[0] < 1:
         raise SonarSetError("horizons must be positive integers")
     bank = FrameBank.from_store(store, split=split, image_dtype=np.float32)
-    rig, note = _baseline_rig(store, bank)
+    rig, note = baseline_rig(store, bank)
     notes = [note] if note else []
     preds, model_notes = _predictors(store, model_specs, rig, device, predictors)
     notes += model_notes
