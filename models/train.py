@@ -88,7 +88,7 @@ class TrainConfig:
     bf16: bool = True  # bf16 autocast on CUDA; ignored on CPU
     test_samples: int = 1000  # one-shot + AR test metrics in the card (0 = skip)
     prior: str = ""  # none | last | flow; "" = the preset's (paper: none, small and tiny: flow)
-    loss: str = "mse"  # mse | l1 | gdl | cc | w1, or a weighted sum "mse=1,w1=2"
+    loss: str = "mse"  # a term of losses.LOSSES (mse, l1, gdl, cc, w1, energy), or a weighted sum "mse=1,w1=2"
     curriculum: str = "1"  # rollout length k: "k", or "step:k,step:k,..." from those steps on
     pushforward: bool = False  # only the last of the k steps carries gradient
     context_noise: float = 0.0  # std of Gaussian noise added to the measured context frames
