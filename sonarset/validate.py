@@ -17,8 +17,8 @@ import zarr
 from pydantic import ValidationError
 
 from .arrays import (
-    ARRAYS, array_meta_problems, expected_shape, frame_interval_problem, nonfinite_frame, time_order_problem,
-    unit_interval_problem,
+    ARRAYS, array_meta_problems, expected_shape, frame_interval_problem, in_unit_interval, nonfinite_frame,
+    time_order_problem, unit_interval_problem,
 )
 from .errors import SonarSetError, one_line
 from .integrity import ChunkChecker, chunk_coords
@@ -268,9 +268,11 @@ def _check_data(aw: str, key: str, arr: zarr.Array, progress: ProgressFn | None,
             key0 = arr.metadata.encode_chunk_key((start // step,) + (0,) * (arr.ndim - 1))
             out.append(Problem(aw, f"chunk {key0} is corrupt or truncated ({type(exc).__name__})"))
             return out
-        nonfinite = nonfinite_frame(block, start)
+        # Images finite and in [0, 1], the common case, in one fast pass (float16 isfinite is ~30x slower).
+        clean = key == "images" and in_unit_interval(block)
+        nonfinite = None if clean else nonfinite_frame(block, start)
         bad_finite = nonfinite if bad_finite is None else bad_finite
-        if key == "images" and bad_range is None:
+        if key == "images" and bad_range is None and not clean:
             bad_range = unit_interval_problem(block, start)
         if key == "time" and nonfinite is None:
             line = time_order_problem(block, prev_t, start)
