@@ -63,6 +63,15 @@ def test_wheel_installs_in_fresh_venv(tmp_path):
     assert res.returncode == 0 and "sonarset" in res.stdout, res.stderr
 
 
+def _sonarset_modules() -> dict[str, Path]:
+    """Every module of ``sonarset/`` by its dotted name (a package by its ``__init__.py``)."""
+    root, paths = ROOT / "sonarset", {}
+    for p in root.rglob("*.py"):
+        parts = ("sonarset", *p.relative_to(root).with_suffix("").parts)
+        paths[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = p
+    return paths
+
+
 def _imports(module: str, path: Path, modules: set[str]) -> set[str]:
     """The modules of ``modules`` that ``module`` (its source at ``path``) imports, lazily or not;
     imports under ``if TYPE_CHECKING:`` (annotations only) do not count."""
@@ -88,11 +97,7 @@ def _imports(module: str, path: Path, modules: set[str]) -> set[str]:
 def test_no_import_cycle_in_sonarset():
     """No module of ``sonarset/`` imports, even lazily, one that imports it back (nor the package
     itself, whose ``__init__`` imports the store)."""
-    root = ROOT / "sonarset"
-    paths = {}
-    for p in root.rglob("*.py"):
-        parts = ("sonarset", *p.relative_to(root).with_suffix("").parts)
-        paths[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = p
+    paths = _sonarset_modules()
     graph = {m: _imports(m, p, set(paths)) for m, p in paths.items()}
     try:
         graphlib.TopologicalSorter(graph).prepare()
@@ -105,9 +110,8 @@ def test_no_package_attribute_shadows_one_of_its_modules():
     import importlib
     import types
 
-    for init in (ROOT / "sonarset").rglob("__init__.py"):
-        package = ".".join(("sonarset", *init.parent.relative_to(ROOT / "sonarset").parts))
-        if package.startswith(("sonarset.models", "sonarset.cli")):
+    for package, init in _sonarset_modules().items():
+        if init.name != "__init__.py" or package.startswith(("sonarset.models", "sonarset.cli")):
             continue
         pkg = importlib.import_module(package)
         for path in (p for p in init.parent.glob("*.py") if p.name != "__init__.py"):
