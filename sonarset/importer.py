@@ -161,8 +161,9 @@ def _check_shapes(conv: dict[str, np.ndarray], problems: list[str]) -> bool:
     their bins; True when all agree."""
     before = len(problems)
     images = conv.get("images")
-    if images is not None and layout_problem("images", images.shape):
-        problems.append(f"images: {layout_problem('images', images.shape)}")
+    line = layout_problem("images", images.shape) if images is not None else None
+    if line is not None:
+        problems.append(f"images: {line}")
         images = None
     if images is not None and images.shape[0] < 1:
         problems.append("images: no frames")

@@ -20,7 +20,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from . import plausibility
-from .arrays import dtype_problem, layout_problem, time_order_problem
+from .arrays import dtype_problem, layout_problem, nonfinite_problem, time_order_problem
 from .errors import InputValidationError
 from .recording_files import RawSource, short_reason
 from .recording_units import grid_to_si, pose_to_si, time_to_si, velocity_to_si
@@ -150,7 +150,7 @@ def _small_arrays(reader: RawSource, n_measurements: int | None, problems: list[
             except Exception as exc:
                 line = f"unreadable ({short_reason(exc)})"
             else:
-                line = "contains NaN or infinite values" if not np.all(np.isfinite(arr)) else None
+                line = nonfinite_problem(arr)
         if line is not None:
             problems.append(f"{key}: {line}")
             continue
