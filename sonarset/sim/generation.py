@@ -91,8 +91,9 @@ def _checked_processing(processing: Processing | str, psf: str) -> Processing:
 def _runs_to_do(store: SonarStore, plans: list[RunPlan]) -> list[RunPlan]:
     """The plans whose run is not complete yet; a complete run made with other settings is an error."""
     todo = []
+    complete = set(store.runs())  # listing reads every run's attributes: once, not once per plan
     for plan in plans:
-        if plan.name in store.runs():
+        if plan.name in complete:
             have = {"processing": "raw", **store.run(plan.name).attrs.source}  # 1.0 runs were raw
             if {k: have.get(k) for k in plan.source()} != plan.source():
                 raise SonarSetError(f"{store.location}: run {plan.name} was generated with other settings; "
