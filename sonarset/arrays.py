@@ -60,6 +60,12 @@ def expected_shape(key: str, n_frames: int, grid_shape: tuple[int, int]) -> tupl
     return tuple(sizes.get(d, spec.last) for d in spec.dims)
 
 
+def coordinates_match(values: np.ndarray, centres: np.ndarray) -> bool:
+    """Whether a run's coordinate array holds the grid's bin ``centres`` (to 1e-6 of their scale)."""
+    tol = 1e-6 * max(1.0, float(np.max(np.abs(centres))))
+    return bool(np.allclose(values, centres, rtol=0, atol=tol))
+
+
 _ONE_BITS = {np.dtype(np.float16): (np.uint16, 0x3C00, 0x8000), np.dtype(np.float32): (np.uint32, 0x3F800000, 0x80000000)}
 
 

@@ -9,8 +9,8 @@ import numpy as np
 import zarr
 
 from .arrays import (
-    ARRAYS, OPTIONAL_ARRAYS, array_meta_problems, expected_shape, frame_interval_problem, time_order_problem,
-    value_problem,
+    ARRAYS, OPTIONAL_ARRAYS, array_meta_problems, coordinates_match, expected_shape, frame_interval_problem,
+    time_order_problem, value_problem,
 )
 from .errors import FormatError, SonarSetError, one_line
 from .integrity import ChunkChecker, chunk_coords
@@ -132,8 +132,7 @@ class Run:
         grid = self.store.grid
         for key, centres in (("range", grid.range_centres()), ("azimuth", grid.azimuth_centres())):
             values = self.read(key)
-            tol = 1e-6 * max(1.0, float(np.max(np.abs(centres))))
-            if not np.allclose(values, centres, rtol=0, atol=tol):
+            if not coordinates_match(values, centres):
                 raise FormatError(f"{self.where}/{key}: coordinates do not match the store grid "
                                   f"(got {values[0]:.6g}..{values[-1]:.6g}, grid {centres[0]:.6g}..{centres[-1]:.6g})")
         if chunks:

@@ -17,8 +17,8 @@ import zarr
 from pydantic import ValidationError
 
 from .arrays import (
-    ARRAYS, array_meta_problems, expected_shape, frame_interval_problem, in_unit_interval, nonfinite_frame,
-    time_order_problem, unit_interval_problem,
+    ARRAYS, array_meta_problems, coordinates_match, expected_shape, frame_interval_problem, in_unit_interval,
+    nonfinite_frame, time_order_problem, unit_interval_problem,
 )
 from .errors import SonarSetError, one_line
 from .integrity import ChunkChecker, chunk_coords
@@ -222,8 +222,7 @@ def _coordinate_problems(aw: str, arr: zarr.Array, centres: np.ndarray, unit: st
         values = arr[:]
     except Exception as exc:
         return [Problem(aw, f"unreadable ({one_line(exc)})")]
-    tol = 1e-6 * max(1.0, float(np.max(np.abs(centres))))
-    if np.allclose(values, centres, rtol=0, atol=tol):
+    if coordinates_match(values, centres):
         return []
     return [Problem(aw, f"coordinates do not match the store grid (got {values[0]:.6g}..{values[-1]:.6g} {unit}, "
                         f"grid {centres[0]:.6g}..{centres[-1]:.6g} {unit})")]
