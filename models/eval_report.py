@@ -12,7 +12,7 @@ import numpy as np
 
 from sonarset.atomic import atomic_text, atomic_write
 from sonarset.ceiling import CEILING
-from sonarset.report import format_p, horizon_name
+from sonarset.report import finite_or_none, format_p, horizon_name
 
 from .evaluate import ECHO_FLOOR, FADE_TOLERANCE, METRICS, EvalResult, fade_summary, undefined_counts
 
@@ -67,7 +67,7 @@ def metrics_document(res: EvalResult) -> dict:
         "undefined_windows": {m: {str(h): v for h, v in d.items()} for m, d in undefined_counts(res).items()},
         **({"ceiling": {"method": CEILING, "meaning": CEILING_MEANING, "skipped_runs": res.ceiling_skipped}}
            if CEILING in res.methods or res.ceiling_skipped else {}),
-        **({"fade": _json_finite(fade),
+        **({"fade": finite_or_none(fade),
             "fade_definition": {"echo_floor": ECHO_FLOOR, "tolerance": FADE_TOLERANCE,
                                 "steps": list(range(1, len(next(iter(fade.values()))["peak_ratio"]) + 1)),
                                 "meaning": FADE_MEANING}} if fade else {}),
@@ -84,17 +84,6 @@ def write_per_window(res: EvalResult, path: str | os.PathLike) -> None:
         w = csv.writer(f)
         w.writerow(["method", "horizon", "window", "cc", "nrmsd"])
         w.writerows(rows)
-
-
-def _json_finite(x):
-    """``x`` with every non-finite float replaced by None (JSON has no NaN)."""
-    if isinstance(x, dict):
-        return {k: _json_finite(v) for k, v in x.items()}
-    if isinstance(x, list):
-        return [_json_finite(v) for v in x]
-    if isinstance(x, float) and not np.isfinite(x):
-        return None
-    return x
 
 
 def fade_table(res: EvalResult, fade: dict | None = None) -> str:

@@ -1,8 +1,10 @@
-"""How reports write numbers: p-values and horizon names, the same in every table."""
+"""How reports write numbers: p-values, horizon names and JSON-safe floats, the same in every report."""
 
 from __future__ import annotations
 
 import math
+
+import numpy as np
 
 
 def format_p(p: float | None) -> str:
@@ -15,3 +17,17 @@ def format_p(p: float | None) -> str:
 def horizon_name(h: int) -> str:
     """'one-shot' for one step ahead, 'AR-h' for an auto-regressive rollout of h steps."""
     return "one-shot" if h == 1 else f"AR-{h}"
+
+
+def finite_or_none(x):
+    """JSON-safe floats, recursively through dicts, lists and tuples: NaN and infinities become
+    null (JSON has no NaN); NumPy scalars become Python numbers."""
+    if isinstance(x, dict):
+        return {k: finite_or_none(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [finite_or_none(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x

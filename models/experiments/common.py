@@ -15,6 +15,7 @@ from sonarset.atomic import atomic_text, save_figure
 from sonarset.perf import keep_freed_memory
 from sonarset.errors import SonarSetError
 from sonarset.schema import Processing, SensorGrid
+from sonarset.report import finite_or_none
 from sonarset.stats import bootstrap_ci
 from sonarset.sim.runs import simulator_rig
 
@@ -126,16 +127,3 @@ def write_outputs(out: str | os.PathLike, metrics: dict, figure, figure_name: st
     save_figure(figure, out / figure_name)
     atomic_text(out / "report.md", "\n".join(report) + "\n")
     return out
-
-
-def finite_or_none(x):
-    """JSON-safe floats: NaN and infinities become null."""
-    if isinstance(x, dict):
-        return {k: finite_or_none(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [finite_or_none(v) for v in x]
-    if isinstance(x, (float, np.floating)):
-        return float(x) if np.isfinite(x) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    return x
