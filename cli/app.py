@@ -20,10 +20,11 @@ from rich.table import Table
 
 from sonarset import __version__
 
-from .choices import Beamformer, Device, Optimizer, Preset, Prior, ProcessingProfile, Psf, Schedule, SchemaKind, value
+from .choices import (Beamformer, Device, Optimizer, Precision, Preset, Prior, ProcessingProfile, Psf, Schedule,
+                      SchemaKind, value)
 from .common import err, fail, out, per_name_progress, progress_bar, user_errors
 from .experiment import experiment_app
-from .options import MetaPath, Model, ModelDevice, OutStore, Overwrite, RunName, RunSplit
+from .options import MetaPath, Model, ModelDevice, ModelPrecision, OutStore, Overwrite, RunName, RunSplit
 
 app = typer.Typer(
     name="sonarset",
@@ -259,6 +260,7 @@ def eval_(
     split: str = typer.Option("test", "--split", help="Split to evaluate on."),
     seed: int = typer.Option(0, "--seed", help="Seed of the window draw and the bootstrap."),
     device: ModelDevice = Device("cpu"),
+    precision: ModelPrecision = Precision("auto"),
     figures: bool = typer.Option(True, "--figures/--no-figures", help="Write the PNG figures."),
     ceiling: bool = typer.Option(False, "--ceiling",
                                  help="Add the noise ceiling: target frames of simulated runs re-rendered with "
@@ -274,7 +276,8 @@ def eval_(
     with progress_bar() as bar:
         progress = per_name_progress(bar)
         res = evaluate(s, specs, horizons=tuple(_int_list(horizons, "--horizons")), samples=samples,
-                       split=split, seed=seed, device=device.value, progress=progress, ceiling=ceiling)
+                       split=split, seed=seed, device=device.value, precision=precision.value, progress=progress,
+                       ceiling=ceiling)
     write_report(res, out_dir, figures=figures)
     _print_notes(res.notes)
     out.print(results_table(res, with_paper=False))
@@ -327,6 +330,7 @@ def train(
     schedule: Schedule = typer.Option("none", "--schedule", help="none (paper) or cosine."),
     seed: int = typer.Option(0, "--seed"),
     device: Device = typer.Option("auto", "--device"),
+    precision: ModelPrecision = Precision("auto"),
     resume: bool = typer.Option(False, "--resume", help="Continue a killed run exactly where it stopped."),
     eval_every: int = typer.Option(0, "--eval-every", min=0, help="Steps between validations/checkpoints (0: each epoch)."),
     max_steps: int = typer.Option(0, "--max-steps", min=0, help="Stop after this many steps (0: no limit)."),
@@ -362,7 +366,8 @@ def train(
                       schedule=schedule.value, seed=seed, device=device.value, eval_every=eval_every,
                       max_steps=max_steps, max_minutes=max_minutes, compile=compile_, test_samples=test_samples,
                       n_val=n_val, prior=value(prior) or "", loss=loss, curriculum=curriculum, pushforward=pushforward,
-                      optimizer=optimizer.value, context_noise=context_noise, val_horizon=val_horizon, init=init)
+                      optimizer=optimizer.value, context_noise=context_noise, val_horizon=val_horizon, init=init,
+                      precision=precision.value)
     main = int(os.environ.get("RANK", "0")) == 0  # under torchrun only rank 0 reports
     with _training_bar(main) as progress:
         res = run_training(s, out_dir, cfg, resume=resume, progress=progress)
@@ -371,7 +376,7 @@ def train(
     out.print(f"{res.steps} steps ({res.epochs_done:.2f} epochs); best validation loss {res.best_val_loss:.6f}; "
               f"weights: {out_dir / 'model.safetensors'}")
     if test_samples and s.runs("test"):
-        test = add_test_metrics(out_dir, s, samples=test_samples, device=cfg.device)
+        test = add_test_metrics(out_dir, s, samples=test_samples, device=cfg.device, precision=cfg.precision)
         r = test["results"]
         for m in ("flow", "echopt"):
             one = r[m]["1"]
@@ -387,6 +392,7 @@ def demo(
     seed: int = typer.Option(2026, "--seed", help="Seed of the fresh run (the shipped model was trained on seed 0)."),
     model: Model = "pretrained",
     device: ModelDevice = Device("auto"),
+    precision: ModelPrecision = Precision("auto"),
 ) -> None:
     """Simulate a fresh test run and compare the pretrained EchoPT with persistence, naive and flow
     (and the noise ceiling)."""
@@ -404,10 +410,11 @@ def demo(
         s = pipeline.simulate_fresh_run(store_path, minutes=minutes, seed=seed,
                                         progress=lambda name, done, total: bar.update(task, completed=done, total=total))
     out.print(pipeline.images_note(model, s), highlight=False)
+    out.print(pipeline.runs_in(model, precision.value, device.value), highlight=False)
     out.print(f"evaluating persistence, naive, flow and EchoPT ({model}) on {samples} windows, horizons 1, 3, 5, 10, "
               "with the noise ceiling")
     with progress_bar() as bar:
-        res = pipeline.evaluate_fresh_run(s, model, samples=samples, device=device.value,
+        res = pipeline.evaluate_fresh_run(s, model, samples=samples, device=device.value, precision=precision.value,
                                           progress=per_name_progress(bar))
     write_report(res, out_dir)
     _print_notes(res.notes)
@@ -415,6 +422,28 @@ def demo(
     for line in pipeline.echopt_against_flow(res):
         out.print(line)
     out.print(f"report: {out_dir / 'report.md'} (figures beside it); {time.perf_counter() - t0:.0f} s in all")
+
+
+@app.command("export-onnx")
+@user_errors
+def export_onnx_(
+    model: str = typer.Argument(..., metavar="MODEL", help="EchoPT checkpoint: pretrained, a run directory or a "
+                                                          ".safetensors path."),
+    out_path: Path = typer.Argument(..., metavar="OUT.onnx", help="The ONNX file to write."),
+) -> None:
+    """Export EchoPT to ONNX for onnxruntime: a dynamic batch axis, the flow prior inside the graph,
+    the model card in the metadata; checked against torch before it is written."""
+    from sonarset.models.onnx_export import export_onnx
+
+    e = export_onnx(model, out_path)
+    out.print(f"wrote {e.path} ({e.bytes / 1e6:.1f} MB)", highlight=False)
+    if e.max_abs_diff is None:
+        out.print("note: onnxruntime is not installed, so the export was not run; pip install 'sonarset[onnx]'",
+                  style="yellow", highlight=False)
+    else:
+        out.print(f"onnxruntime matches torch to {e.max_abs_diff:.1e} (max abs) on {e.check_windows} random windows",
+                  highlight=False)
+    out.print(f"use it as --models echopt:{e.path} (eval) or --model {e.path} (demo, experiments)", highlight=False)
 
 
 def main() -> None:

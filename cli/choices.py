@@ -28,6 +28,7 @@ Preset = _choices("Preset", ("small", "paper", "tiny"))  # models.echopt.PRESETS
 Prior = _choices("Prior", ("none", "last", "flow"))  # models.echopt.PRIORS
 Optimizer = _choices("Optimizer", ("adam", "adamw"))  # models.train
 Schedule = _choices("Schedule", ("none", "cosine"))  # models.train
+Precision = _choices("Precision", ("auto", "fp32", "bf16"))  # models.precision.PRECISIONS
 
 
 def value(choice: enum.Enum | None) -> str | None:

@@ -9,9 +9,9 @@ import typer
 from rich.progress import Progress
 from rich.table import Table
 
-from .choices import Device, value
+from .choices import Device, Precision, value
 from .common import out, progress_bar, user_errors
-from .options import ExperimentProcessing, Model, ModelDevice, Workers
+from .options import ExperimentProcessing, Model, ModelDevice, ModelPrecision, Workers
 
 experiment_app = typer.Typer(help="The paper's robot experiments: wheel-slip detection, corridor control.",
                              no_args_is_help=True)
@@ -41,6 +41,7 @@ def experiment_slip(
     workers: Workers = None,
     processing: ExperimentProcessing = None,
     device: ModelDevice = Device("cpu"),
+    precision: ModelPrecision = Precision("auto"),
 ) -> None:
     """Wheel-slip detection (paper Fig. 5) and its ROC AUC over random trajectories."""
     from sonarset.models.experiments.slip import run_slip_experiment
@@ -49,7 +50,8 @@ def experiment_slip(
     models = [*_specs(baselines), _echopt_spec(model)]
     with progress_bar() as bar:
         res = run_slip_experiment(models, trials=trials, seed=seed, workers=workers, device=device.value,
-                                  processing=value(processing), progress=_count_progress(bar, "trajectories"))
+                                  processing=value(processing), precision=precision.value,
+                                  progress=_count_progress(bar, "trajectories"))
     write_slip_report(res, out_dir)
     table = Table("predictor", "horizon", "AUC both (eps)", "AUC one (eps)", "AUC both (ratio)", "AUC one (ratio)")
     by = {(x["predictor"], x["horizon"], x["kind"], x["detector"]): x["auc_mean"] for x in res.summary}
@@ -74,6 +76,7 @@ def experiment_control(
     workers: Workers = None,
     processing: ExperimentProcessing = None,
     device: ModelDevice = Device("cpu"),
+    precision: ModelPrecision = Precision("auto"),
 ) -> None:
     """Corridor control through noise bursts (paper Fig. 6): clean, bursts, bursts bridged by EchoPT."""
     from sonarset.models.experiments.control import run_control_experiment
@@ -82,7 +85,8 @@ def experiment_control(
     models = [_echopt_spec(model), *_specs(compare)]
     with progress_bar() as bar:
         res = run_control_experiment(models, runs=runs, seed=seed, workers=workers, device=device.value,
-                                     processing=value(processing), max_time_s=max_time, progress=_count_progress(bar, "runs"))
+                                     processing=value(processing), max_time_s=max_time, precision=precision.value,
+                                     progress=_count_progress(bar, "runs"))
     write_control_report(res, out_dir)
     table = Table("condition", "success", "collision", "timeout", "travel time [s]", "midline dev. [m]")
     for c, x in res.summary.items():

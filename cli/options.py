@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from .choices import Device, ProcessingProfile
+from .choices import Device, Precision, ProcessingProfile
 
 OutStore = Annotated[str, typer.Argument(metavar="OUT", help="Store to create or append to.")]
 MetaPath = Annotated[Optional[Path], typer.Option("--meta", help="Metadata (sidecar) JSON (default: SRC.json / "
@@ -23,3 +23,6 @@ ModelDevice = Annotated[Device, typer.Option("--device", help="Device for learne
 ExperimentProcessing = Annotated[Optional[ProcessingProfile], typer.Option(
     "--processing", help="Images to simulate. Default: those the EchoPT model was trained on (its card); a "
                          "different profile is refused.")]
+ModelPrecision = Annotated[Precision, typer.Option(
+    "--precision", help="EchoPT's arithmetic: auto (bf16 autocast where the CPU has bf16 units or on a GPU, "
+                        "else fp32), fp32 or bf16. ONNX models run in fp32.")]

@@ -15,7 +15,12 @@ from sonarset.schema import Processing, RobotRig
 
 
 def read_card(spec: str | os.PathLike) -> dict:
-    """The card of a checkpoint spec (``pretrained``, a directory or a path), without loading weights."""
+    """The card of a checkpoint spec (``pretrained``, a directory, a path, or an ONNX export), without
+    loading weights."""
+    if str(spec).endswith(".onnx"):
+        from .onnx_runtime import read_onnx_card
+
+        return read_onnx_card(spec)
     from .checkpoint import resolve
 
     path = resolve(spec).with_suffix(".json")

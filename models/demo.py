@@ -18,8 +18,24 @@ from .registry import BASELINES
 
 
 def check_model(model: str) -> None:
-    """Load the checkpoint ``model`` on the default grid: a bad one fails before the simulation."""
-    load_checkpoint(model, SensorGrid.default())
+    """Load the checkpoint (or ONNX export) ``model`` on the default grid: a bad one fails before
+    the simulation."""
+    if str(model).endswith(".onnx"):
+        from .onnx_runtime import load_onnx_predictor
+
+        load_onnx_predictor(model, SensorGrid.default())
+    else:
+        load_checkpoint(model, SensorGrid.default())
+
+
+def runs_in(model: str, precision: str, device: str) -> str:
+    """How EchoPT will compute: "EchoPT runs in bf16 (CPU flags avx512_bf16)"."""
+    if str(model).endswith(".onnx"):
+        return "EchoPT runs in fp32 (onnxruntime)"
+    from .checkpoint import resolve_device
+    from .precision import describe_precision
+
+    return f"EchoPT runs in {describe_precision(precision, resolve_device(device))}"
 
 
 def simulate_fresh_run(path: str | os.PathLike, *, minutes: float, seed: int,
@@ -36,11 +52,11 @@ def images_note(model: str, store: SonarStore) -> str:
             f"the fresh run has {describe_images(store.processing)}")
 
 
-def evaluate_fresh_run(store: SonarStore, model: str, *, samples: int, device: str,
+def evaluate_fresh_run(store: SonarStore, model: str, *, samples: int, device: str, precision: str = "auto",
                        progress: Callable[[str, int, int], None] | None = None) -> EvalResult:
     """The baselines and EchoPT on ``samples`` windows of the default horizons, with the noise ceiling."""
-    return evaluate(store, [*BASELINES, f"echopt:{model}"], samples=samples, device=device, progress=progress,
-                    ceiling=True)
+    return evaluate(store, [*BASELINES, f"echopt:{model}"], samples=samples, device=device, precision=precision,
+                    progress=progress, ceiling=True)
 
 
 def echopt_against_flow(res: EvalResult) -> list[str]:

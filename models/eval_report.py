@@ -63,6 +63,7 @@ def metrics_document(res: EvalResult) -> dict:
         "windows": {"n": len(res.window_ids), "n_in": res.n_in, "horizons": res.horizons,
                     "ids": [[r, k] for r, k in res.window_ids]},
         "seconds": res.seconds,
+        "precision": res.precision,
         "notes": res.notes,
         "undefined_windows": {m: {str(h): v for h, v in d.items()} for m, d in undefined_counts(res).items()},
         **({"ceiling": {"method": CEILING, "meaning": CEILING_MEANING, "skipped_runs": res.ceiling_skipped}}

@@ -59,6 +59,7 @@ class EvalResult:
     target_peak: np.ndarray | None = None
     target_energy: np.ndarray | None = None
     n_in: int = N_IN  # input frames per window
+    precision: dict[str, str] = field(default_factory=dict)  # learned method -> fp32 | bf16, as it ran
 
     @property
     def predictors(self) -> list[str]:
@@ -197,6 +198,7 @@ def evaluate(
     seed: int = 0,
     batch_size: int = 250,
     device: str = "cpu",
+    precision: str = "auto",
     predictors: dict[str, Predictor] | None = None,
     progress: Callable[[str, int, int], None] | None = None,
     ceiling: bool = False,
@@ -219,7 +221,7 @@ def evaluate(
     bank = FrameBank.from_store(store, split=split, image_dtype=np.float32)
     rig, note = baseline_rig(store, bank)
     notes = [note] if note else []
-    preds, model_notes = _predictors(store, model_specs, rig, device, predictors)
+    preds, model_notes = _predictors(store, model_specs, rig, device, precision, predictors)
     notes += model_notes
     index = _windows(store, bank, split, window_frames(preds), horizons[-1], samples, seed)
     ids = [(bank.run_names[j], k) for j, k in (index.locate(i) for i in range(len(index)))]
@@ -239,13 +241,14 @@ def evaluate(
     result = EvalResult(store.location, split, bank.run_names, list(horizons), list(scores.per_window),
                         index.starts, ids, scores.per_window, seconds=scores.seconds, examples=examples, notes=notes,
                         ceiling_skipped=skipped, step_peak=scores.step_peak, step_energy=scores.step_energy,
-                        target_peak=scores.target_peak, target_energy=scores.target_energy, n_in=index.n_in)
+                        target_peak=scores.target_peak, target_energy=scores.target_energy, n_in=index.n_in,
+                        precision={m: p.precision for m, p in preds.items() if isinstance(getattr(p, "precision", None), str)})
     result.notes += _undefined_notes(result)
     result.comparisons = _compare_all(result, seed)
     return result
 
 
-def _predictors(store: SonarStore, model_specs: list[str], rig: RobotRig, device: str,
+def _predictors(store: SonarStore, model_specs: list[str], rig: RobotRig, device: str, precision: str,
                 given: dict[str, Predictor] | None) -> tuple[dict[str, Predictor], list[str]]:
     """The predictors by name (``given`` first, then ``model_specs``), and notes on learned models
     meeting other images than they were trained on."""
@@ -254,7 +257,7 @@ def _predictors(store: SonarStore, model_specs: list[str], rig: RobotRig, device
 
     preds: dict[str, Predictor] = dict(given or {})
     for spec in model_specs:
-        p = make_predictor(spec, store.grid, rig, device=device)
+        p = make_predictor(spec, store.grid, rig, device=device, precision=precision)
         if p.name in preds:  # several checkpoints: each under its own label (echopt RUN/model)
             p.name = getattr(p, "label", spec)
             if p.name in preds:

@@ -10,9 +10,11 @@ from .baselines import AcousticFlow, NaiveShift, Persistence, Predictor
 BASELINES = ("persistence", "naive", "flow")
 
 
-def make_predictor(spec: str, grid: SensorGrid, rig: RobotRig, *, device: str = "cpu") -> Predictor:
+def make_predictor(spec: str, grid: SensorGrid, rig: RobotRig, *, device: str = "cpu",
+                   precision: str = "auto") -> Predictor:
     """The predictor for ``spec`` on ``grid``. The baselines turn commands into image motion with
-    ``rig`` (the robot that made the frames); EchoPT uses the rig it was trained on (its config)."""
+    ``rig`` (the robot that made the frames); EchoPT uses the rig it was trained on (its config),
+    in ``precision`` (models/precision.py: auto, fp32, bf16)."""
     name, _, arg = spec.partition(":")
     if name == "persistence":
         return Persistence(grid)
@@ -21,9 +23,13 @@ def make_predictor(spec: str, grid: SensorGrid, rig: RobotRig, *, device: str = 
     if name == "flow":
         return AcousticFlow(grid, rig)
     if name == "echopt":
+        if arg.endswith(".onnx"):  # onnxruntime, no torch
+            from .onnx_runtime import load_onnx_predictor
+
+            return load_onnx_predictor(arg, grid)
         try:
             from .echopt_predictor import load_echopt_predictor
         except ImportError as exc:
             raise SonarSetError(f"model {spec!r}: EchoPT is not available in this installation ({exc})") from None
-        return load_echopt_predictor(arg or "pretrained", grid, device=device)
-    raise SonarSetError(f"unknown model {spec!r}: use {', '.join(BASELINES)} or echopt:PATH")
+        return load_echopt_predictor(arg or "pretrained", grid, device=device, precision=precision)
+    raise SonarSetError(f"unknown model {spec!r}: use {', '.join(BASELINES)}, echopt:PATH or echopt:PATH.onnx")

@@ -13,6 +13,10 @@ loss choice (``mse``, ``l1``, ``gdl`` image-gradient difference, ``cc`` = 1 - co
 weighted sum such as ``mse=1,gdl=0.5``). Validation is the mean MSE over a rollout of
 ``val_horizon`` steps (1: the paper's one-step loss).
 
+Precision (models/precision.py): ``auto`` trains under bf16 autocast where the hardware has bf16
+units (a GPU, or a CPU with AMX or AVX-512 BF16) and in fp32 elsewhere; the losses, the optimizer
+and the weights stay fp32. The card records the precision a model was trained in.
+
 Crash-safe and resumable: the whole training state (weights, Adam moments, step, best loss,
 metrics history) is one file, ``state.safetensors`` (models/train_state.py), replaced
 atomically every ``eval_every`` steps; a kill at any point leaves either the previous state or the
@@ -54,6 +58,7 @@ from .checkpoint import load_checkpoint, resolve_device, save_checkpoint
 from .distributed import Dist, destroy_process_group, init_distributed
 from .echopt import PRIORS, EchoPT, grid_and_rig, make_config
 from .losses import image_loss, parse_loss
+from .precision import autocast, resolve_precision
 from .train_state import STATE, load_state, save_state, write_metrics
 
 #: Called with a phase name after each write of a checkpoint (tests kill training there).
@@ -85,7 +90,7 @@ class TrainConfig:
     max_steps: int = 0  # stop after this many optimizer steps in total (0 = no limit)
     max_minutes: float = 0.0  # stop after this much wall time in this process (0 = no limit)
     compile: bool = False  # torch.compile (GPU)
-    bf16: bool = True  # bf16 autocast on CUDA; ignored on CPU
+    precision: str = "auto"  # auto | fp32 | bf16 autocast (models/precision.py); auto: bf16 where the hardware has it
     test_samples: int = 1000  # one-shot + AR test metrics in the card (0 = skip)
     prior: str = ""  # none | last | flow; "" = the preset's (paper: none, small and tiny: flow)
     loss: str = "mse"  # a term of losses.LOSSES (mse, l1, gdl, cc, w1, energy), or a weighted sum "mse=1,w1=2"
@@ -142,7 +147,7 @@ def _lr_at(cfg: TrainConfig, step: int, total: int) -> float:
 
 
 def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch.Tensor, terms: dict[str, float],
-                   pushforward: bool = False, amp: bool = False) -> list[torch.Tensor]:
+                   pushforward: bool = False, precision: str = "fp32") -> list[torch.Tensor]:
     """One loss per rollout step: step h predicts target h from the last n_in frames, measured or
     the model's own (clamped to [0, 1], as in evaluation) predictions. With ``pushforward`` all
     steps but the last run without gradient, and only the last step's loss is returned."""
@@ -152,8 +157,8 @@ def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch
     for h in range(k):
         grad = torch.is_grad_enabled() and (not pushforward or h == k - 1)
         ctx = torch.stack(buf[h:h + n_in], 1).contiguous(memory_format=torch.channels_last)
-        with torch.set_grad_enabled(grad), torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp):
-            pred = fwd(ctx, cmds[:, h:h + n_in + 1]).float()
+        with torch.set_grad_enabled(grad), autocast(ctx.device, precision):
+            pred = fwd(ctx, cmds[:, h:h + n_in + 1]).float()  # the losses in fp32
         if grad or not pushforward:
             losses.append(image_loss(pred, targets[:, h], terms))
         buf.append(pred.clamp(0, 1))
@@ -162,7 +167,8 @@ def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch
 
 @torch.no_grad()
 def validation_loss(model: EchoPT, batcher: WindowBatcher, index: WindowIndex, horizon: int = 1,
-                    batch_size: int = 128, dist: Dist = Dist(), terms: dict[str, float] | None = None) -> float:
+                    batch_size: int = 128, dist: Dist = Dist(), terms: dict[str, float] | None = None,
+                    precision: str = "fp32") -> float:
     """The training loss (``terms``, default MSE) per pixel over ``index``, averaged over a rollout
     of ``horizon`` steps; each process takes every world-th batch. The kept model is the best by
     the objective it was trained for: with a sharpness term, the MSE alone would prefer the
@@ -172,7 +178,7 @@ def validation_loss(model: EchoPT, batcher: WindowBatcher, index: WindowIndex, h
     starts = range(0, len(index), batch_size)
     for lo in list(starts)[dist.rank::dist.world]:
         b = batcher.gather(index, np.arange(lo, min(len(index), lo + batch_size)), horizon)
-        losses = rollout_losses(model, b.frames, b.commands, b.targets, terms or {"mse": 1.0})
+        losses = rollout_losses(model, b.frames, b.commands, b.targets, terms or {"mse": 1.0}, precision=precision)
         total += float(sum(losses)) / horizon * len(b)
         n += len(b)
     model.train()
@@ -282,7 +288,7 @@ def _forward(model: EchoPT, cfg: TrainConfig, dist: Dist, device: str):
 
 
 def _card_base(store: SonarStore, cfg: TrainConfig, bank: FrameBank, n_train: int, n_val: int,
-               steps_per_epoch: int) -> dict:
+               steps_per_epoch: int, precision: str) -> dict:
     """What every checkpoint's card says about the model's data and training."""
     return {
         "format": "echopt-card/1", "preset": cfg.preset, "grid": store.grid.model_dump(),
@@ -291,7 +297,7 @@ def _card_base(store: SonarStore, cfg: TrainConfig, bank: FrameBank, n_train: in
         "rig": store.rig.model_dump(mode="json") if store.rig is not None else None,
         "training": {"store": store.location, "runs": bank.run_names, "command": cfg.command,
                      "sonarset": __version__, "config": asdict(cfg), "windows_train": n_train,
-                     "windows_val": n_val, "steps_per_epoch": steps_per_epoch},
+                     "windows_val": n_val, "steps_per_epoch": steps_per_epoch, "precision": precision},
     }
 
 
@@ -321,7 +327,7 @@ class _Run:
     val_idx: WindowIndex
     plan: _Plan
     val_horizon: int
-    amp: bool
+    precision: str  # resolved: fp32 | bf16
     card_base: dict
     progress: Callable[[dict], None] | None
     t_start: float = field(default_factory=time.perf_counter)
@@ -342,7 +348,7 @@ class _Run:
         frames, cmds, targets = self.batch(step, which, k)
         for g in self.opt.param_groups:
             g["lr"] = _lr_at(self.cfg, step, self.plan.total_steps)
-        losses = rollout_losses(self.fwd, frames, cmds, targets, self.terms, self.cfg.pushforward, self.amp)
+        losses = rollout_losses(self.fwd, frames, cmds, targets, self.terms, self.cfg.pushforward, self.precision)
         loss = sum(losses) / len(losses)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -359,7 +365,8 @@ class _Run:
     def validate(self, step: int, k: int, tally: _Tally, history: list[dict], best: float) -> float:
         """Validate, append to ``history``, save (rank 0) and report; returns the best loss so far."""
         dist = self.dist
-        val = validation_loss(self.model, self.batcher, self.val_idx, self.val_horizon, dist=dist, terms=self.terms)
+        val = validation_loss(self.model, self.batcher, self.val_idx, self.val_horizon, dist=dist, terms=self.terms,
+                              precision=self.precision)
         run_loss, run_n = dist.all_sum(tally.loss, tally.n)
         rate = tally.samples / (time.perf_counter() - tally.t0)
         rec = {"step": step, "epoch": step / self.plan.steps_per_epoch, "train_loss": run_loss / max(run_n, 1),
@@ -391,6 +398,7 @@ class _Run:
 def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progress, dist: Dist,
            device: str) -> TrainResult:
     model, opt = _build_model(store, cfg, device)
+    precision = resolve_precision(cfg.precision, device)
     terms = parse_loss(cfg.loss)
     val_horizon = cfg.val_horizon or cfg.k_max
     bank = FrameBank.from_store(store, split="train")
@@ -405,8 +413,8 @@ def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progres
     if resume and (out / STATE).is_file():
         step, best, history = _resumed(out, model, opt, cfg, dist)
     run = _Run(cfg, out, dist, model, _forward(model, cfg, dist, device), opt, terms, batcher, train_idx, val_idx,
-               plan, val_horizon, device.startswith("cuda") and cfg.bf16,
-               _card_base(store, cfg, bank, len(train_idx), len(val_idx), plan.steps_per_epoch), progress)
+               plan, val_horizon, precision,
+               _card_base(store, cfg, bank, len(train_idx), len(val_idx), plan.steps_per_epoch, precision), progress)
     step, best = _steps(run, step, best, history)
     dist.barrier()  # rank 0's last checkpoint is on disk before any process returns
     return TrainResult(out, step, step / plan.steps_per_epoch, best, history)
@@ -445,16 +453,17 @@ def _steps(run: _Run, step: int, best: float, history: list[dict]) -> tuple[int,
 
 
 def add_test_metrics(out_dir: str | os.PathLike, store: SonarStore, samples: int = 1000, seed: int = 0,
-                     device: str = "cpu") -> dict:
+                     device: str = "cpu", precision: str = "auto") -> dict:
     """Evaluate the best model against the baselines on the store's test split; record in the card."""
     from .evaluate import evaluate
     from .registry import BASELINES
 
     path = Path(out_dir) / "model.safetensors"
-    res = evaluate(store, [*BASELINES, f"echopt:{path}"], samples=samples, seed=seed, device=device)
+    res = evaluate(store, [*BASELINES, f"echopt:{path}"], samples=samples, seed=seed, device=device, precision=precision)
     card_path = path.with_suffix(".json")
     card = json.loads(card_path.read_text())
     card["test"] = {"store": store.location, "split": "test", "windows": len(res.window_ids), "seed": seed,
+                    "precision": res.precision.get("echopt"),
                     "results": res.summary(),
                     "echopt_vs_flow": [c.to_dict() for c in res.comparisons if {c.a, c.b} == {"echopt", "flow"}]}
     atomic_text(card_path, json.dumps(card, indent=2) + "\n")

@@ -97,6 +97,7 @@ def test_closed_choices_are_the_librarys():
 
     from sonarset.cli import choices
     from sonarset.models.echopt import PRESETS, PRIORS
+    from sonarset.models.precision import PRECISIONS
     from sonarset.schema import Processing
     from sonarset.sim.energyscape import BEAMFORMERS
     from sonarset.sim.sonar import BEAMS
@@ -104,6 +105,7 @@ def test_closed_choices_are_the_librarys():
     values = lambda enum: {c.value for c in enum}  # noqa: E731
     assert values(choices.Preset) == set(PRESETS) and values(choices.Prior) == set(PRIORS)
     assert values(choices.Psf) == set(BEAMS) and values(choices.Beamformer) == set(BEAMFORMERS)
+    assert values(choices.Precision) == set(PRECISIONS)
     for profile in values(choices.ProcessingProfile):
         Processing.named(profile)
     with pytest.raises(ValueError, match="choose from " + ", ".join(c.value for c in choices.ProcessingProfile) + "$"):

@@ -25,13 +25,13 @@ _PREDICTORS: dict = {}
 RIG = simulator_rig()
 
 
-def predictor(spec: str, grid: SensorGrid, device: str = "cpu"):
+def predictor(spec: str, grid: SensorGrid, device: str = "cpu", precision: str = "auto"):
     """The predictor for a model spec (``naive``, ``flow``, ``echopt:PATH``), built once per process."""
-    key = (spec, grid.model_dump_json(), device)
+    key = (spec, grid.model_dump_json(), device, precision)
     if key not in _PREDICTORS:
         from ..registry import make_predictor
 
-        _PREDICTORS[key] = make_predictor(spec, grid, RIG, device=device)
+        _PREDICTORS[key] = make_predictor(spec, grid, RIG, device=device, precision=precision)
     return _PREDICTORS[key]
 
 

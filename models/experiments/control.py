@@ -71,6 +71,7 @@ class Episode:
     gains: ControllerGains = ControllerGains()
     device: str = "cpu"
     processing: Processing = field(default_factory=Processing.ertis)  # the simulator's default images
+    precision: str = "auto"  # EchoPT's arithmetic (models/precision.py)
 
 
 def run_episode(ep: Episode, world: World | None = None) -> dict:
@@ -87,7 +88,7 @@ def run_episode(ep: Episode, world: World | None = None) -> dict:
     ctrl = SubsumptionController(ep.grid, world.waypoint, ep.gains)
     detector = BurstDetector()
     spec = ep.condition.partition("+")[2]
-    pred = predictor(spec, ep.grid, ep.device) if spec else None
+    pred = predictor(spec, ep.grid, ep.device, ep.precision) if spec else None
     n_in = pred.n_in if pred is not None else N_IN  # the frames a forecast starts from
     frames: list[np.ndarray] = []  # what the controller saw
     commands = [np.zeros(2, np.float32)]  # commands[k] moved the robot into frame k
@@ -150,7 +151,7 @@ def condition_name(spec: str) -> str:
 def run_control_experiment(models: list[str] | tuple[str, ...] = ("echopt:pretrained",), runs: int = 50, seed: int = 0,
                            grid: SensorGrid | None = None, workers: int | None = None, device: str = "cpu",
                            max_time_s: float = 120.0, progress: Callable[[int, int], None] | None = None,
-                           processing: Processing | str | None = None) -> ControlResult:
+                           processing: Processing | str | None = None, precision: str = "auto") -> ControlResult:
     """``runs`` runs in each condition: clean, bursts, and bursts bridged by each model in ``models``.
 
     The images are those the models were trained on; ``processing`` only checks that (see
@@ -158,11 +159,11 @@ def run_control_experiment(models: list[str] | tuple[str, ...] = ("echopt:pretra
     grid = grid or SensorGrid.default()
     t0 = time.perf_counter()
     for m in models:
-        predictor(m, grid, device)  # fail fast on a bad model
+        predictor(m, grid, device, precision)  # fail fast on a bad model
     processing = experiment_processing(models, processing)
     conditions = [*CONDITIONS, *(f"bursts+{m}" for m in models)]
     seeds = spawn_seeds(seed, runs)  # run i uses the same spawn, bursts and noise seed in every condition
-    eps = [Episode(i, s, c, grid, max_time_s=max_time_s, device=device, processing=processing)
+    eps = [Episode(i, s, c, grid, max_time_s=max_time_s, device=device, processing=processing, precision=precision)
            for c in conditions for i, s in enumerate(seeds)]
     results = parallel_map(run_episode, eps, workers, progress)
     names = {c: condition_name(c.partition("+")[2]) if "+" in c else c for c in conditions}

@@ -158,6 +158,7 @@ class _Task:
     device: str
     keep_signals: bool
     processing: Processing = field(default_factory=Processing.ertis)
+    precision: str = "auto"
 
 
 def _run_trial(task: _Task) -> dict:
@@ -169,7 +170,7 @@ def _run_trial(task: _Task) -> dict:
     base = slip_signals(still, data["images"], data["commands"])
     labels: dict[tuple[int, int], dict[str, np.ndarray]] = {}  # per (horizon, n_in): the same for every model
     for spec in task.models:
-        pred = predictor(spec, task.grid, task.device)
+        pred = predictor(spec, task.grid, task.device, task.precision)
         eps = slip_signals(pred, data["images"], data["commands"])
         for h in HORIZONS:
             if (h, pred.n_in) not in labels:
@@ -205,18 +206,19 @@ class SlipResult:
 def run_slip_experiment(models: list[str], trials: int = 30, seed: int = 0, grid: SensorGrid | None = None,
                         snr_db: float = 5.0, workers: int | None = None, device: str = "cpu",
                         progress: Callable[[int, int], None] | None = None,
-                        processing: Processing | str | None = None) -> SlipResult:
+                        processing: Processing | str | None = None, precision: str = "auto") -> SlipResult:
     """The paper trajectory (seeded by ``seed``) plus ``trials`` random trajectories, every model on each.
 
     The images are those the models were trained on; ``processing`` only checks that (see
     :func:`~.common.experiment_processing`)."""
     grid = grid or SensorGrid.default()
     t0 = time.perf_counter()
-    names = [predictor(m, grid, device).name for m in models]  # fail fast on a bad model
+    names = [predictor(m, grid, device, precision).name for m in models]  # fail fast on a bad model
     processing = experiment_processing(models, processing)
     seeds = spawn_seeds(seed, trials + 1)
-    tasks = [_Task(paper_trial(seeds[0]), grid, tuple(models), snr_db, device, True, processing)]
-    tasks += [_Task(random_trial(s), grid, tuple(models), snr_db, device, False, processing) for s in seeds[1:]]
+    tasks = [_Task(paper_trial(seeds[0]), grid, tuple(models), snr_db, device, True, processing, precision)]
+    tasks += [_Task(random_trial(s), grid, tuple(models), snr_db, device, False, processing, precision)
+              for s in seeds[1:]]
     results = parallel_map(_run_trial, tasks, workers, progress)
     res = SlipResult(list(models), names, trials, results[0], [r["auc"] for r in results[1:]], processing=processing)
     res.summary, res.comparisons = summarise(res.per_trial, names, seed)

@@ -1,0 +1,81 @@
+"""The numeric precision EchoPT runs in: fp32, or bf16 autocast where the hardware has bf16 units.
+
+``auto`` (the default everywhere) picks bf16 on a GPU that supports it and on a CPU whose
+instruction set has bf16 matrix or dot-product units (x86 ``amx_bf16`` or ``avx512_bf16``, Arm
+``bf16``), read from the processor's own flags; elsewhere fp32. bf16 on a CPU without such units
+still runs (oneDNN emulates it), only slower than fp32, so ``auto`` never picks it there.
+
+Under bf16 autocast, matrix products and convolutions run in bf16 and everything numerically
+delicate (layer norms, softmax statistics, the flow prior's geometry, the losses) stays in fp32;
+BENCHMARKS.md measures what that changes in the scores (<= 0.002 CC or NRMSD on the shipped model).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import platform
+import subprocess
+from pathlib import Path
+
+import torch
+
+from sonarset.errors import SonarSetError
+
+PRECISIONS = ("auto", "fp32", "bf16")
+#: CPU flags that mean native bf16 arithmetic: Intel AMX tiles, AVX-512 BF16 dot products (Intel
+#: Cooper Lake and later, AMD Zen 4 and later), the Armv8.6 BF16 extension (Linux names it ``bf16``).
+CPU_BF16_FLAGS = ("amx_bf16", "avx512_bf16", "bf16")
+
+
+@functools.cache
+def cpu_bf16_flags() -> tuple[str, ...]:
+    """The bf16 flags this machine's CPU reports (empty where it has none or does not say)."""
+    found: set[str] = set()
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        try:
+            for line in cpuinfo.read_text(errors="replace").splitlines():
+                key, _, rest = line.partition(":")
+                if key.strip().lower() in ("flags", "features"):  # x86 / aarch64
+                    found.update(f for f in rest.split() if f in CPU_BF16_FLAGS)
+        except OSError:
+            pass
+    elif platform.system() == "Darwin":
+        try:
+            out = subprocess.run(["sysctl", "-n", "hw.optional.arm.FEAT_BF16"], capture_output=True, text=True,
+                                 timeout=5).stdout.strip()
+            if out == "1":
+                found.add("bf16")
+        except (OSError, subprocess.SubprocessError):
+            pass
+    return tuple(f for f in CPU_BF16_FLAGS if f in found)
+
+
+def resolve_precision(precision: str, device: str) -> str:
+    """``fp32`` or ``bf16`` for ``precision`` (auto, fp32, bf16) on ``device`` (cpu, cuda, cuda:N)."""
+    if precision not in PRECISIONS:
+        raise SonarSetError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    if precision != "auto":
+        return precision
+    if str(device).startswith("cuda"):
+        return "bf16" if torch.cuda.is_available() and torch.cuda.is_bf16_supported() else "fp32"
+    return "bf16" if cpu_bf16_flags() and torch.backends.mkldnn.is_available() else "fp32"
+
+
+def autocast(device: str | torch.device, precision: str) -> contextlib.AbstractContextManager:
+    """The context EchoPT runs in at a resolved ``precision``: bf16 autocast, or nothing for fp32."""
+    if precision == "fp32":
+        return contextlib.nullcontext()
+    return torch.autocast(torch.device(device).type, dtype=torch.bfloat16)
+
+
+def describe_precision(precision: str, device: str) -> str:
+    """Why ``auto`` chose what it did, in a phrase: "bf16 (CPU flags avx512_bf16)"."""
+    chosen = resolve_precision(precision, device)
+    if precision != "auto":
+        return chosen
+    if str(device).startswith("cuda"):
+        return f"{chosen} (GPU)"
+    flags = cpu_bf16_flags()
+    return f"{chosen} (CPU flags {', '.join(flags)})" if flags else f"{chosen} (no bf16 units in this CPU)"
