@@ -41,7 +41,7 @@ def runs_in(model: str, precision: str, device: str) -> str:
 def simulate_fresh_run(path: str | os.PathLike, *, minutes: float, seed: int,
                        progress: Callable[[str, int, int], None] | None = None) -> SonarStore:
     """One test run of ``minutes`` on the default grid, simulated from ``seed`` into a new store."""
-    generate(path, runs=0, test_runs=1, minutes=minutes, seed=seed, workers=1, grid=SensorGrid.default(),
+    generate(path, runs=0, test_runs=1, minutes=minutes, seed=seed, grid=SensorGrid.default(),
              progress=progress)
     return open_store(path)
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import multiprocessing as mp
 import os
+import threading
 
 from ..perf import keep_freed_memory
 from ..schema import SensorGrid
@@ -20,10 +21,15 @@ def run_locally(location: str, plans: list[RunPlan], grid: SensorGrid, workers: 
     """Simulate ``plans`` into the store at ``location`` with up to ``workers`` processes (default:
     all cores); ``store`` (open for writing) is consolidated as runs complete."""
     total = {p.name: p.n_frames for p in plans}
-    workers = max(1, min(workers or os.cpu_count() or 1, len(plans)))
+    cores = workers or os.cpu_count() or 1
+    workers = max(1, min(cores, len(plans)))
     if workers == 1:
+        # one run on several cores (the demo's fresh run): two blocks at a time, as a pool's last run
+        spare = threading.Event()
+        if cores > 1:
+            spare.set()
         for plan in plans:
-            write_run(location, plan, grid, _Direct(progress, total), storage_options)
+            write_run(location, plan, grid, _Direct(progress, total), storage_options, spare)
             store.consolidate()
         return
     ctx = mp.get_context("spawn")  # no fork: zarr's event loop thread must not be copied
