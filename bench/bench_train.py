@@ -3,8 +3,9 @@
     python bench/bench_train.py [--presets small,paper] [--steps 5]
 
 Times full optimizer steps (forward, backward, Adam) on batch 64 of the default 200 x 90 grid
-with data already in memory. On CUDA it also times bf16 autocast + torch.compile against plain
-fp32 in the same run.
+with data already in memory, in fp32 and in bf16 autocast (the precision ``--precision auto`` picks
+where the CPU has bf16 units), in interleaved rounds. On CUDA it also times bf16 autocast +
+torch.compile against plain fp32 in the same run.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import statistics
 import time
 import warnings
 
@@ -19,6 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from sonarset.models.echopt import EchoPT, make_config
+from sonarset.models.precision import cpu_bf16_flags, resolve_precision
 
 warnings.filterwarnings("ignore", message="Using padding='same'")
 
@@ -57,13 +60,22 @@ def main() -> None:
     ap.add_argument("--presets", default="small,paper")
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--batch", type=int, default=64)
+    ap.add_argument("--rounds", type=int, default=3)
     args = ap.parse_args()
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "none"
     print(f"# bench_train  {platform.node()}  {os.cpu_count()} cores  torch {torch.__version__}  "
           f"{torch.get_num_threads()} threads  GPU: {gpu}")
+    print(f"# CPU bf16 flags: {', '.join(cpu_bf16_flags()) or 'none'} (--precision auto -> {resolve_precision('auto', 'cpu')})")
     for preset in args.presets.split(","):
         n = EchoPT(make_config(preset)).n_params()
-        print(f"{preset:6s} ({n / 1e6:.2f} M params) cpu fp32: {rate(preset, 'cpu', args.steps, args.batch):8.1f} samples/s")
+        # interleaved rounds, median: a noisy machine slows both alike, so the ratio holds
+        fp32, bf16 = [], []
+        for _ in range(args.rounds):
+            fp32.append(rate(preset, "cpu", args.steps, args.batch))
+            bf16.append(rate(preset, "cpu", args.steps, args.batch, bf16=True))
+        f, b = statistics.median(fp32), statistics.median(bf16)
+        print(f"{preset:6s} ({n / 1e6:.2f} M params) batch {args.batch} cpu fp32: {f:8.1f} samples/s   "
+              f"bf16 autocast: {b:8.1f} samples/s ({b / f:.2f}x)")
         if torch.cuda.is_available():
             plain = rate(preset, "cuda", args.steps * 20, 256)
             fast = rate(preset, "cuda", args.steps * 20, 256, bf16=True, compile_=True)

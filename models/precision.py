@@ -28,6 +28,16 @@ PRECISIONS = ("auto", "fp32", "bf16")
 CPU_BF16_FLAGS = ("amx_bf16", "avx512_bf16", "bf16")
 
 
+def bf16_flags_in(cpuinfo: str) -> tuple[str, ...]:
+    """The bf16 flags in the text of a Linux ``/proc/cpuinfo`` (x86 ``flags``, aarch64 ``Features`` lines)."""
+    found: set[str] = set()
+    for line in cpuinfo.splitlines():
+        key, _, rest = line.partition(":")
+        if key.strip().lower() in ("flags", "features"):
+            found.update(f for f in rest.split() if f in CPU_BF16_FLAGS)
+    return tuple(f for f in CPU_BF16_FLAGS if f in found)
+
+
 @functools.cache
 def cpu_bf16_flags() -> tuple[str, ...]:
     """The bf16 flags this machine's CPU reports (empty where it has none or does not say)."""
@@ -35,10 +45,7 @@ def cpu_bf16_flags() -> tuple[str, ...]:
     cpuinfo = Path("/proc/cpuinfo")
     if cpuinfo.is_file():
         try:
-            for line in cpuinfo.read_text(errors="replace").splitlines():
-                key, _, rest = line.partition(":")
-                if key.strip().lower() in ("flags", "features"):  # x86 / aarch64
-                    found.update(f for f in rest.split() if f in CPU_BF16_FLAGS)
+            found.update(bf16_flags_in(cpuinfo.read_text(errors="replace")))
         except OSError:
             pass
     elif platform.system() == "Darwin":
