@@ -156,7 +156,8 @@ def render_report(res: EvalResult, figures: list[str]) -> str:
         *fade_section(res, figures),
         "", "## Timing", "",
         *[f"- {m}: {t:.2f} s to re-render the target frames" if m == CEILING else
-          f"- {m}: {t:.2f} s for {n} windows rolled out to {max(res.horizons)} steps" for m, t in res.seconds.items()],
+          f"- {m}: {t:.2f} s for {n} windows rolled out to {max(res.horizons)} steps"
+          + (f" ({res.precision[m]})" if m in res.precision else "") for m, t in res.seconds.items()],
     ]
     if figures:
         parts += ["", "## Figures", ""]

@@ -22,9 +22,9 @@ from sonarset.schema import SensorGrid
 CARD_KEY = "echopt.card"
 INPUTS = ("frames", "commands")
 OUTPUT = "next_frame"
-#: Windows per session run: onnxruntime's samples/s on a CPU are flat from 16 to 128 windows
-#: (bench/bench_infer.py); 64 keeps the activations small.
-ONNX_BATCH = 64
+#: Windows per session run: onnxruntime's samples/s on 2 CPU cores peak near 16 windows and fall
+#: by ~10% at 128 (bench/bench_infer.py, BENCHMARKS.md).
+ONNX_BATCH = 16
 
 
 def _runtime():
