@@ -71,13 +71,9 @@ class EchoPTPredictor:
         return self._workers
 
 
-def load_echopt_predictor(spec: str, grid: SensorGrid, device: str = "cpu", precision: str = "auto"):
-    """The predictor of a checkpoint spec: ``pretrained``, a directory, a ``.safetensors`` path, or
-    an ONNX export (``.onnx``: onnxruntime, whose precision is the graph's, fp32)."""
-    if str(spec).endswith(".onnx"):
-        from .onnx_runtime import load_onnx_predictor
-
-        return load_onnx_predictor(spec, grid)
+def load_echopt_predictor(spec: str, grid: SensorGrid, device: str = "cpu", precision: str = "auto") -> EchoPTPredictor:
+    """The predictor of a checkpoint spec: ``pretrained``, a directory or a ``.safetensors`` path
+    (ONNX exports: registry.make_predictor routes them to onnx_runtime, without torch)."""
     dev = resolve_device(device)
     model, card = load_checkpoint(spec, grid, dev)
     p = EchoPTPredictor(model, card, grid, dev, precision=precision)
