@@ -172,12 +172,16 @@ def schema(
 @user_errors
 def generate(
     out_store: str = typer.Argument(..., metavar="OUT", help="Store to write (created, or resumed)."),
-    runs: int = typer.Option(10, "--runs", min=0, help="Training runs."),
+    runs: Optional[int] = typer.Option(None, "--runs", min=0, help="Training runs of a single --world (default 10)."),
     minutes: float = typer.Option(25.0, "--minutes", min=0.0, help="Length of each run (5 Hz frames)."),
-    test_runs: int = typer.Option(1, "--test-runs", min=0, help="Test runs (split 'test'), never for training."),
+    test_runs: int = typer.Option(1, "--test-runs", min=0,
+                                  help="Test runs (split 'test') of each world, never for training."),
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Parallel processes (default: all cores)."),
     seed: int = typer.Option(0, "--seed", help="Master seed; same seed, same arrays, whatever the workers."),
-    world: str = typer.Option("lab", "--world", help="Built-in world (lab, corridor) or a JSON/TOML world file."),
+    world: str = typer.Option("lab", "--world",
+                              help="A world family (lab, corridor, orchard, warehouse, rooms; each run its own "
+                                   "variant) or a JSON/TOML world file; or a mix with each world's training runs: "
+                                   "lab:4,orchard:2,warehouse:2,rooms:2 (then no --runs)."),
     snr_db: float = typer.Option(5.0, "--snr-db", help="SNR at the microphones, dB."),
     psf: Psf = typer.Option("array", "--psf", help="Azimuth PSF: array (eRTIS delay-and-sum, with side lobes) or "
                                                   "mainlobe."),
@@ -198,6 +202,7 @@ def generate(
 
     from sonarset.schema import SensorGrid
     from sonarset.sim import generate as gen
+    from sonarset.sim.runs import world_mix
 
     grid = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=n_range,
                       azimuth_min_rad=-math.pi / 2, azimuth_max_rad=math.pi / 2, n_azimuth=n_azimuth)
@@ -219,8 +224,9 @@ def generate(
                       snr_db=snr_db, psf=psf.value, processing=processing.value, workers=workers, grid=grid,
                       progress=progress, scheduler=scheduler)
     dt = time.perf_counter() - t0
+    planned = sum(n + test_runs for _, n in world_mix(world, runs))
     out.print(f"{out_store}: wrote {len(written)} run(s) in {dt:.1f} s"
-              + (f" ({runs + test_runs - len(written)} already complete)" if len(written) < runs + test_runs else ""))
+              + (f" ({planned - len(written)} already complete)" if len(written) < planned else ""))
 
 
 @app.command()
@@ -258,6 +264,8 @@ def eval_(
     samples: int = typer.Option(1000, "--samples", min=1, help="Windows drawn (seeded), shared by all methods."),
     out_dir: Path = typer.Option(Path("eval-out"), "--out", help="Directory for metrics.json, per_window.csv, report.md, figures."),
     split: str = typer.Option("test", "--split", help="Split to evaluate on."),
+    worlds: str = typer.Option("", "--worlds", help="Only runs of these world families, comma-separated "
+                                                     "(default: every run of the split)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the window draw and the bootstrap."),
     device: ModelDevice = Device("cpu"),
     precision: ModelPrecision = Precision("auto"),
@@ -277,7 +285,7 @@ def eval_(
         progress = per_name_progress(bar)
         res = evaluate(s, specs, horizons=tuple(_int_list(horizons, "--horizons")), samples=samples,
                        split=split, seed=seed, device=device.value, precision=precision.value, progress=progress,
-                       ceiling=ceiling)
+                       ceiling=ceiling, worlds=[w.strip() for w in worlds.split(",") if w.strip()] or None)
     write_report(res, out_dir, figures=figures)
     _print_notes(res.notes)
     out.print(results_table(res, with_paper=False))
@@ -353,6 +361,9 @@ def train(
                                                                      "(0: the curriculum's longest)."),
     init: str = typer.Option("", "--init", help="Fine-tune: start from this checkpoint's weights (pretrained or a "
                                                  "path; same preset, prior, grid and images); the optimizer starts fresh."),
+    worlds: str = typer.Option("", "--worlds", help="Train only on runs of these world families, comma-separated "
+                                                     "(e.g. lab,orchard; default: every training run)."),
+    n_in: int = typer.Option(0, "--n-in", min=0, help="Input frames per window (0: the preset's, the paper's 3)."),
 ) -> None:
     """Train EchoPT; the best validation weights are kept as OUT/model.safetensors with a model card.
 
@@ -367,7 +378,7 @@ def train(
                       max_steps=max_steps, max_minutes=max_minutes, compile=compile_, test_samples=test_samples,
                       n_val=n_val, prior=value(prior) or "", loss=loss, curriculum=curriculum, pushforward=pushforward,
                       optimizer=optimizer.value, context_noise=context_noise, val_horizon=val_horizon, init=init,
-                      precision=precision.value)
+                      precision=precision.value, worlds=worlds, n_in=n_in)
     main = int(os.environ.get("RANK", "0")) == 0  # under torchrun only rank 0 reports
     with _training_bar(main) as progress:
         res = run_training(s, out_dir, cfg, resume=resume, progress=progress)

@@ -6,15 +6,17 @@ from __future__ import annotations
 import csv
 import json
 import os
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from sonarset.atomic import atomic_text, atomic_write
-from sonarset.ceiling import CEILING
+from sonarset.ceiling import CEILING, CEILINGS, OBSERVABLE
+from sonarset.echoes import ECHO_METRICS
 from sonarset.report import finite_or_none, format_p, horizon_name
 
-from .evaluate import ECHO_FLOOR, FADE_TOLERANCE, METRICS, EvalResult, fade_summary, undefined_counts
+from .evaluate import ECHO_FLOOR, FADE_TOLERANCE, IMAGE_METRICS, METRICS, EvalResult, fade_summary, undefined_counts
 
 #: The paper's Table 1: mean CC and NRMSD on 1000 test windows (one-shot, AR-3, AR-5, AR-10).
 PAPER = {
@@ -22,7 +24,10 @@ PAPER = {
     "flow": {"cc": {1: 0.86, 3: 0.73, 5: 0.69, 10: 0.56}, "nrmsd": {1: 0.38, 3: 0.62, 5: 0.65, 10: 0.99}},
     "echopt": {"cc": {1: 0.97, 3: 0.83, 5: 0.80, 10: 0.69}, "nrmsd": {1: 0.15, 3: 0.46, 5: 0.52, 10: 0.80}},
 }
-LOWER_IS_BETTER = {"cc": False, "nrmsd": True}
+LOWER_IS_BETTER = {"cc": False, "nrmsd": True, "echo_f1": False, "echo_precision": False, "echo_recall": False,
+                   "echo_range_cm": True, "echo_azimuth_deg": True}
+ECHO_LABELS = {"echo_f1": "F1", "echo_precision": "precision", "echo_recall": "recall",
+               "echo_range_cm": "range error cm", "echo_azimuth_deg": "azimuth error deg"}
 FADE_MEANING = (f"Per rollout step h (1 .. longest horizon), for each method: peak = the brightest pixel "
                 f"of the image, echo energy = the sum of the pixels above {ECHO_FLOOR} (ECHO_FLOOR), for "
                 "the prediction and for the target of each window. Ratio = mean over windows of the "
@@ -34,6 +39,12 @@ FADE_MEANING = (f"Per rollout step h (1 .. longest horizon), for each method: pe
 CEILING_MEANING = ("noise ceiling: each target frame re-rendered from its run's recorded world and poses "
                    "with an independent noise draw, scored against the recorded frame; it shows how much "
                    "of a frame is predictable at all (the same scene, only the noise differs).")
+OBSERVABLE_MEANING = ("observable ceiling: each target frame re-rendered at its true pose from only the "
+                      "reflectors that produced an echo above the sensor noise in the window's context frames "
+                      "(heard stretches of walls, heard circles), with an independent noise draw; it shows how "
+                      "much of a frame the context could know. The noise ceiling minus it is what enters the "
+                      "view during the rollout, which no predictor from this context can know.")
+CEILING_LABELS = {CEILING: "noise ceiling", OBSERVABLE: "observable ceiling"}
 
 
 def write_report(res: EvalResult, out: str | os.PathLike, *, figures: bool = True) -> Path:
@@ -62,11 +73,15 @@ def metrics_document(res: EvalResult) -> dict:
         "runs": res.runs,
         "windows": {"n": len(res.window_ids), "n_in": res.n_in, "horizons": res.horizons,
                     "ids": [[r, k] for r, k in res.window_ids]},
+        "worlds": res.worlds,
+        "echo_matching": {**asdict(res.echo_matching), "meaning": res.echo_matching.describe()},
         "seconds": res.seconds,
         "precision": res.precision,
         "notes": res.notes,
         "undefined_windows": {m: {str(h): v for h, v in d.items()} for m, d in undefined_counts(res).items()},
-        **({"ceiling": {"method": CEILING, "meaning": CEILING_MEANING, "skipped_runs": res.ceiling_skipped}}
+        **({"ceiling": {"method": CEILING, "meaning": CEILING_MEANING, "skipped_runs": res.ceiling_skipped},
+            "observable": {"method": OBSERVABLE, "meaning": OBSERVABLE_MEANING,
+                           "gap_closed_vs_flow": finite_or_none(res.gap_closed())}}
            if CEILING in res.methods or res.ceiling_skipped else {}),
         **({"fade": finite_or_none(fade),
             "fade_definition": {"echo_floor": ECHO_FLOOR, "tolerance": FADE_TOLERANCE,
@@ -77,13 +92,16 @@ def metrics_document(res: EvalResult) -> dict:
 
 
 def write_per_window(res: EvalResult, path: str | os.PathLike) -> None:
-    """One CSV row per method, horizon and window: its CC and NRMSD."""
-    rows = [(m, h, f"{r}:{k}", float(res.per_window[m][h]["cc"][i]), float(res.per_window[m][h]["nrmsd"][i]))
+    """One CSV row per method, horizon and window: its CC, NRMSD and echo metrics (empty: undefined)."""
+    def cell(x: float):
+        return float(x) if np.isfinite(x) else ""
+
+    rows = [(m, h, f"{r}:{k}", *(cell(res.per_window[m][h][name][i]) for name in METRICS))
             for m in res.methods for h in res.horizons for i, (r, k) in enumerate(res.window_ids)
-            if m != CEILING or r not in res.ceiling_skipped]  # the ceiling has no row for runs it skipped
+            if m not in CEILINGS or r not in res.ceiling_skipped]  # the ceilings have no row for runs they skipped
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["method", "horizon", "window", "cc", "nrmsd"])
+        w.writerow(["method", "horizon", "window", *METRICS])
         w.writerows(rows)
 
 
@@ -120,8 +138,8 @@ def results_table(res: EvalResult, with_paper: bool = True) -> str:
            " | ".join(f"NRMSD {horizon_name(h)}" for h in res.horizons) + " |"
     lines = [head, "|---" * (1 + 2 * len(res.horizons)) + "|"]
     for m in res.methods:
-        cells = [_cell(s[m][str(h)][k]) for k in METRICS for h in res.horizons]
-        label = f"*{m} (noise ceiling, not a predictor)*" if m == CEILING else m
+        cells = [_cell(s[m][str(h)][k]) for k in IMAGE_METRICS for h in res.horizons]
+        label = f"*{m} ({CEILING_LABELS[m]}, not a predictor)*" if m in CEILINGS else m
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
         if with_paper and m in PAPER:
             p = PAPER[m]
@@ -129,6 +147,25 @@ def results_table(res: EvalResult, with_paper: bool = True) -> str:
             cells += [f"{p['nrmsd'].get(h, float('nan')):.2f}" if h in p["nrmsd"] else "-" for h in res.horizons]
             lines.append(f"| *{m} (paper)* | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def echo_table(res: EvalResult) -> str:
+    """Echo F1, precision, recall and matched-echo position errors: mean over the windows where
+    each is defined (n after the F1)."""
+    s = res.summary()
+    lines = ["| method | horizon | F1 (n) | precision | recall | range error cm | azimuth error deg |",
+             "|---|---|---|---|---|---|---|"]
+    for m in res.methods:
+        for h in res.horizons:
+            e = s[m][str(h)]
+            f1 = e["echo_f1"]
+            cells = [f"{_mean_only(f1)} ({f1.get('n', 0)})"] + [_mean_only(e[k]) for k in ECHO_METRICS[1:]]
+            lines.append(f"| {m} | {horizon_name(h)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _mean_only(entry: dict) -> str:
+    return "undefined" if entry["mean"] is None else f"{entry['mean']:.3f}"
 
 
 def _cell(entry: dict) -> str:
@@ -143,7 +180,8 @@ def render_report(res: EvalResult, figures: list[str]) -> str:
     parts = [
         "# Evaluation report",
         "",
-        f"Store `{res.store}`, split `{res.split}` ({', '.join(res.runs)}); {n} windows drawn once "
+        f"Store `{res.store}`, split `{res.split}` ({', '.join(res.runs)})"
+        + (f", worlds {', '.join(res.worlds)}" if res.worlds else "") + f"; {n} windows drawn once "
         f"(seeded) and shared by every method and horizon. Mean (std) over windows; the paper's "
         "Table 1 values in italics below ours (its simulator differs: compare orderings and gaps, "
         "not absolute values). CC higher is better; NRMSD lower is better.",
@@ -152,10 +190,19 @@ def render_report(res: EvalResult, figures: list[str]) -> str:
         results_table(res),
         *(["", f"*{CEILING}* is the {CEILING_MEANING} It is not a predictor and is left out of the "
                "statistics below."] if CEILING in res.methods else []),
+        *(["", f"*{OBSERVABLE}* is the {OBSERVABLE_MEANING} Not a predictor either."] if OBSERVABLE in res.methods
+          else []),
+        *gap_section(res),
+        "", "## Echoes", "",
+        f"Are the echoes where the target's are? Per image, {res.echo_matching.describe()} (one-to-one, "
+        "least summed distance; sonarset/echoes.py). F1 = 2 matched / (predicted + target echoes); precision and "
+        "recall as usual; errors are the mean absolute offsets of matched echoes. Means over the windows "
+        "where each is defined (F1: either image has an echo); paired tests in the statistics below.",
+        "", echo_table(res),
         *statistics_section(res),
         *fade_section(res, figures),
         "", "## Timing", "",
-        *[f"- {m}: {t:.2f} s to re-render the target frames" if m == CEILING else
+        *[f"- {m}: {t:.2f} s to re-render the target frames" if m in CEILINGS else
           f"- {m}: {t:.2f} s for {n} windows rolled out to {max(res.horizons)} steps"
           + (f" ({res.precision[m]})" if m in res.precision else "") for m, t in res.seconds.items()],
     ]
@@ -163,6 +210,28 @@ def render_report(res: EvalResult, figures: list[str]) -> str:
         parts += ["", "## Figures", ""]
         parts += [f"![{Path(f).stem}]({Path(f).name})" for f in figures]
     return "\n".join(parts) + "\n"
+
+
+def gap_section(res: EvalResult) -> list[str]:
+    """The share of the flow-to-observable-ceiling gap each predictor closes, per horizon."""
+    gap = res.gap_closed()
+    if not gap:
+        return []
+    s = res.summary()
+    keys = ("cc", "nrmsd", "echo_f1")
+    lines = ["", "## What the context could know", "",
+             "Share of the gap between flow and the observable ceiling that each predictor closes: "
+             "(method - flow) / (observable - flow) on the means (1: all the context allows; 0: no better "
+             "than flow; negative: worse). The gap itself is the observable ceiling minus flow.", "",
+             "| method | horizon | CC share | NRMSD share | echo F1 share |", "|---|---|---|---|---|"]
+    for h in res.horizons:
+        cells = [f"{(s[OBSERVABLE][str(h)][k]['mean'] or 0) - (s['flow'][str(h)][k]['mean'] or 0):+.3f}" for k in keys]
+        lines.append(f"| *gap (observable - flow)* | {horizon_name(h)} | " + " | ".join(cells) + " |")
+    for m, per in gap.items():
+        for h in res.horizons:
+            cells = ["undefined" if per[str(h)][k] is None else f"{per[str(h)][k]:.2f}" for k in keys]
+            lines.append(f"| {m} | {horizon_name(h)} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def statistics_section(res: EvalResult) -> list[str]:

@@ -17,7 +17,8 @@ from typing import Callable
 import numpy as np
 
 from sonarset.arrays import FRAME_INTERVAL_TOLERANCE
-from sonarset.ceiling import CEILING
+from sonarset.ceiling import CEILING, CEILINGS, OBSERVABLE
+from sonarset.echoes import ECHO_METRICS, EchoMatching, echo_scores, find_echoes
 from sonarset.errors import FormatError, SonarSetError
 from sonarset.metrics import cc, nrmsd
 from sonarset.report import horizon_name
@@ -28,7 +29,9 @@ from sonarset.windows import N_IN, FrameBank, WindowBatcher, WindowIndex
 
 from .baselines import Predictor, rollout
 
-METRICS = ("cc", "nrmsd")
+IMAGE_METRICS = ("cc", "nrmsd")  # the paper's
+#: Every per-window metric: the paper's, then the echo metrics (sonarset/echoes.py).
+METRICS = IMAGE_METRICS + ECHO_METRICS
 #: Echo energy counts the pixels above this value (images are in [0, 1]): what is left of an
 #: echo, not the faint interpolation haze or residual noise a rollout can smear over the image.
 ECHO_FLOOR = 0.05
@@ -61,11 +64,33 @@ class EvalResult:
     target_energy: np.ndarray | None = None
     n_in: int = N_IN  # input frames per window
     precision: dict[str, str] = field(default_factory=dict)  # learned method -> fp32 | bf16, as it ran
+    echo_matching: EchoMatching = field(default_factory=EchoMatching)
+    worlds: list[str] | None = None  # the world families the runs were restricted to
 
     @property
     def predictors(self) -> list[str]:
         """The methods that predict: every method but the noise ceiling."""
-        return [m for m in self.methods if m != CEILING]
+        return [m for m in self.methods if m not in CEILINGS]
+
+    def gap_closed(self, reference: str = "flow", metrics: tuple[str, ...] = ("cc", "nrmsd", "echo_f1")) -> dict:
+        """{method: {horizon: {metric: share}}}: the share of the gap between ``reference`` and the
+        observable ceiling that each other predictor closes, (m - ref) / (observable - ref) on the
+        means over the windows where all three are defined (1: as good as the context allows;
+        0: no better than the reference). Empty without the observable ceiling or the reference."""
+        if OBSERVABLE not in self.methods or reference not in self.methods:
+            return {}
+        out: dict = {}
+        for m in self.predictors:
+            if m == reference:
+                continue
+            for h in self.horizons:
+                for k in metrics:
+                    a, r, o = (self.per_window[x][h][k] for x in (m, reference, OBSERVABLE))
+                    ok = np.isfinite(a) & np.isfinite(r) & np.isfinite(o)
+                    gap = float(o[ok].mean() - r[ok].mean()) if ok.any() else float("nan")
+                    share = float(a[ok].mean() - r[ok].mean()) / gap if ok.any() and abs(gap) > 1e-12 else None
+                    out.setdefault(m, {}).setdefault(str(h), {})[k] = share
+        return out
 
     def summary(self) -> dict:
         out: dict = {}
@@ -78,6 +103,8 @@ class EvalResult:
                     x = x[np.isfinite(x)]  # undefined windows: counted in the notes, never silently
                     entry[k] = ({"mean": float(x.mean()), "std": float(x.std(ddof=1)) if len(x) > 1 else 0.0}
                                 if len(x) else {"mean": None, "std": None})
+                    if k in ECHO_METRICS:  # defined for only some windows (module sonarset.echoes)
+                        entry[k]["n"] = int(len(x))
                 entry["n"] = int(np.isfinite(self.per_window[m][h]["cc"]).sum())
                 out[m][str(h)] = entry
         return out
@@ -158,7 +185,7 @@ def undefined_counts(res: "EvalResult") -> dict[str, dict[int, dict[str, int]]]:
             for k in METRICS:
                 x = res.per_window[m][h][k]
                 skipped = np.zeros(len(x), bool)
-                if m == CEILING and res.ceiling_skipped:  # runs not re-rendered are not "undefined"
+                if m in CEILINGS and res.ceiling_skipped:  # runs not re-rendered are not "undefined"
                     skipped = np.isin([r for r, _ in res.window_ids], list(res.ceiling_skipped))
                 n = int(np.sum(~np.isfinite(x) & ~skipped))
                 if n:
@@ -173,7 +200,7 @@ def _undefined_notes(res: "EvalResult") -> list[str]:
     notes = []
     why = {"cc": "CC is undefined where the target frame or the prediction is constant",
            "nrmsd": "NRMSD is undefined where the target frame is all zero"}
-    for k in METRICS:
+    for k in IMAGE_METRICS:  # the echo metrics' defined windows are the n of the echo table
         parts = []
         for h in res.horizons:
             per = {m: counts.get(m, {}).get(h, {}).get(k, 0) for m in res.methods}
@@ -203,60 +230,64 @@ def evaluate(
     predictors: dict[str, Predictor] | None = None,
     progress: Callable[[str, int, int], None] | None = None,
     ceiling: bool = False,
+    worlds: list[str] | None = None,
+    echo_matching: EchoMatching | None = None,
 ) -> EvalResult:
     """Evaluate every model on the same ``samples`` windows of ``split``, for every horizon.
 
     Windows are drawn once (seeded) among those with room for the longest horizon, so every
     method and horizon sees the same starting points; each method is rolled out once to the
-    longest horizon and scored at every requested one.
+    longest horizon and scored at every requested one. ``worlds`` keeps only the runs of those
+    world families (``source.world``).
 
     With ``ceiling``, the target frames of simulated runs are also re-rendered from their recorded
     world and poses with an independent noise draw (seeded by ``seed``) and scored as the method
-    ``"ceiling"``: the noise ceiling, how much of a frame is predictable at all. Runs it cannot
-    re-render get NaN there, a reason in ``ceiling_skipped`` and a line in ``notes``; with none,
-    the row is omitted.
+    ``"ceiling"``: the noise ceiling, how much of a frame is predictable at all; and re-rendered
+    from only the reflectors each window's context frames heard, as ``"observable"``: how much
+    of it the context could know (``sonarset.ceiling``). Runs they cannot re-render get NaN there,
+    a reason in ``ceiling_skipped`` and a line in ``notes``; with none, the rows are omitted.
+
+    Every method is also scored on the echoes it draws (``echo_matching``, default
+    ``EchoMatching()``): detection precision, recall and F1, and the position error of matched echoes.
     """
     horizons = tuple(sorted(set(int(h) for h in horizons)))
     if not horizons or horizons[0] < 1:
         raise SonarSetError("horizons must be positive integers")
-    bank = FrameBank.from_store(store, split=split, image_dtype=np.float32)
+    echo_matching = echo_matching or EchoMatching()
+    bank = FrameBank.from_store(store, split=split, image_dtype=np.float32, worlds=worlds)
     rig, note = baseline_rig(store, bank)
     notes = [note] if note else []
     preds, model_notes = _predictors(store, model_specs, rig, device, precision, predictors)
     notes += model_notes
     index = _windows(store, bank, split, window_frames(preds), horizons[-1], samples, seed)
     ids = [(bank.run_names[j], k) for j, k in (index.locate(i) for i in range(len(index)))]
-    scores = _Scores.of(preds, len(index), horizons)
+    scores = _Scores.of(preds, len(index), horizons, store.grid, echo_matching)
     skipped: dict[str, str] = {}
     with cf.ThreadPoolExecutor(1) as helper:
         # The ceiling renders (compiled, GIL released) beside the rollouts: it shares nothing with
         # them, and it fills the cycles a learned model's threads leave idle.
-        ceiling_job = helper.submit(_timed, _ceiling_scores, store, bank, index, ids, horizons, seed, batch_size,
-                                    progress) if ceiling else None
+        ceiling_job = helper.submit(_ceiling_scores, store, bank, index, ids, horizons, seed, batch_size,
+                                    echo_matching, progress) if ceiling else None
         examples = scores.roll_out(WindowBatcher.of(bank), index, preds, batch_size, progress)
         examples["window"] = ids[0]
     if ceiling_job is not None:
-        (ceiling_scores, skipped), ceiling_seconds = ceiling_job.result()
+        ceiling_scores, ceiling_seconds, skipped = ceiling_job.result()
         notes += [f"ceiling: run {r} not re-rendered: {why}" for r, why in skipped.items()]
         if ceiling_scores is None:
-            notes.append(f"ceiling: no run of split {split!r} can be re-rendered; the ceiling row is omitted")
+            notes.append(f"ceiling: no run of split {split!r} can be re-rendered; the ceiling rows are omitted")
         else:
-            scores.per_window[CEILING] = ceiling_scores
-            scores.seconds[CEILING] = ceiling_seconds
+            for name, rows in ceiling_scores.items():
+                scores.per_window[name] = rows
+                scores.seconds[name] = ceiling_seconds[name]
     result = EvalResult(store.location, split, bank.run_names, list(horizons), list(scores.per_window),
                         index.starts, ids, scores.per_window, seconds=scores.seconds, examples=examples, notes=notes,
                         ceiling_skipped=skipped, step_peak=scores.step_peak, step_energy=scores.step_energy,
                         target_peak=scores.target_peak, target_energy=scores.target_energy, n_in=index.n_in,
-                        precision={m: p.precision for m, p in preds.items() if isinstance(getattr(p, "precision", None), str)})
+                        precision={m: p.precision for m, p in preds.items() if isinstance(getattr(p, "precision", None), str)},
+                        echo_matching=echo_matching, worlds=list(worlds) if worlds else None)
     result.notes += _undefined_notes(result)
     result.comparisons = _compare_all(result, seed)
     return result
-
-
-def _timed(fn, *args):
-    """(fn(*args), its wall time in seconds)."""
-    t0 = time.perf_counter()
-    return fn(*args), time.perf_counter() - t0
 
 
 def _predictors(store: SonarStore, model_specs: list[str], rig: RobotRig, device: str, precision: str,
@@ -313,13 +344,16 @@ class _Scores:
     step_energy: dict[str, np.ndarray]
     target_peak: np.ndarray  # (N, H)
     target_energy: np.ndarray
+    grid: object  # SensorGrid: echo positions in metres and degrees
+    matching: EchoMatching
 
     @classmethod
-    def of(cls, preds: dict[str, Predictor], n: int, horizons: tuple[int, ...]) -> "_Scores":
+    def of(cls, preds: dict[str, Predictor], n: int, horizons: tuple[int, ...], grid,
+           matching: EchoMatching) -> "_Scores":
         H = horizons[-1]
         return cls({m: {h: {k: np.empty(n) for k in METRICS} for h in horizons} for m in preds},
                    dict.fromkeys(preds, 0.0), {m: np.empty((n, H)) for m in preds}, {m: np.empty((n, H)) for m in preds},
-                   np.empty((n, H)), np.empty((n, H)))
+                   np.empty((n, H)), np.empty((n, H)), grid, matching)
 
     def roll_out(self, batcher: WindowBatcher, index: WindowIndex, preds: dict[str, Predictor], batch_size: int,
                  progress: Callable[[str, int, int], None] | None) -> dict:
@@ -333,13 +367,16 @@ class _Scores:
             if lo == 0:
                 examples["frames"], examples["targets"] = batch.frames[0], batch.targets[0]
             self.target_peak[sl], self.target_energy[sl] = peak_and_energy(batch.targets[:, :H])
+            horizons = list(next(iter(self.per_window.values())))
+            target_echoes = {h: find_echoes(batch.targets[:, h - 1], self.grid, self.matching) for h in horizons}
             for name, predictor in preds.items():
                 t0 = time.perf_counter()
                 pred = rollout(predictor, batch.frames, batch.commands, H)
+                self.seconds[name] += time.perf_counter() - t0  # the prediction's time, not the scoring's
                 for h, metrics in self.per_window[name].items():
-                    metrics["cc"][sl] = cc(pred[:, h - 1], batch.targets[:, h - 1])
-                    metrics["nrmsd"][sl] = nrmsd(pred[:, h - 1], batch.targets[:, h - 1])
-                self.seconds[name] += time.perf_counter() - t0
+                    for k, v in score_images(pred[:, h - 1], batch.targets[:, h - 1], self.grid, self.matching,
+                                             target_echoes[h]).items():
+                        metrics[k][sl] = v
                 self.step_peak[name][sl], self.step_energy[name][sl] = peak_and_energy(pred)
                 if lo == 0:
                     examples["methods"][name] = pred[0]
@@ -348,18 +385,26 @@ class _Scores:
         return examples
 
 
-def _ceiling_scores(store: SonarStore, bank: FrameBank, index: WindowIndex, ids: list[tuple[str, int]],
-                    horizons: tuple[int, ...], seed: int, batch_size: int, progress=None):
-    """Per-window scores of the noise ceiling (NaN for windows of runs it cannot re-render), or
-    None when it can re-render no run; and {run: reason} for the runs it skipped.
+def score_images(pred: np.ndarray, target: np.ndarray, grid, matching: EchoMatching,
+                 target_echoes=None) -> dict[str, np.ndarray]:
+    """{metric in METRICS: (N,) per-image values} of predictions against targets, both (N, R, A)."""
+    return {"cc": cc(pred, target), "nrmsd": nrmsd(pred, target),
+            **echo_scores(pred, target, grid, matching, target_echoes)}
 
-    The ceiling's prediction of a target frame is that frame re-rendered: at horizon h, window w's
-    target is frame k_w + n_in + h - 1 of its run. Only those frames are rendered, in batches.
+
+def _ceiling_scores(store: SonarStore, bank: FrameBank, index: WindowIndex, ids: list[tuple[str, int]],
+                    horizons: tuple[int, ...], seed: int, batch_size: int, matching: EchoMatching, progress=None):
+    """({"ceiling": scores, "observable": scores}, {name: seconds}) of the two ceilings (per-window
+    scores, NaN for windows of runs they cannot re-render), or (None, None) when no run can be
+    re-rendered; and {run: reason} for the runs skipped.
+
+    At horizon h, window w's target is frame k_w + n_in + h - 1 of its run. The noise ceiling
+    renders each such frame once, in batches; the observable ceiling renders each window's targets
+    from the reflectors its own context frames k_w .. k_w + n_in - 1 heard.
     """
-    from sonarset.ceiling import CeilingUnavailable, RunRenderer
+    from sonarset.ceiling import _OBSERVABLE_TAG, CeilingUnavailable, RunRenderer
 
     n_in = index.n_in
-    scores = {h: {k: np.full(len(ids), np.nan) for k in METRICS} for h in horizons}
     run_of = np.array([r for r, _ in ids])
     first = np.array([k for _, k in ids], np.int64)
     hs = np.asarray(horizons, np.int64)
@@ -367,36 +412,54 @@ def _ceiling_scores(store: SonarStore, bank: FrameBank, index: WindowIndex, ids:
     todo = []
     for name in bank.run_names:
         try:
-            todo.append(RunRenderer(store, name, seed))
+            todo.append((RunRenderer(store, name, seed), RunRenderer(store, name, seed, stream=_OBSERVABLE_TAG)))
         except CeilingUnavailable as exc:
             skipped[name] = str(exc)
     if not todo:
-        return None, skipped
+        return None, None, skipped
+    scores = {m: {h: {k: np.full(len(ids), np.nan) for k in METRICS} for h in horizons} for m in CEILINGS}
+    seconds = dict.fromkeys(CEILINGS, 0.0)
+
+    def put(method: str, w: np.ndarray, h: np.ndarray, pred: np.ndarray) -> None:
+        target = bank.images[index.starts[w] + n_in + h - 1]
+        for k, vals in score_images(pred, target, store.grid, matching).items():
+            for hz in horizons:
+                scores[method][hz][k][w[h == hz]] = vals[h == hz]
+
+    windows = sum(int((run_of == r.name).sum()) for r, _ in todo)
+    total, done = 0, 0
     plans = []
-    for r in todo:
+    for r, obs in todo:
         w = np.flatnonzero(run_of == r.name)
         # (window, horizon) pairs of this run and their target frames, each frame rendered once
         ww, hh = np.repeat(w, len(hs)), np.tile(hs, len(w))
         frames, which = np.unique(first[ww] + n_in + hh - 1, return_inverse=True)
-        plans.append((r, ww, hh, frames, which))
-    total, done = sum(len(p[3]) for p in plans), 0
+        plans.append((r, obs, w, ww, hh, frames, which))
+        total += len(frames)
+    total += windows
     step = max(1, batch_size)
-    for r, ww, hh, frames, which in plans:
+    for r, obs, w_run, ww, hh, frames, which in plans:
+        t0 = time.perf_counter()
         for lo in range(0, len(frames), step):
             hi = min(len(frames), lo + step)
             images = r.render(frames[lo:hi])
             sel = np.flatnonzero((which >= lo) & (which < hi))
-            w, h = ww[sel], hh[sel]
-            pred = images[which[sel] - lo]
-            target = bank.images[index.starts[w] + n_in + h - 1]
-            for k, metric in (("cc", cc), ("nrmsd", nrmsd)):
-                vals = metric(pred, target)
-                for hz in horizons:
-                    scores[hz][k][w[h == hz]] = vals[h == hz]
+            put(CEILING, ww[sel], hh[sel], images[which[sel] - lo])
             done += hi - lo
             if progress:
                 progress(CEILING, done, total)
-    return scores, skipped
+        t1 = time.perf_counter()
+        seconds[CEILING] += t1 - t0
+        for lo in range(0, len(w_run), step):
+            chunk = w_run[lo:lo + step]
+            pred = np.concatenate([obs.render_observed(first[w] + np.arange(n_in), first[w] + n_in + hs - 1)
+                                   for w in chunk])
+            put(OBSERVABLE, np.repeat(chunk, len(hs)), np.tile(hs, len(chunk)), pred)
+            done += len(chunk)
+            if progress:
+                progress(CEILING, done, total)
+        seconds[OBSERVABLE] += time.perf_counter() - t1
+    return scores, seconds, skipped
 
 
 def _compare_all(res: EvalResult, seed: int) -> list[Comparison]:

@@ -93,21 +93,23 @@ def autoregressive_figure(res, path: Path) -> Path:
 
 
 def horizon_figure(res, path: Path) -> Path:
-    """CC and NRMSD against the horizon, one line per method (95% intervals of the mean)."""
+    """CC, NRMSD and echo F1 against the horizon, one line per method (95% intervals of the mean)."""
     plt = pyplot()
     s = res.summary()
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4), constrained_layout=True)
-    for k, ax in zip(("cc", "nrmsd"), axes):
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4), constrained_layout=True)
+    references = {"ceiling": {"color": "0.3", "ls": "--", "label": "noise ceiling"},
+                  "observable": {"color": "0.55", "ls": ":", "label": "observable ceiling"}}
+    for k, ax in zip(("cc", "nrmsd", "echo_f1"), axes):
         for m in res.methods:
             # None: undefined at that horizon (constant frames); a gap in the line, not a zero
             mean = [np.nan if s[m][str(h)][k]["mean"] is None else s[m][str(h)][k]["mean"] for h in res.horizons]
-            n = [s[m][str(h)]["n"] for h in res.horizons]
+            n = [s[m][str(h)][k].get("n", s[m][str(h)]["n"]) for h in res.horizons]
             sem = [np.nan if s[m][str(h)][k]["std"] is None else s[m][str(h)][k]["std"] / np.sqrt(max(1, nn))
                    for h, nn in zip(res.horizons, n)]
-            style = {"color": "0.3", "ls": "--", "label": "noise ceiling"} if m == "ceiling" else {"label": m}
+            style = references.get(m, {"label": m})
             ax.errorbar(res.horizons, mean, yerr=1.96 * np.array(sem), marker="o", capsize=3, **style)
         ax.set_xlabel("horizon H (frames ahead)")
-        ax.set_ylabel(k.upper())
+        ax.set_ylabel({"echo_f1": "echo F1"}.get(k, k.upper()))
         ax.set_xticks(res.horizons)
         ax.grid(alpha=0.3)
     axes[0].legend()

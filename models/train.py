@@ -99,6 +99,8 @@ class TrainConfig:
     context_noise: float = 0.0  # std of Gaussian noise added to the measured context frames
     val_horizon: int = 0  # rollout steps of the validation loss (0 = the curriculum's longest)
     init: str = ""  # fine-tune: start from this checkpoint's weights (same preset, prior, grid, images)
+    worlds: str = ""  # comma-separated world families to train on ("" = every training run)
+    n_in: int = 0  # input frames per window (0 = the preset's: the paper's 3)
     command: str = field(default_factory=lambda: " ".join(shlex.quote(a) for a in sys.argv))
 
     def stages(self) -> list[tuple[int, int]]:
@@ -114,6 +116,11 @@ class TrainConfig:
             raise SonarSetError(f"--curriculum {self.curriculum!r}: must start at step 0 with k >= 1")
         return out
 
+    def world_list(self) -> list[str] | None:
+        """The world families to train on, or None for every training run."""
+        names = [w.strip() for w in self.worlds.split(",") if w.strip()]
+        return names or None
+
     def k_at(self, step: int) -> int:
         return [k for s, k in self.stages() if s <= step][-1]
 
@@ -124,7 +131,8 @@ class TrainConfig:
 
 #: Settings that must not change when a run is resumed.
 _RESUME_KEYS = ("preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps", "prior", "loss",
-                "curriculum", "pushforward", "context_noise", "val_horizon", "optimizer", "weight_decay", "init")
+                "curriculum", "pushforward", "context_noise", "val_horizon", "optimizer", "weight_decay", "init",
+                "worlds", "n_in")
 
 
 @dataclass
@@ -230,6 +238,8 @@ def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[Echo
     overrides = grid_and_rig(store.grid, store.rig)
     if cfg.prior:
         overrides["prior"] = cfg.prior
+    if cfg.n_in:
+        overrides["n_in"] = cfg.n_in
     model = EchoPT(make_config(cfg.preset, *store.grid.shape, **overrides))
     if cfg.init:
         _init_from(model, cfg.init, store)
@@ -295,10 +305,21 @@ def _card_base(store: SonarStore, cfg: TrainConfig, bank: FrameBank, n_train: in
         # what the model knows: the images' processing and the robot (models/cards.py reads them)
         "processing": store.processing.model_dump(mode="json"),
         "rig": store.rig.model_dump(mode="json") if store.rig is not None else None,
-        "training": {"store": store.location, "runs": bank.run_names, "command": cfg.command,
+        "training": {"store": store.location, "runs": bank.run_names, "worlds": _run_worlds(store, bank.run_names),
+                     "command": cfg.command,
                      "sonarset": __version__, "config": asdict(cfg), "windows_train": n_train,
                      "windows_val": n_val, "steps_per_epoch": steps_per_epoch, "precision": precision},
     }
+
+
+def _run_worlds(store: SonarStore, names: list[str]) -> dict[str, int]:
+    """{world family: training runs} of ``names`` (runs whose provenance names no world are left out)."""
+    out: dict[str, int] = {}
+    for name in names:
+        world = (store.run(name).attrs.source or {}).get("world")
+        if world is not None:
+            out[str(world)] = out.get(str(world), 0) + 1
+    return out
 
 
 @dataclass
@@ -401,7 +422,7 @@ def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progres
     precision = resolve_precision(cfg.precision, device)
     terms = parse_loss(cfg.loss)
     val_horizon = cfg.val_horizon or cfg.k_max
-    bank = FrameBank.from_store(store, split="train")
+    bank = FrameBank.from_store(store, split="train", worlds=cfg.world_list())
     # a window holds the model's input frames and the longest rollout's targets
     index = WindowIndex.build(bank, model.cfg.n_in, max(cfg.k_max, val_horizon))
     train_idx, val_idx = index.split(cfg.n_val, seed=cfg.seed)

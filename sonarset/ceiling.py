@@ -6,6 +6,15 @@ frame against such a re-render measures how much of the image is predictable at 
 however good, knows the target's noise draw. ``sonarset eval --ceiling`` reports it as the method
 ``ceiling`` (the same at every horizon: the re-render of the target itself).
 
+The observable ceiling (``OBSERVABLE``) asks what a predictor could know from a window's
+context: each target frame is re-rendered at its true pose from only the reflectors that produced
+an echo in the window's context frames (the heard stretches of walls, at the simulator's wall
+sampling, and the heard circles), with independent noise. An echo counts as heard when its
+amplitude stood above the sensor noise of its frame (the frame's noise std, from the SNR and the
+sensor's floor, ``SonarModel.noise_sigma``). Reflectors never heard neither echo nor occlude in
+the re-render. The noise ceiling minus the observable ceiling is what enters the view during a
+rollout: no predictor from this context can know it.
+
 Runs that cannot be re-rendered (imported recordings, runs without poses or simulator provenance,
 a world file no longer on disk, unknown image processing) raise :class:`CeilingUnavailable` with
 a one-line reason. This module does not import torch.
@@ -21,9 +30,13 @@ from .errors import SonarSetError
 from .store import SonarStore
 
 CEILING = "ceiling"
-#: Spawn-key tag of the ceiling's noise streams: with the eval seed as entropy, they are
-#: independent of every stream the simulator drew the recorded frames from.
+OBSERVABLE = "observable"
+#: The rows of ``eval --ceiling``: references, not predictors.
+CEILINGS = (CEILING, OBSERVABLE)
+#: Spawn-key tags of the ceilings' noise streams: with the eval seed as entropy, they are
+#: independent of every stream the simulator drew the recorded frames from, and of each other.
 _STREAM_TAG = 0x6365696C  # "ceil"
+_OBSERVABLE_TAG = 0x6F627376  # "obsv"
 _NEEDS = ("world", "world_seed", "snr_db")
 
 
@@ -47,7 +60,7 @@ class RunRenderer:
     the same seed and the same sequence of calls give the same images, whatever the batch size.
     """
 
-    def __init__(self, store: SonarStore, name: str, seed: int = 0):
+    def __init__(self, store: SonarStore, name: str, seed: int = 0, stream: int = _STREAM_TAG):
         from .sim.sonar import SonarModel
         from .sim.world import load_world
 
@@ -81,7 +94,7 @@ class RunRenderer:
         self.image_dtype = run.images.dtype
         self.shape = store.grid.shape
         self.rng = np.random.Generator(np.random.SFC64(np.random.SeedSequence(
-            int(seed) & (2 ** 128 - 1), spawn_key=(_STREAM_TAG, zlib.crc32(name.encode())))))
+            int(seed) & (2 ** 128 - 1), spawn_key=(stream, zlib.crc32(name.encode())))))
 
     def render(self, frames: np.ndarray) -> np.ndarray:
         """Frames ``frames`` (indices into the run) rendered again with fresh noise: float32
@@ -98,6 +111,51 @@ class RunRenderer:
         if len(frames):
             self.model.render_batch(self.world, self.poses[frames], self.rng, out=out)
         return out.astype(np.float32, copy=False)
+
+
+    def render_observed(self, context: np.ndarray, frames: np.ndarray) -> np.ndarray:
+        """Frames ``frames`` re-rendered from only what the run's frames ``context`` heard (the
+        observable ceiling), with fresh noise: float32 (F, R, A) as ``render``."""
+        frames = np.asarray(frames, np.int64)
+        out = np.empty((len(frames), *self.shape), self.image_dtype)
+        if len(frames):
+            world = observed_world(self.world, self.model, self.poses[np.asarray(context, np.int64)])
+            self.model.render_batch(world, self.poses[frames], self.rng, out=out)
+        return out.astype(np.float32, copy=False)
+
+
+def observed_world(world, model, poses: np.ndarray):
+    """The part of ``world`` that produced an echo above the sensor noise in frames seen from the
+    robot poses ``poses`` (F, 3): heard stretches of walls (runs of heard samples, each sample
+    standing for its ``WALL_STEP``) and heard circles, as a new World."""
+    from .sim.robot import sensor_pose
+    from .sim.sonar import WALL_STEP, visible_echoes
+    from .sim.world import World
+
+    echoes = visible_echoes(world, sensor_pose(poses), model.grid.range_max_m + 0.1)
+    n_walls = len(world.seg_a)
+    if len(echoes):
+        # the strongest echo of each frame stands for its image peak (the PSFs peak at 1)
+        peak = np.zeros(len(poses))
+        np.maximum.at(peak, echoes.frame, echoes.amp)
+        sigma, _ = model.noise_sigma(peak[:, None, None] ** 2, model.snr_db)
+        heard = echoes.amp >= sigma[echoes.frame]
+    else:
+        heard = np.zeros(0, bool)
+    src, along = echoes.source[heard], echoes.along[heard]
+    starts, ends, refl = [], [], []
+    for j in np.unique(src[src < n_walls]):
+        t = np.unique(np.round(along[src == j] / WALL_STEP * 2) / 2 * WALL_STEP)  # samples of several frames
+        breaks = np.flatnonzero(np.diff(t) > 1.5 * WALL_STEP)
+        a, b = world.seg_a[j], world.seg_b[j]
+        u = (b - a) / np.linalg.norm(b - a)
+        for lo, hi in zip(np.r_[0, breaks + 1], np.r_[breaks, len(t) - 1]):
+            starts.append(a + (t[lo] - WALL_STEP / 2) * u)
+            ends.append(a + (t[hi] + WALL_STEP / 2) * u)
+            refl.append(world.seg_refl[j])
+    circles = np.unique(src[src >= n_walls]) - n_walls
+    return World(f"{world.name} (observed)", np.array(starts, float).reshape(-1, 2), np.array(ends, float).reshape(-1, 2),
+                 np.array(refl, float), world.circ_c[circles].reshape(-1, 2), world.circ_r[circles], world.circ_refl[circles])
 
 
 def rerender(store: SonarStore, name: str, frames: np.ndarray, seed: int = 0, batch_size: int = 64) -> np.ndarray:

@@ -122,8 +122,11 @@ class SonarStore:
                 names.append(name)
         return names
 
-    def runs(self, split: str | None = None, include_incomplete: bool = False) -> list[str]:
-        """Names of the runs (complete ones unless asked), sorted, optionally of one split."""
+    def runs(self, split: str | None = None, include_incomplete: bool = False,
+             worlds: Iterable[str] | None = None) -> list[str]:
+        """Names of the runs (complete ones unless asked), sorted, optionally of one split and of
+        the world families (or world files) ``worlds`` that their ``source.world`` names."""
+        wanted = None if worlds is None else set(worlds)
         names = []
         for name in self._group_names():
             attrs = self.run_attrs(name)
@@ -131,8 +134,19 @@ class SonarStore:
                 continue
             if split is not None and attrs.split != split:
                 continue
+            if wanted is not None and (attrs.source or {}).get("world") not in wanted:
+                continue
             names.append(name)
         return names
+
+    def worlds(self, split: str | None = None) -> dict[str, list[str]]:
+        """{world: its complete runs} of a split (or all), for the runs whose provenance names one."""
+        out: dict[str, list[str]] = {}
+        for name in self.runs(split):
+            world = (self.run_attrs(name).source or {}).get("world")
+            if world is not None:
+                out.setdefault(str(world), []).append(name)
+        return out
 
     def splits(self) -> dict[str, list[str]]:
         out: dict[str, list[str]] = {}

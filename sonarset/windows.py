@@ -50,11 +50,17 @@ class FrameBank:
         split: str | None = None,
         image_dtype: str | np.dtype | None = None,
         progress: Callable[[str, int, int], None] | None = None,
+        worlds: Sequence[str] | None = None,
     ) -> "FrameBank":
-        """Load runs (by name, or every complete run of ``split``) into memory, each chunk decoded once."""
-        names = list(runs) if runs is not None else store.runs(split)
+        """Load runs (by name, or every complete run of ``split``, of the world families ``worlds``
+        if given) into memory, each chunk decoded once."""
+        names = list(runs) if runs is not None else store.runs(split, worlds=worlds)
         if not names:
             what = f"split {split!r}" if split else "the store"
+            if worlds is not None:
+                have = sorted(store.worlds(split))
+                raise SonarSetError(f"{store.location}: no complete runs of world {', '.join(worlds)} in {what} "
+                                    f"(worlds: {', '.join(have) or 'none recorded'})")
             raise SonarSetError(f"{store.location}: no complete runs in {what} (splits: "
                                 f"{', '.join(sorted(store.splits())) or 'none'})")
         run_objs = [store.run(n) for n in names]

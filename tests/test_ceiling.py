@@ -44,20 +44,28 @@ def mixed(sim, tmp_path_factory):
 
 def test_ceiling_row_bounds_the_predictors(sim, tmp_path):
     res = evaluate(sim, ["persistence", "naive"], horizons=(1, 3), samples=120, seed=1, ceiling=True)
-    assert res.methods == ["persistence", "naive", "ceiling"] and res.predictors == ["persistence", "naive"]
+    assert res.methods == ["persistence", "naive", "ceiling", "observable"]
+    assert res.predictors == ["persistence", "naive"]
     assert not res.ceiling_skipped and not any(n.startswith("ceiling") for n in res.notes)
     s = res.summary()
     for h in ("1", "3"):
         assert s["ceiling"][h]["n"] == 120
         assert s["ceiling"][h]["cc"]["mean"] > s["persistence"][h]["cc"]["mean"] + 0.02, h
         assert s["ceiling"][h]["nrmsd"]["mean"] < s["persistence"][h]["nrmsd"]["mean"], h
-    assert all("ceiling" not in (c.a, c.b) for c in res.comparisons)  # not a predictor: no paired tests
+        # what the context could know lies between the baselines and the whole scene
+        assert s["persistence"][h]["cc"]["mean"] < s["observable"][h]["cc"]["mean"] <= s["ceiling"][h]["cc"]["mean"], h
+    # the farther ahead, the more of the target entered the view after the context
+    assert s["observable"]["3"]["cc"]["mean"] < s["observable"]["1"]["cc"]["mean"]
+    assert all({"ceiling", "observable"}.isdisjoint((c.a, c.b)) for c in res.comparisons)  # no paired tests
     assert {(c.a, c.b) for c in res.comparisons} == {("persistence", "naive")}
     write_report(res, tmp_path)
     doc = json.loads((tmp_path / "metrics.json").read_text())
     assert doc["results"]["ceiling"]["3"]["n"] == 120 and doc["ceiling"]["skipped_runs"] == {}
     rows = list(csv.DictReader(open(tmp_path / "per_window.csv")))
     assert sum(r["method"] == "ceiling" for r in rows) == 2 * 120
+    assert sum(r["method"] == "observable" for r in rows) == 2 * 120
+    gap = doc["observable"]["gap_closed_vs_flow"]
+    assert gap == {}  # no flow among the methods: no share to report
     report = (tmp_path / "report.md").read_text()
     assert "| *ceiling (noise ceiling, not a predictor)* |" in report and "independent noise draw" in report
     assert (tmp_path / "fig_horizon.png").stat().st_size > 5_000
@@ -106,9 +114,9 @@ def test_runs_it_cannot_render_are_skipped_with_a_reason(mixed):
 
 def test_store_without_simulated_runs_omits_the_row(store, tmp_path):
     res = evaluate(store, ["persistence"], split="test", horizons=(1,), samples=5, ceiling=True)
-    assert "ceiling" not in res.methods and "ceiling" not in res.per_window
+    assert {"ceiling", "observable"}.isdisjoint(res.methods) and {"ceiling", "observable"}.isdisjoint(res.per_window)
     assert res.notes[-2:] == ["ceiling: run test_000 not re-rendered: no simulator provenance (source kind missing)",
-                              "ceiling: no run of split 'test' can be re-rendered; the ceiling row is omitted"]
+                              "ceiling: no run of split 'test' can be re-rendered; the ceiling rows are omitted"]
     write_report(res, tmp_path, figures=False)
     assert "no run of split 'test' can be re-rendered" in (tmp_path / "report.md").read_text()
     assert evaluate(store, ["persistence"], split="test", horizons=(1,), samples=5).notes == \
@@ -126,3 +134,40 @@ def test_eval_cli_ceiling(sim, mixed, tmp_path):
     assert r.exit_code == 0, r.output
     line = "ceiling: run test_002 not re-rendered: an imported recording, not a simulated run"
     assert line in r.output and line in (tmp_path / "p" / "report.md").read_text()
+
+
+def test_observed_world_keeps_only_what_the_context_heard():
+    from sonarset.ceiling import observed_world
+    from sonarset.sim.sonar import SonarModel
+    from sonarset.sim.world import World, WorldSpec
+
+    world = World.from_spec(WorldSpec(
+        walls=[{"start": (3.0, -1.0), "end": (3.0, 1.0)}, {"start": (-3.0, -1.0), "end": (-3.0, 1.0)}],
+        circles=[{"centre": (2.0, 1.5), "radius": 0.1}, {"centre": (-2.0, 0.0), "radius": 0.1}],
+        spawn=[{"x": (0, 0.1), "y": (0, 0.1)}]))
+    model = SonarModel(GRID)
+    facing_east = np.zeros((3, 3))  # the context: three frames facing +x
+    seen = observed_world(world, model, facing_east)
+    # the wall ahead (its normal-incidence stretch: off-normal samples are below the noise) and
+    # the pole ahead; nothing behind the robot
+    assert len(seen.seg_a) >= 1 and np.allclose(seen.seg_a[:, 0], 3.0) and np.allclose(seen.seg_b[:, 0], 3.0)
+    assert -1.0 <= seen.seg_a[:, 1].min() < 0 < seen.seg_b[:, 1].max() <= 1.0
+    assert seen.circ_c.tolist() == [[2.0, 1.5]]
+    turned = np.array([[0.0, 0.0, math.pi]])
+    # turned around, the whole world shows the wall behind; what the context heard does not
+    behind = model.render_batch(world, turned, None)[0]
+    known = model.render_batch(seen, turned, None)[0]
+    assert behind.max() > 0.5 and known.max() < 0.05
+    # facing +y, both walls' far ends are in view and heard, their near halves behind the sonar are not
+    side = observed_world(world, model, np.array([[0.0, 0.0, math.pi / 2]]))
+    assert len(side.seg_a) == 2 and (side.seg_a[:, 1] > 0).all() and (side.seg_b[:, 1] > 0).all()
+
+
+def test_observable_ceiling_on_a_window(sim):
+    r = RunRenderer(sim, "test_000", seed=4, stream=0x6F627376)
+    target = sim.run("test_000").read("images", 10, 20).astype(np.float32)
+    from sonarset.metrics import cc
+
+    near = r.render_observed(np.arange(7, 10), np.array([10]))
+    assert near.shape == (1, *GRID.shape) and near.dtype == np.float32
+    assert cc(near[0], target[0]) > 0.8

@@ -10,6 +10,7 @@ from typer.testing import CliRunner
 
 from sonarset import SonarSetError, open_store
 from sonarset.cli.app import app
+from sonarset.echoes import ECHO_METRICS, EchoMatching
 from sonarset.models.eval_report import metrics_document, write_report
 from sonarset.models.evaluate import evaluate
 from sonarset.schema import SensorGrid
@@ -96,15 +97,18 @@ def test_report_files(result, tmp_path):
     write_report(result, tmp_path)
     doc = json.loads((tmp_path / "metrics.json").read_text())
     entry = doc["results"]["flow"]["3"]
-    assert set(entry) == {"cc", "nrmsd", "n"} and set(entry["cc"]) == {"mean", "std"} and entry["n"] == 300
+    assert set(entry) == {"cc", "nrmsd", "n", *ECHO_METRICS} and set(entry["cc"]) == {"mean", "std"} and entry["n"] == 300
+    assert set(entry["echo_f1"]) == {"mean", "std", "n"} and 0 < entry["echo_f1"]["n"] <= 300
+    assert 0 <= entry["echo_f1"]["mean"] <= 1 and doc["echo_matching"]["level"] == EchoMatching().level
     assert set(doc["results"]) == {"persistence", "naive", "flow"} and set(doc["results"]["naive"]) == {"1", "3", "5", "10"}
     assert doc["tests"] and doc["windows"]["n"] == 300
     assert {"t_paired_p", "wilcoxon_p", "p_holm", "mean_diff"} <= set(doc["tests"][0])
     assert all(0 <= t["p_holm"] <= 1 for t in doc["tests"])
     rows = list(csv.DictReader(open(tmp_path / "per_window.csv")))
-    assert len(rows) == 3 * 4 * 300 and set(rows[0]) == {"method", "horizon", "window", "cc", "nrmsd"}
+    assert len(rows) == 3 * 4 * 300 and set(rows[0]) == {"method", "horizon", "window", "cc", "nrmsd", *ECHO_METRICS}
     report = (tmp_path / "report.md").read_text()
-    assert "| flow |" in report and "*flow (paper)*" in report and "Holm" in report
+    assert "| flow |" in report and "*flow (paper)*" in report and "Holm" in report and "## Echoes" in report
+    assert "| AR-3 | echo_f1 | persistence | naive |" in report  # echo metrics get paired tests too
     for fig in ("fig_prediction.png", "fig_autoregressive.png", "fig_horizon.png"):
         assert (tmp_path / fig).stat().st_size > 5_000
 

@@ -19,7 +19,8 @@ from sonarset.schema import Processing, SensorGrid
 from sonarset.windows import N_IN
 from sonarset.sim.robot import apply_slip, integrate
 from sonarset.sim.sonar import SonarModel
-from sonarset.sim.world import CircleSpec, SpawnBox, WallSpec, World, WorldSpec, corridor_world, lab_world
+from sonarset.sim.families import corridor_world, lab_world
+from sonarset.sim.world import CircleSpec, SpawnBox, WallSpec, World, WorldSpec
 
 GRID = SensorGrid.default()
 SMALL = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=50, azimuth_min_rad=-math.pi / 2,

@@ -188,7 +188,7 @@ def test_coherence_factor_darkens_range_bins_shared_by_many_directions():
 
 
 def test_a_batch_renders_as_its_frames_one_by_one():
-    from sonarset.sim.world import lab_world
+    from sonarset.sim.families import lab_world
 
     model, w = SonarModel(GRID.model_copy(update={"n_range": 60, "n_azimuth": 45})), lab_world(3)
     poses = np.array([[2.0, 2.0, 0.3], [2.1, 2.05, 0.4], [6.0, 5.0, -2.0], [6.0, 5.0, 2.5]])

@@ -29,7 +29,8 @@ from sonarset.schema import Processing, RobotRig, SensorGrid
 from sonarset.sim.runs import spawn_seeds
 from sonarset.sim.robot import ROBOT_RADIUS, integrate
 from sonarset.sim.sonar import SonarModel
-from sonarset.sim.world import World, corridor_world
+from sonarset.sim.families import corridor_world
+from sonarset.sim.world import World
 from sonarset.stats import holm, mcnemar_p, wilcoxon_p, wilson_interval
 from sonarset.windows import N_IN
 

@@ -12,7 +12,8 @@ from scipy import ndimage
 from sonarset.control import BurstDetector
 from sonarset.plots import pyplot
 from sonarset.report import format_p
-from sonarset.sim.world import World, corridor_world
+from sonarset.sim.families import corridor_world
+from sonarset.sim.world import World
 
 from .common import write_outputs
 from .control import GOAL_RADIUS, ControlResult

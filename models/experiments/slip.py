@@ -35,7 +35,7 @@ from sonarset.schema import Processing, RobotRig, SensorGrid
 from sonarset.sim.runs import spawn_seeds
 from sonarset.sim.robot import ExplorationPolicy, apply_slip, integrate
 from sonarset.sim.sonar import SonarModel
-from sonarset.sim.world import lab_world
+from sonarset.sim.families import lab_world
 from sonarset.stats import auc, holm, wilcoxon_p
 
 from ..baselines import Predictor, rollout

@@ -19,7 +19,7 @@ from ..schema import Processing, SensorGrid
 from ..store import SonarStore, create_store, open_or_create_store
 from ..version import __version__
 from ..zarrio import is_url
-from .runs import RunPlan, plan_runs, simulator_rig
+from .runs import RunPlan, plan_runs, simulator_rig, world_mix
 from .sonar import check_psf
 from .world import load_world
 
@@ -29,7 +29,7 @@ DESCRIPTION = f"simulated by sonarset {__version__}"
 def generate(
     out: str | os.PathLike,
     *,
-    runs: int = 10,
+    runs: int | None = None,
     test_runs: int = 1,
     minutes: float = 25.0,
     seed: int = 0,
@@ -51,11 +51,17 @@ def generate(
     ``distributed.Client``. Each task writes its own run group to ``out``, which every worker must
     reach (a shared file system or object storage). The arrays are the same either way.
 
+    ``world`` is a world family or file with ``runs`` training runs (default 10), or a mix that
+    counts each world's runs, ``"lab:4,orchard:2,warehouse:2,rooms:2"`` (``runs`` then stays
+    None); each world also gets ``test_runs`` test runs. Each run records its world and the
+    variant's seed in its ``source``.
+
     ``processing`` is a profile name (``ertis``, the default, or ``raw``) or ``Processing`` settings;
     the store records it, with the robot's rig, in its attributes.
     """
     grid = grid or SensorGrid.default()
-    load_world(world, 0)  # fail fast on a bad world name or file, before any process starts
+    for name, _ in world_mix(world, runs):
+        load_world(name, 0)  # fail fast on a bad world name or file, before any process starts
     processing = _checked_processing(processing, psf)
     plans = plan_runs(runs, test_runs, minutes, seed, world, snr_db, psf, processing)
     loc = os.fspath(out).removeprefix("file://")  # a local path: the store is created aside and renamed

@@ -49,7 +49,8 @@ def _blocked(sx, sy, px, py, seg_a, seg_b, skip_seg, circ_c, circ_r, skip_circ):
 
 
 @njit(cache=True, nogil=True)
-def _keep(out, m, f, sx, sy, heading, qx, qy, amp, r_max, seg_a, seg_b, skip_seg, circ_c, circ_r, skip_circ):
+def _keep(out, m, f, sx, sy, heading, qx, qy, amp, r_max, seg_a, seg_b, skip_seg, circ_c, circ_r, skip_circ,
+          source, along):
     """Append reflector point q to ``out`` if it is in front of the sensor, in range and unoccluded."""
     rx, ry = qx - sx, qy - sy
     r = np.sqrt(rx * rx + ry * ry)
@@ -57,7 +58,7 @@ def _keep(out, m, f, sx, sy, heading, qx, qy, amp, r_max, seg_a, seg_b, skip_seg
     theta = (theta + np.pi) % (2 * np.pi) - np.pi
     if abs(theta) < np.pi / 2 and r < r_max and r > 1e-3 and amp > 0 and \
             not _blocked(sx, sy, qx, qy, seg_a, seg_b, skip_seg, circ_c, circ_r, skip_circ):
-        out[m, 0], out[m, 1], out[m, 2], out[m, 3] = f, r, theta, amp
+        out[m, 0], out[m, 1], out[m, 2], out[m, 3], out[m, 4], out[m, 5] = f, r, theta, amp, source, along
         return m + 1
     return m
 
@@ -66,7 +67,9 @@ def _keep(out, m, f, sx, sy, heading, qx, qy, amp, r_max, seg_a, seg_b, skip_seg
 def reflector_echoes(sensors, seg_a, seg_b, seg_refl, circ_c, circ_r, circ_refl, r_max, wall_step,
                      specular_n, wall_gain):
     """Unoccluded reflector points seen from each sensor pose (x, y, heading): rows of
-    (frame, range, azimuth, amplitude before directivity and absorption), frame by frame.
+    (frame, range, azimuth, amplitude before directivity and absorption, reflector, position),
+    frame by frame. The reflector is wall j (j) or circle j (n_walls + j); the position is the
+    sample's distance from the wall's start (0 for a circle).
 
     Walls are sampled every ``wall_step`` where they come within ``r_max``; each sample reflects
     with a cos^n specular lobe and 1/(2r) spreading (an image source). A circle of radius a reflects
@@ -76,7 +79,7 @@ def reflector_echoes(sensors, seg_a, seg_b, seg_refl, circ_c, circ_r, circ_refl,
     cap = 16
     for j in range(n_seg):  # the most samples one frame can take of each wall
         cap += int(2 * r_max / wall_step) + 2
-    out = np.empty((sensors.shape[0] * (cap + n_circ), 4))
+    out = np.empty((sensors.shape[0] * (cap + n_circ), 6))
     m = 0
     for f in range(sensors.shape[0]):
         sx, sy, heading = sensors[f, 0], sensors[f, 1], sensors[f, 2]
@@ -99,7 +102,7 @@ def reflector_echoes(sensors, seg_a, seg_b, seg_refl, circ_c, circ_r, circ_refl,
                 dist = np.sqrt(tx * tx + ty * ty)
                 cos_inc = abs(tx * -uy + ty * ux) / max(dist, 1e-9)
                 amp = seg_refl[j] * cos_inc ** specular_n / (2 * max(dist, 1e-3)) * wall_gain
-                m = _keep(out, m, f, sx, sy, heading, qx, qy, amp, r_max, seg_a, seg_b, j, circ_c, circ_r, -1)
+                m = _keep(out, m, f, sx, sy, heading, qx, qy, amp, r_max, seg_a, seg_b, j, circ_c, circ_r, -1, j, t)
         for j in range(n_circ):
             ox, oy = circ_c[j, 0] - sx, circ_c[j, 1] - sy
             dc = np.sqrt(ox * ox + oy * oy)
@@ -107,7 +110,8 @@ def reflector_echoes(sensors, seg_a, seg_b, seg_refl, circ_c, circ_r, circ_refl,
             if dc - a < r_max and dc > a:
                 qx, qy = circ_c[j, 0] - a * ox / dc, circ_c[j, 1] - a * oy / dc
                 amp = circ_refl[j] * np.sqrt(a) / (2 * max(dc - a, 1e-3) ** 1.5)
-                m = _keep(out, m, f, sx, sy, heading, qx, qy, amp, r_max, seg_a, seg_b, -1, circ_c, circ_r, j)
+                m = _keep(out, m, f, sx, sy, heading, qx, qy, amp, r_max, seg_a, seg_b, -1, circ_c, circ_r, j,
+                          n_seg + j, 0.0)
     return out[:m].copy()
 
 

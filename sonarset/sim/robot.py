@@ -64,6 +64,7 @@ class ExplorationPolicy:
         self.v = self.rng.uniform(-V_MAX, V_MAX)
         self.w = self.rng.uniform(-W_MAX, W_MAX)
         self.last = np.zeros(2)
+        self._seg_a, self._seg_b = self.world.obstacle_segments()  # fences included: the robot stays inside
 
     def _ou(self, x: float, lim: float) -> float:
         a = np.exp(-self.dt / self.tau)
@@ -75,10 +76,9 @@ class ExplorationPolicy:
         return min(max(float(x), -lim), lim)  # np.clip on a scalar costs 30 us, as much as a ray cast
 
     def safe(self, pose: np.ndarray, v: float, w: float) -> bool:
-        w_ = self.world
         steps = int(round(self.lookahead / self.dt))
         clear = arc_clearance(float(pose[0]), float(pose[1]), float(pose[2]), float(v), float(w), self.dt, steps,
-                              w_.seg_a.reshape(-1, 2), w_.seg_b.reshape(-1, 2), w_.circ_c.reshape(-1, 2), w_.circ_r)
+                              self._seg_a, self._seg_b, self.world.circ_c.reshape(-1, 2), self.world.circ_r)
         return bool(clear > ROBOT_RADIUS + self.margin)
 
     def __call__(self, pose: np.ndarray) -> tuple[float, float]:

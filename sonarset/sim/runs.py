@@ -55,19 +55,56 @@ def spawn_seeds(seed: int, n: int) -> list[int]:
     return [int(ss.generate_state(1, np.uint64)[0] >> np.uint64(1)) for ss in np.random.SeedSequence(seed).spawn(n)]
 
 
-def plan_runs(runs: int = 10, test_runs: int = 1, minutes: float = 25.0, seed: int = 0,
+def world_mix(world: str, runs: int | None = None) -> list[tuple[str, int]]:
+    """The (world, training runs) pairs of a ``--world`` value.
+
+    ``lab`` takes ``runs`` (default 10); a mix names each world's count, ``lab:4,orchard:2``
+    (built-in families or world files, in order), and then ``runs`` must not be given.
+    """
+    entries = [e.strip() for e in world.split(",") if e.strip()]
+    if not entries:
+        raise SonarSetError("--world: empty; give a world family (lab) or a mix (lab:4,orchard:2)")
+    mix = []
+    for entry in entries:
+        name, sep, count = entry.rpartition(":")
+        if sep and count.strip().isdigit() and name.strip():
+            mix.append((name.strip(), int(count)))
+        else:
+            mix.append((entry, None))
+    counted = [n is not None for _, n in mix]
+    if any(counted) and not all(counted):
+        raise SonarSetError(f"--world {world!r}: give every world a run count (lab:4,orchard:2) or none")
+    if not any(counted):
+        if len(mix) > 1:
+            raise SonarSetError(f"--world {world!r}: several worlds need a run count each (lab:4,orchard:2)")
+        return [(mix[0][0], 10 if runs is None else runs)]
+    if runs is not None:
+        raise SonarSetError(f"--world {world!r} gives the run counts; drop --runs")
+    names = [name for name, _ in mix]
+    if len(set(names)) < len(names):
+        raise SonarSetError(f"--world {world!r}: a world is named twice")
+    return [(name, int(n)) for name, n in mix]
+
+
+def plan_runs(runs: int | None = None, test_runs: int = 1, minutes: float = 25.0, seed: int = 0,
               world: str = "lab", snr_db: float = 5.0, psf: str = "array",
               processing: Processing | None = None) -> list[RunPlan]:
+    """The runs of a store: every world's training runs in the order given, then ``test_runs``
+    test runs of each world. Run k's seed is the k-th spawned from ``seed``, so one world's plans
+    do not depend on how the runs are scheduled."""
     n_frames = int(round(minutes * 60 / DT))
     if n_frames < 1:
         raise SonarSetError(f"--minutes {minutes} gives no frames at 5 Hz")
-    if runs < 0 or test_runs < 0 or runs + test_runs < 1:
+    mix = world_mix(world, runs)
+    n_train = sum(n for _, n in mix)
+    if min(n for _, n in mix) < 0 or test_runs < 0 or n_train + test_runs * len(mix) < 1:
         raise SonarSetError("need at least one run")
+    worlds = [w for w, n in mix for _ in range(n)] + [w for w, _ in mix for _ in range(test_runs)]
     plans = []
-    for k, s in enumerate(spawn_seeds(seed, runs + test_runs)):
-        name, split = (f"run_{k:03d}", "train") if k < runs else (f"test_{k - runs:03d}", "test")
-        # Every run gets its own variant of a procedural world; a fixed world is the same for all.
-        plans.append(RunPlan(name, split, s, world, s % 1_000_003, n_frames, float(snr_db), psf,
+    for k, (s, w) in enumerate(zip(spawn_seeds(seed, len(worlds)), worlds)):
+        name, split = (f"run_{k:03d}", "train") if k < n_train else (f"test_{k - n_train:03d}", "test")
+        # Every run gets its own variant of a world family; a world file is the same for all.
+        plans.append(RunPlan(name, split, s, w, s % 1_000_003, n_frames, float(snr_db), psf,
                              processing or Processing.ertis()))
     return plans
 

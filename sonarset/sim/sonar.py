@@ -135,12 +135,16 @@ def absorption(r: np.ndarray) -> np.ndarray:
 @dataclass
 class Echoes:
     """Visible reflectors in the sensor frame: range [m], azimuth [rad], amplitude at a microphone,
-    and, for a batch of sensor poses, the index of the frame each echo belongs to."""
+    and, for a batch of sensor poses, the index of the frame each echo belongs to; with
+    ``source`` the reflector of each (wall j: j, circle j: walls + j) and ``along`` the wall
+    sample's distance from its wall's start (m; 0 for circles)."""
 
     r: np.ndarray
     theta: np.ndarray
     amp: np.ndarray
     frame: np.ndarray | None = None
+    source: np.ndarray | None = None
+    along: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.frame is None:
@@ -162,7 +166,7 @@ def visible_echoes(world: World, sensor: np.ndarray, r_max: float, wall_step: fl
                             float(wall_step), SPECULAR_N, float(np.sqrt(wall_step / WALL_STEP)))
     r, theta = rows[:, 1], rows[:, 2]
     amp = rows[:, 3] * emitter_directivity(theta) * absorption(r)
-    return Echoes(r, theta, amp, rows[:, 0].astype(np.int64))
+    return Echoes(r, theta, amp, rows[:, 0].astype(np.int64), rows[:, 4].astype(np.int64), rows[:, 5])
 
 
 @dataclass
