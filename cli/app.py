@@ -271,8 +271,10 @@ def eval_(
     precision: ModelPrecision = Precision("auto"),
     figures: bool = typer.Option(True, "--figures/--no-figures", help="Write the PNG figures."),
     ceiling: bool = typer.Option(False, "--ceiling",
-                                 help="Add the noise ceiling: target frames of simulated runs re-rendered with "
-                                      "independent noise (how much of a frame is predictable at all)."),
+                                 help="Add the noise ceiling (target frames of simulated runs re-rendered with "
+                                      "independent noise: how much of a frame is predictable at all) and the "
+                                      "observable ceiling (re-rendered from only the reflectors the window's context "
+                                      "heard: how much the context could know)."),
 ) -> None:
     """Evaluate predictors on the same windows: the paper's table, statistics and figures."""
     from sonarset.store import open_store

@@ -89,9 +89,11 @@ def _pixel_polar(grid: SensorGrid, arr) -> tuple:
 
 class LastFrameBaseline:
     """A baseline that reads only the last input frame (and the last command); it is fed the
-    windows of the paper's geometry all the same."""
+    windows of the paper's geometry all the same, or those of a learned model with a longer
+    context when it is evaluated beside one (``any_context``)."""
 
     n_in: ClassVar[int] = N_IN
+    any_context: ClassVar[bool] = True  # reads the last frame of a window of any length
 
 
 @dataclass

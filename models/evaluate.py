@@ -316,8 +316,10 @@ def _predictors(store: SonarStore, model_specs: list[str], rig: RobotRig, device
 
 def window_frames(preds: dict[str, Predictor]) -> int:
     """Input frames per window: the one count all predictors were built for (a learned model's is
-    in its config)."""
-    counts = {p.n_in for p in preds.values()}
+    in its config); predictors that read only the last frame take any."""
+    counts = {p.n_in for p in preds.values() if not getattr(p, "any_context", False)}
+    if not counts:
+        return N_IN
     if len(counts) != 1:
         raise SonarSetError("the models take different numbers of input frames ("
                             + ", ".join(f"{name} {p.n_in}" for name, p in preds.items()) + "); evaluate them apart")

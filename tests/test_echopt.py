@@ -12,6 +12,7 @@ from sonarset import GridMismatchError, SonarSetError, open_store
 from sonarset.cli.app import app
 from sonarset.models.checkpoint import load_checkpoint, save_checkpoint
 from sonarset.models.echopt import EchoPT, make_config
+from sonarset.models.evaluate import evaluate
 from sonarset.models.train import TrainConfig, train
 from sonarset.schema import SensorGrid
 from sonarset.sim import generate
@@ -249,3 +250,15 @@ def test_bf16_training_records_its_precision_and_tracks_fp32(tiny_store, tmp_pat
     assert abs(bf16 - fp32) / fp32 < 0.05
     with pytest.raises(SonarSetError, match="precision must be one of"):
         train(tiny_store, tmp_path / "bad", _cfg(max_steps=1, precision="fp8"))
+
+
+def test_train_on_chosen_worlds_with_a_longer_context(tiny_store, tmp_path):
+    """--worlds picks the runs and the card names their families; --n-in 5 builds a 5-frame
+    model that eval runs beside the baselines on 5-frame windows."""
+    res = train(tiny_store, tmp_path / "ctx", _cfg(max_steps=3, worlds="lab", n_in=5))
+    card = json.loads((res.out_dir / "model.json").read_text())
+    assert card["training"]["worlds"] == {"lab": 2} and card["config"]["n_in"] == 5
+    ev = evaluate(tiny_store, ["flow", f"echopt:{res.out_dir / 'model.safetensors'}"], horizons=(1, 2), samples=20)
+    assert ev.n_in == 5 and np.isfinite(ev.per_window["echopt"][2]["cc"]).all()
+    with pytest.raises(SonarSetError, match="no complete runs of world orchard in split 'train'"):
+        train(tiny_store, tmp_path / "none", _cfg(max_steps=3, worlds="orchard"))

@@ -1,0 +1,88 @@
+"""The generalisation table: EchoPT models against flow on the held-out test run of every world family.
+
+    python bench/bench_families.py STORE [STORE ...] --models echopt:A,echopt:B [--samples 1000] [--out DIR]
+
+For each world family that has test runs in the store(s) (``source.world``), evaluates flow and
+every model on the same seeded windows of that family (``eval --worlds F --ceiling``) and prints,
+per horizon: CC, NRMSD and echo F1 of flow, of each model and of the observable ceiling; each
+model's paired difference to flow (Holm-corrected paired t-test over the whole evaluation) and
+its share of the flow-to-observable gap. Writes each family's full report under ``--out`` and
+the table as ``families.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+from sonarset import open_store
+from sonarset.models.eval_report import write_report
+from sonarset.models.evaluate import evaluate
+from sonarset.report import horizon_name
+
+KEYS = ("cc", "nrmsd", "echo_f1")
+
+
+def family_rows(res, models: list[str]) -> tuple[list[str], dict]:
+    s, gap = res.summary(), res.gap_closed()
+    p = {(c.b, c.metric, c.horizon): c for c in res.comparisons if c.a == "flow"}
+    p.update({(c.a, c.metric, c.horizon): c for c in res.comparisons if c.b == "flow"})
+    lines, doc = [], {}
+    for h in res.horizons:
+        def mean(m, k):
+            v = s[m][str(h)][k]["mean"]
+            return float("nan") if v is None else v
+
+        for m in models:
+            cells = []
+            for k in KEYS:
+                c = p.get((m, k, h))
+                # the difference as model - flow, whichever way round the pair was tested
+                diff = float("nan") if c is None else (c.mean_diff if c.a == m else -c.mean_diff)
+                holm = float("nan") if c is None or c.p_holm is None else c.p_holm
+                cells.append(f"{mean('flow', k):.3f} -> {mean(m, k):.3f} ({diff:+.3f}, p {holm:.1e})")
+                doc.setdefault(m, {}).setdefault(str(h), {})[k] = {
+                    "flow": mean("flow", k), "model": mean(m, k), "observable": mean("observable", k)
+                    if "observable" in s else None, "diff": diff, "p_holm": holm,
+                    "gap_share": gap.get(m, {}).get(str(h), {}).get(k)}
+            share = gap.get(m, {}).get(str(h), {}).get("cc")
+            obs = mean("observable", "cc") if "observable" in s else float("nan")
+            lines.append(f"  {horizon_name(h):9s} {m:28s} " + " | ".join(cells)
+                         + f" | observable CC {obs:.3f}, CC gap share {share if share is None else round(share, 2)}")
+    return lines, doc
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("store", nargs="+", help="stores with test runs of one or more world families")
+    ap.add_argument("--models", required=True, help="comma-separated echopt:PATH specs")
+    ap.add_argument("--samples", type=int, default=1000)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default="families-out")
+    args = ap.parse_args()
+    specs = [m.strip() for m in args.models.split(",") if m.strip()]
+    print(f"# bench_families  {platform.node()}  {os.cpu_count()} cores  python {platform.python_version()}")
+    print("# per family and horizon: flow -> model (model - flow, Holm p) for CC | NRMSD | echo F1")
+    table = {}
+    for location in args.store:
+        store = open_store(location, check=True)
+        for family in sorted(store.worlds("test")):
+            t0 = time.perf_counter()
+            res = evaluate(store, ["flow", *specs], samples=args.samples, seed=args.seed, worlds=[family], ceiling=True)
+            write_report(res, Path(args.out) / family, figures=False)
+            models = [m for m in res.predictors if m != "flow"]
+            lines, doc = family_rows(res, models)
+            table[family] = {"store": location, "windows": len(res.window_ids), "runs": res.runs, "models": doc}
+            print(f"{family} ({len(res.window_ids)} windows of {', '.join(res.runs)}; "
+                  f"{time.perf_counter() - t0:.0f} s)")
+            print("\n".join(lines))
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    (Path(args.out) / "families.json").write_text(json.dumps(table, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
