@@ -408,7 +408,7 @@ def demo(
     precision: ModelPrecision = Precision("auto"),
 ) -> None:
     """Simulate a fresh test run and compare the pretrained EchoPT with persistence, naive and flow
-    (and the noise ceiling)."""
+    (and the noise and observable ceilings)."""
     import time
 
     from sonarset.models import demo as pipeline
@@ -425,7 +425,7 @@ def demo(
     out.print(pipeline.images_note(model, s), highlight=False)
     out.print(pipeline.runs_in(model, precision.value, device.value), highlight=False)
     out.print(f"evaluating persistence, naive, flow and EchoPT ({model}) on {samples} windows, horizons 1, 3, 5, 10, "
-              "with the noise ceiling")
+              "with the noise and observable ceilings")
     with progress_bar() as bar:
         res = pipeline.evaluate_fresh_run(s, model, samples=samples, device=device.value, precision=precision.value,
                                           progress=per_name_progress(bar))

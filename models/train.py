@@ -240,7 +240,11 @@ def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[Echo
         overrides["prior"] = cfg.prior
     if cfg.n_in:
         overrides["n_in"] = cfg.n_in
-    model = EchoPT(make_config(cfg.preset, *store.grid.shape, **overrides))
+    try:
+        model = EchoPT(make_config(cfg.preset, *store.grid.shape, **overrides))
+    except ValueError as exc:  # e.g. an --n-in whose command values leave d_model indivisible by the heads
+        what = f"--n-in {cfg.n_in}" if cfg.n_in else f"--preset {cfg.preset}"
+        raise SonarSetError(f"{what}: {exc}") from None
     if cfg.init:
         _init_from(model, cfg.init, store)
     model = model.to(device).to(memory_format=torch.channels_last)

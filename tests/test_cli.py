@@ -75,16 +75,18 @@ def test_bad_input_gives_one_line_and_no_traceback(tmp_path):
 
 def test_demo_on_a_short_fresh_run(tmp_path):
     """The README's main job, on a 30 s run and 10 windows: the shipped model against the baselines,
-    with the noise ceiling, the fade check and the report; a bad model fails before any simulation."""
+    with both ceilings, the fade check and the report; a bad model fails before any simulation."""
     r = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "d"), "--minutes", "0.5", "--samples", "10",
                                  "--device", "cpu"])
     assert r.exit_code == 0, r.output
     doc = json.loads((tmp_path / "d" / "metrics.json").read_text())
-    assert list(doc["results"]) == ["persistence", "naive", "flow", "echopt", "ceiling"]
+    assert list(doc["results"]) == ["persistence", "naive", "flow", "echopt", "ceiling", "observable"]
+    assert set(doc["observable"]["gap_closed_vs_flow"]) == {"persistence", "naive", "echopt"}
     assert doc["windows"]["n"] == 10 and doc["windows"]["horizons"] == [1, 3, 5, 10]
     assert all(doc["results"]["echopt"][h]["n"] == 10 for h in ("1", "3", "5", "10"))
     assert set(doc["fade"]) == {"persistence", "naive", "flow", "echopt"}
     assert "| echopt |" in (tmp_path / "d" / "report.md").read_text() and "one-shot cc: EchoPT - flow" in r.output
+    assert "AR-10: EchoPT closes" in r.output
     bad = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "e"), "--model", str(tmp_path / "nope")])
     assert bad.exit_code == 1 and "no EchoPT checkpoint" in bad.output and not (tmp_path / "e").exists()
 
