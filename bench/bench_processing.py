@@ -26,7 +26,7 @@ from sonarset.models.evaluate import evaluate
 from sonarset.schema import Processing, SensorGrid
 from sonarset.sim import generate
 from sonarset.sim.sonar import SonarModel
-from sonarset.sim.world import load_world
+from sonarset.sim.families import load_world
 
 ERTIS = Processing.ertis()
 SETTINGS = {

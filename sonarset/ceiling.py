@@ -62,7 +62,7 @@ class RunRenderer:
 
     def __init__(self, store: SonarStore, name: str, seed: int = 0, stream: int = _STREAM_TAG):
         from .sim.sonar import SonarModel
-        from .sim.world import load_world
+        from .sim.families import load_world
 
         run = store.run(name)
         src = dict(run.attrs.source or {})

@@ -55,7 +55,7 @@ def simulated_world(source: dict):
     from elsewhere, a world file that moved, or provenance that names no world."""
     if source.get("kind") != "simulator":
         return None
-    from .sim.world import load_world
+    from .sim.families import load_world
 
     try:
         return load_world(source["world"], int(source["world_seed"]))

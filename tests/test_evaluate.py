@@ -127,11 +127,17 @@ def test_eval_cli(stores, tmp_path):
 def test_models_that_take_other_windows_are_refused_together(stores):
     from sonarset.models.baselines import Persistence
 
-    class FourFrames(Persistence):
+    class FourFrames(Persistence):  # a learned model's context: it needs exactly its frames
         n_in = 4
+        any_context = False
+
+    class FiveFrames(FourFrames):
+        n_in = 5
 
     with pytest.raises(SonarSetError, match="different numbers of input frames.*four 4"):
-        evaluate(stores["mainlobe"], ["naive"], predictors={"four": FourFrames(GRID)}, samples=5)
-    # alone, a model sets the windows' input frames, and metrics.json records them
-    res = evaluate(stores["mainlobe"], [], predictors={"four": FourFrames(GRID)}, horizons=(1,), samples=5)
+        evaluate(stores["mainlobe"], [], predictors={"four": FourFrames(GRID), "five": FiveFrames(GRID)}, samples=5)
+    # a model sets the windows' input frames, the last-frame baselines beside it read them too,
+    # and metrics.json records them
+    res = evaluate(stores["mainlobe"], ["naive"], predictors={"four": FourFrames(GRID)}, horizons=(1,), samples=5)
+    assert res.methods == ["four", "naive"] and np.isfinite(res.per_window["naive"][1]["cc"]).all()
     assert res.examples["frames"].shape[0] == 4 and metrics_document(res)["windows"]["n_in"] == 4

@@ -4,8 +4,8 @@ from .generation import generate
 from .robot import ExplorationPolicy, apply_slip, integrate, sensor_pose
 from .runs import plan_runs, simulate_blocks
 from .sonar import SonarModel, visible_echoes
-from .families import FAMILIES, corridor_world, lab_world
-from .world import World, WorldSpec, load_world
+from .families import FAMILIES, corridor_world, lab_world, load_world
+from .world import World, WorldSpec
 
 __all__ = ["FAMILIES", "ExplorationPolicy", "SonarModel", "World", "WorldSpec", "apply_slip", "corridor_world",
            "generate", "integrate", "lab_world", "load_world", "plan_runs", "sensor_pose",

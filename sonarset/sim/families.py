@@ -19,11 +19,16 @@ scene instead of wandering into empty space.
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from pydantic import ValidationError
 
+from ..errors import SonarSetError
+from ..schema import pydantic_problems
 from .world import CircleSpec, FenceSpec, SpawnBox, WallSpec, World, WorldSpec
 
 
@@ -257,3 +262,26 @@ FAMILIES: dict[str, Callable[[int], World]] = {
     "lab": lab_world, "corridor": corridor_family, "orchard": orchard_world,
     "warehouse": warehouse_world, "rooms": rooms_world,
 }
+
+
+def load_world(name_or_path: str, seed: int = 0) -> World:
+    """A built-in world family's variant ``seed`` (``families.FAMILIES``) or a JSON/TOML world file."""
+    if name_or_path in FAMILIES:
+        return FAMILIES[name_or_path](seed)
+    path = Path(name_or_path)
+    if not path.is_file():
+        raise SonarSetError(f"{name_or_path}: not a built-in world family ({', '.join(FAMILIES)}) nor a world file")
+    try:
+        text = path.read_text()
+        if path.suffix == ".toml":
+            import tomllib
+
+            doc = tomllib.loads(text)
+        else:
+            doc = json.loads(text)
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise SonarSetError(f"{path}: cannot parse world file ({exc})") from None
+    try:
+        return World.from_spec(WorldSpec.model_validate(doc))
+    except ValidationError as exc:
+        raise SonarSetError(f"{path}: {pydantic_problems(exc)[0]}") from None

@@ -21,7 +21,7 @@ from ..version import __version__
 from ..zarrio import is_url
 from .runs import RunPlan, plan_runs, simulator_rig, world_mix
 from .sonar import check_psf
-from .world import load_world
+from .families import load_world
 
 DESCRIPTION = f"simulated by sonarset {__version__}"
 

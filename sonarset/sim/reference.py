@@ -120,7 +120,7 @@ def write_raw_recording(run, out_dir, *, frames: slice | None = None, fs: float 
 
     from .robot import sensor_pose
     from .sonar import visible_echoes
-    from .world import load_world
+    from .families import load_world
 
     src = run.attrs.source
     if src.get("kind") != "simulator":

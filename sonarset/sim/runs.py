@@ -21,7 +21,7 @@ from ..store import open_store
 from ..version import __version__
 from .robot import SENSOR_OFFSET, V_MAX, W_MAX, WHEEL_BASE, ExplorationPolicy, apply_slip, integrate
 from .sonar import SonarModel
-from .world import load_world
+from .families import load_world
 
 DT = 0.2  # s, 5 Hz frames
 

@@ -8,16 +8,13 @@ does not see: the edge of an open scene (a field, a yard) that the exploration s
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
 from ..errors import SonarSetError
-from ..schema import pydantic_problems
 
 
 class WallSpec(BaseModel):
@@ -126,28 +123,3 @@ class World:
             if self.clearance(pose[None, :2])[0] > clearance:
                 return pose
         raise SonarSetError(f"world {self.name!r}: no collision-free spawn pose found in its spawn boxes")
-
-
-def load_world(name_or_path: str, seed: int = 0) -> World:
-    """A built-in world family's variant ``seed`` (``families.FAMILIES``) or a JSON/TOML world file."""
-    from .families import FAMILIES
-
-    if name_or_path in FAMILIES:
-        return FAMILIES[name_or_path](seed)
-    path = Path(name_or_path)
-    if not path.is_file():
-        raise SonarSetError(f"{name_or_path}: not a built-in world family ({', '.join(FAMILIES)}) nor a world file")
-    try:
-        text = path.read_text()
-        if path.suffix == ".toml":
-            import tomllib
-
-            doc = tomllib.loads(text)
-        else:
-            doc = json.loads(text)
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise SonarSetError(f"{path}: cannot parse world file ({exc})") from None
-    try:
-        return World.from_spec(WorldSpec.model_validate(doc))
-    except ValidationError as exc:
-        raise SonarSetError(f"{path}: {pydantic_problems(exc)[0]}") from None
