@@ -24,6 +24,8 @@ def draw_world(ax, world, trajectory: np.ndarray | None = None, marker: np.ndarr
         ax.plot([a[0], b[0]], [a[1], b[1]], color="0.15", lw=1.5)
     for c, r in zip(world.circ_c, world.circ_r):
         ax.add_patch(pyplot().Circle(c, r, color="0.3"))
+    for a, b in zip(getattr(world, "fence_a", ()), getattr(world, "fence_b", ())):  # invisible to the sonar
+        ax.plot([a[0], b[0]], [a[1], b[1]], color="tab:olive", lw=0.8, ls="--")
     for box in world.spawn:
         ax.add_patch(pyplot().Rectangle((box.x[0], box.y[0]), box.x[1] - box.x[0], box.y[1] - box.y[0],
                                       fill=False, ls=":", color="tab:green"))
