@@ -131,6 +131,9 @@ def test_slip_experiment_end_to_end_with_a_tiny_echopt(tmp_path):
     assert {(a["predictor"], a["detector"]) for a in doc["auc"]} >= {("echopt", "eps"), ("flow", "ratio")}
     assert (tmp_path / "out" / "fig5_slip.png").stat().st_size > 10_000
     assert "| echopt | AR-5 |" in (tmp_path / "out" / "report.md").read_text()
+    from sonarset.models.precision import resolve_precision
+
+    assert doc["precision"] == {"echopt": resolve_precision("auto", "cpu")}  # what auto chose, as it ran
 
 
 @BOTH
@@ -198,6 +201,7 @@ def test_control_experiment_cli_with_a_tiny_echopt(tmp_path):
     assert list(doc["summary"]) == ["clean", "bursts", f"bursts+echopt:{ckpt}", "bursts+flow"]
     assert all(s["runs"] == 2 for s in doc["summary"].values())
     assert doc["summary"]["clean"]["burst_time_fraction"] == 0
+    assert set(doc["precision"]) == {f"echopt:{ckpt}"} and doc["precision"][f"echopt:{ckpt}"] in ("fp32", "bf16")
     assert (tmp_path / "out" / "fig6_control.png").exists() and "Fig. 6" in (tmp_path / "out" / "report.md").read_text()
     bad = CliRunner().invoke(app, ["experiment", "control", "--model", str(tmp_path / "missing"), "--runs", "1",
                                    "--out", str(tmp_path / "out2")])

@@ -35,6 +35,11 @@ def predictor(spec: str, grid: SensorGrid, device: str = "cpu", precision: str =
     return _PREDICTORS[key]
 
 
+def learned_precision(preds) -> dict[str, str]:
+    """{predictor name: fp32 | bf16} of the learned predictors among ``preds``, as they compute."""
+    return {p.name: p.precision for p in preds if isinstance(getattr(p, "precision", None), str)}
+
+
 def experiment_processing(models, requested: Processing | str | None = None) -> Processing:
     """The images an experiment simulates: those its learned models were trained on (their cards).
 

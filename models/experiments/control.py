@@ -142,6 +142,7 @@ class ControlResult:
     seconds: float = 0.0
     processing: Processing = field(default_factory=Processing.ertis)  # the images simulated
     rig: RobotRig = RIG  # the robot simulated
+    precision: dict[str, str] = field(default_factory=dict)  # bridging model spec -> fp32 | bf16, as it ran
 
 
 def condition_name(spec: str) -> str:
@@ -159,8 +160,7 @@ def run_control_experiment(models: list[str] | tuple[str, ...] = ("echopt:pretra
     :func:`~.common.experiment_processing`)."""
     grid = grid or SensorGrid.default()
     t0 = time.perf_counter()
-    for m in models:
-        predictor(m, grid, device, precision)  # fail fast on a bad model
+    preds = {m: predictor(m, grid, device, precision) for m in models}  # fail fast on a bad model
     processing = experiment_processing(models, processing)
     conditions = [*CONDITIONS, *(f"bursts+{m}" for m in models)]
     seeds = spawn_seeds(seed, runs)  # run i uses the same spawn, bursts and noise seed in every condition
@@ -169,7 +169,8 @@ def run_control_experiment(models: list[str] | tuple[str, ...] = ("echopt:pretra
     results = parallel_map(run_episode, eps, workers, progress)
     names = {c: condition_name(c.partition("+")[2]) if "+" in c else c for c in conditions}
     by = {names[c]: [dict(r, condition=names[c]) for r in results if r["condition"] == c] for c in conditions}
-    res = ControlResult(", ".join(models), runs, by, gains=ControllerGains().to_dict(), processing=processing)
+    res = ControlResult(", ".join(models), runs, by, gains=ControllerGains().to_dict(), processing=processing,
+                        precision={m: p.precision for m, p in preds.items() if isinstance(getattr(p, "precision", None), str)})
     res.summary, res.comparisons, res.detector = summarise(by, seed)
     res.seconds = time.perf_counter() - t0
     return res

@@ -26,7 +26,8 @@ PER_RUN_KEYS = ("index", "condition", "outcome", "travel_time_s", "midline_devia
 def write_control_report(res: ControlResult, out: str | os.PathLike) -> Path:
     """metrics.json, fig6_control.png and report.md in ``out`` (created)."""
     lines = [*outcome_table(res), *tests_table(res), *detector_and_gains(res),
-             "", f"![Fig. 6]({FIGURE})", "", f"{res.seconds:.0f} s in all."]
+             "", f"![Fig. 6]({FIGURE})", "", f"{res.seconds:.0f} s in all"
+             + "".join(f"; {m} computed in {p}" for m, p in res.precision.items()) + "."]
     return write_outputs(out, control_metrics(res), fig6(res), FIGURE, lines)
 
 
@@ -36,7 +37,7 @@ def control_metrics(res: ControlResult) -> dict:
     return {"experiment": "control", "model": res.model, "runs": res.runs, "conditions": list(res.episodes),
             "summary": res.summary, "tests": res.comparisons, "burst_detector": res.detector,
             "controller_gains": res.gains, "processing": res.processing.model_dump(), "per_run": per_run,
-            "seconds": res.seconds}
+            "precision": res.precision, "seconds": res.seconds}
 
 
 def outcome_table(res: ControlResult) -> list[str]:

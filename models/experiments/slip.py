@@ -39,7 +39,7 @@ from sonarset.sim.families import lab_world
 from sonarset.stats import auc, holm, wilcoxon_p
 
 from ..baselines import Predictor, rollout
-from .common import RIG, experiment_processing, mean_ci, parallel_map, predictor
+from .common import RIG, experiment_processing, learned_precision, mean_ci, parallel_map, predictor
 
 HORIZONS = (1, 3, 5)
 KINDS = ("both", "one")
@@ -201,6 +201,7 @@ class SlipResult:
     seconds: float = 0.0
     processing: Processing = field(default_factory=Processing.ertis)  # the images simulated
     rig: RobotRig = RIG  # the robot simulated
+    precision: dict[str, str] = field(default_factory=dict)  # learned predictor -> fp32 | bf16, as it ran
 
 
 def run_slip_experiment(models: list[str], trials: int = 30, seed: int = 0, grid: SensorGrid | None = None,
@@ -213,14 +214,16 @@ def run_slip_experiment(models: list[str], trials: int = 30, seed: int = 0, grid
     :func:`~.common.experiment_processing`)."""
     grid = grid or SensorGrid.default()
     t0 = time.perf_counter()
-    names = [predictor(m, grid, device, precision).name for m in models]  # fail fast on a bad model
+    preds = [predictor(m, grid, device, precision) for m in models]  # fail fast on a bad model
+    names = [p.name for p in preds]
     processing = experiment_processing(models, processing)
     seeds = spawn_seeds(seed, trials + 1)
     tasks = [_Task(paper_trial(seeds[0]), grid, tuple(models), snr_db, device, True, processing, precision)]
     tasks += [_Task(random_trial(s), grid, tuple(models), snr_db, device, False, processing, precision)
               for s in seeds[1:]]
     results = parallel_map(_run_trial, tasks, workers, progress)
-    res = SlipResult(list(models), names, trials, results[0], [r["auc"] for r in results[1:]], processing=processing)
+    res = SlipResult(list(models), names, trials, results[0], [r["auc"] for r in results[1:]], processing=processing,
+                     precision=learned_precision(preds))
     res.summary, res.comparisons = summarise(res.per_trial, names, seed)
     res.signal_ratios = signal_ratios(res.paper, names)
     res.seconds = time.perf_counter() - t0

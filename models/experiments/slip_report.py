@@ -24,7 +24,8 @@ FIGURE = "fig5_slip.png"
 def write_slip_report(res: SlipResult, out: str | os.PathLike) -> Path:
     """metrics.json, fig5_slip.png and report.md in ``out`` (created)."""
     lines = [*auc_table(res), *tests_table(res), *paper_trajectory_table(res),
-             "", f"![Fig. 5]({FIGURE})", "", f"{res.seconds:.0f} s in all."]
+             "", f"![Fig. 5]({FIGURE})", "", f"{res.seconds:.0f} s in all"
+             + "".join(f"; {m} computed in {p}" for m, p in res.precision.items()) + "."]
     return write_outputs(out, slip_metrics(res), fig5(res), FIGURE, lines)
 
 
@@ -41,6 +42,7 @@ def slip_metrics(res: SlipResult) -> dict:
         "per_trial_auc": res.per_trial,
         "paper_trajectory": {"trial": res.paper["trial"], "signal_ratio": res.signal_ratios},
         "processing": res.processing.model_dump(),
+        "precision": res.precision,
         "seconds": res.seconds,
     }
 
