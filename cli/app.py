@@ -64,10 +64,10 @@ def info(
     out.print(f"[bold]{s.location}[/]  SonarSet {s.format_version}  ({s.attrs.created_by or 'unknown writer'})")
     for line in describe_sensing(s):
         out.print(line, highlight=False)
-    table = Table("run", "split", "frames", "duration", "images", "optional")
+    table = Table("run", "split", "world", "frames", "duration", "images", "optional")
     for r in summary["runs"]:
-        table.add_row(r["name"], r["split"], str(r["frames"]), f"{r['duration_s']:.1f} s", r["image_dtype"],
-                      ", ".join(r["optional"]) or "-")
+        table.add_row(r["name"], r["split"], r["world"] or "-", str(r["frames"]), f"{r['duration_s']:.1f} s",
+                      r["image_dtype"], ", ".join(r["optional"]) or "-")
     out.print(table)
     out.print(f"{len(summary['runs'])} complete run(s), {summary['frames']} frames, {human_bytes(summary['bytes'])} on disk")
     incomplete = summary["incomplete_runs"]

@@ -25,10 +25,20 @@ def store_summary(store: SonarStore) -> dict:
         "runs": [{"name": r.name, "split": r.split, "frames": r.n_frames,
                   "duration_s": float(r.read_time()[-1] - r.read_time()[0]),
                   "image_dtype": str(r.images.dtype),
-                  "optional": [k for k in ("pose", "snr_db", "slip") if r.has(k)]} for r in runs],
+                  "optional": [k for k in ("pose", "snr_db", "slip") if r.has(k)],
+                  "world": _world_label(r.attrs.source)} for r in runs],
         "incomplete_runs": sorted(set(store.runs(include_incomplete=True)) - set(complete)),
         "frames": sum(r.n_frames for r in runs), "bytes": store.nbytes_stored(),
     }
+
+
+def _world_label(source: dict | None) -> str | None:
+    """``orchard #4521`` for a simulated run's world family and variant; None where none is recorded."""
+    source = source or {}
+    if "world" not in source:
+        return None
+    seed = source.get("world_seed")
+    return f"{source['world']}" + (f" #{seed}" if seed is not None else "")
 
 
 def describe_sensing(store: SonarStore) -> list[str]:

@@ -129,3 +129,13 @@ def test_generate_and_eval_cli_take_worlds(mixed_store, tmp_path):
     assert r.exit_code == 0, r.output
     report = (tmp_path / "o" / "report.md").read_text()
     assert "(test_000), worlds orchard;" in report
+
+
+def test_info_names_each_runs_world(mixed_store):
+    r = CliRunner().invoke(app, ["info", mixed_store.location, "--json"])
+    assert r.exit_code == 0, r.output
+    import json
+
+    worlds = {run["name"]: run["world"] for run in json.loads(r.output)["runs"]}
+    seed = mixed_store.run("run_001").attrs.source["world_seed"]
+    assert worlds["run_000"].startswith("orchard #") and worlds["run_001"] == f"warehouse #{seed}"
