@@ -77,10 +77,15 @@ def find_echoes(images: np.ndarray, grid: SensorGrid, matching: EchoMatching = E
     if n == 0:
         empty = np.empty(0)
         return Peaks(np.empty(0, np.int64), empty, empty, len(x))
-    centres = np.asarray(ndimage.center_of_mass(mask, labels, np.arange(1, n + 1)), float).reshape(n, 3)
-    r = grid.range_min_m + (centres[:, 1] + 0.5) * grid.range_step
-    az = np.degrees(grid.azimuth_min_rad + (centres[:, 2] + 0.5) * grid.azimuth_step)
-    return Peaks(np.rint(centres[:, 0]).astype(np.int64), r, az, len(x))
+    # each plateau's centre: the mean position of its pixels (bincount: ndimage.center_of_mass
+    # costs 6x more, one Python call per label)
+    img, ri, ai = np.nonzero(mask)
+    lab = labels[img, ri, ai]
+    count = np.bincount(lab, minlength=n + 1)[1:]
+    centre = [np.bincount(lab, weights=v, minlength=n + 1)[1:] / count for v in (img, ri, ai)]
+    r = grid.range_min_m + (centre[1] + 0.5) * grid.range_step
+    az = np.degrees(grid.azimuth_min_rad + (centre[2] + 0.5) * grid.azimuth_step)
+    return Peaks(np.rint(centre[0]).astype(np.int64), r, az, len(x))
 
 
 def match_echoes(pred: Peaks, target: Peaks, matching: EchoMatching = EchoMatching()) -> dict[str, np.ndarray]:
