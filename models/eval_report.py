@@ -40,7 +40,7 @@ CEILING_MEANING = ("noise ceiling: each target frame re-rendered from its run's 
                    "with an independent noise draw, scored against the recorded frame; it shows how much "
                    "of a frame is predictable at all (the same scene, only the noise differs).")
 OBSERVABLE_MEANING = ("observable ceiling: each target frame re-rendered at its true pose from only the "
-                      "reflectors that produced an echo above the sensor noise in the window's context frames "
+                      "reflectors that produced an echo within the image's display range in the window's context frames "
                       "(heard stretches of walls, heard circles), with an independent noise draw; it shows how "
                       "much of a frame the context could know. The noise ceiling minus it is what enters the "
                       "view during the rollout, which no predictor from this context can know.")
