@@ -70,19 +70,25 @@ def find_echoes(images: np.ndarray, grid: SensorGrid, matching: EchoMatching = E
     half_a = max(1, int(np.ceil(np.radians(matching.azimuth_tol_deg) / grid.azimuth_step - 1e-9)))
     local_max = ndimage.maximum_filter(x, size=(1, 2 * half_r + 1, 2 * half_a + 1), mode="constant", cval=-np.inf)
     mask = (x >= local_max) & (x >= matching.level)
-    # one echo per connected plateau of maxima, within an image (no connection across images)
-    structure = np.zeros((3, 3, 3), bool)
-    structure[1] = True
-    labels, n = ndimage.label(mask, structure=structure)
-    if n == 0:
+    img, ri, ai = np.nonzero(mask)
+    if not len(img):
         empty = np.empty(0)
         return Peaks(np.empty(0, np.int64), empty, empty, len(x))
-    # each plateau's centre: the mean position of its pixels (bincount: ndimage.center_of_mass
-    # costs 6x more, one Python call per label)
-    img, ri, ai = np.nonzero(mask)
-    lab = labels[img, ri, ai]
-    count = np.bincount(lab, minlength=n + 1)[1:]
-    centre = [np.bincount(lab, weights=v, minlength=n + 1)[1:] / count for v in (img, ri, ai)]
+    # one echo per connected plateau of maxima, within an image (no connection across images);
+    # most maxima are single pixels, and then labelling (a third of the cost) is skipped
+    touching = (mask[:, 1:] & mask[:, :-1]).any() or (mask[:, :, 1:] & mask[:, :, :-1]).any() or \
+        (mask[:, 1:, 1:] & mask[:, :-1, :-1]).any() or (mask[:, 1:, :-1] & mask[:, :-1, 1:]).any()
+    if not touching:
+        centre = [img, ri, ai]
+    else:
+        structure = np.zeros((3, 3, 3), bool)
+        structure[1] = True
+        labels, n = ndimage.label(mask, structure=structure)
+        # each plateau's centre: the mean position of its pixels (bincount: ndimage.center_of_mass
+        # costs 6x more, one Python call per label)
+        lab = labels[img, ri, ai]
+        count = np.bincount(lab, minlength=n + 1)[1:]
+        centre = [np.bincount(lab, weights=v, minlength=n + 1)[1:] / count for v in (img, ri, ai)]
     r = grid.range_min_m + (centre[1] + 0.5) * grid.range_step
     az = np.degrees(grid.azimuth_min_rad + (centre[2] + 0.5) * grid.azimuth_step)
     return Peaks(np.rint(centre[0]).astype(np.int64), r, az, len(x))
