@@ -398,13 +398,13 @@ def _ceiling_scores(store: SonarStore, bank: FrameBank, index: WindowIndex, ids:
                     horizons: tuple[int, ...], seed: int, batch_size: int, matching: EchoMatching, progress=None):
     """({"ceiling": scores, "observable": scores}, {name: seconds}) of the two ceilings (per-window
     scores, NaN for windows of runs they cannot re-render), or (None, None) when no run can be
-    re-rendered; and {run: reason} for the runs skipped.
+    re-rendered; the third item is {run: reason} for the runs skipped.
 
     At horizon h, window w's target is frame k_w + n_in + h - 1 of its run. The noise ceiling
     renders each such frame once, in batches; the observable ceiling renders each window's targets
     from the reflectors its own context frames k_w .. k_w + n_in - 1 heard.
     """
-    from sonarset.ceiling import _OBSERVABLE_TAG, CeilingUnavailable, RunRenderer
+    from sonarset.ceiling import OBSERVABLE_STREAM, CeilingUnavailable, RunRenderer
 
     n_in = index.n_in
     run_of = np.array([r for r, _ in ids])
@@ -414,7 +414,8 @@ def _ceiling_scores(store: SonarStore, bank: FrameBank, index: WindowIndex, ids:
     todo = []
     for name in bank.run_names:
         try:
-            todo.append((RunRenderer(store, name, seed), RunRenderer(store, name, seed, stream=_OBSERVABLE_TAG)))
+            r = RunRenderer(store, name, seed)
+            todo.append((r, r.with_stream(OBSERVABLE_STREAM)))
         except CeilingUnavailable as exc:
             skipped[name] = str(exc)
     if not todo:

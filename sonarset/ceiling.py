@@ -21,6 +21,7 @@ a one-line reason. This module does not import torch.
 
 from __future__ import annotations
 
+import copy
 import zlib
 
 import numpy as np
@@ -35,7 +36,7 @@ CEILINGS = (CEILING, OBSERVABLE)
 #: Spawn-key tags of the ceilings' noise streams: with the eval seed as entropy, they are
 #: independent of every stream the simulator drew the recorded frames from, and of each other.
 _STREAM_TAG = 0x6365696C  # "ceil"
-_OBSERVABLE_TAG = 0x6F627376  # "obsv"
+OBSERVABLE_STREAM = 0x6F627376  # "obsv"
 _NEEDS = ("world", "world_seed", "snr_db")
 
 
@@ -92,8 +93,9 @@ class RunRenderer:
         self.poses = np.asarray(run.read("pose"), float)  # checked: a corrupt pose is refused, not rendered
         self.image_dtype = run.images.dtype
         self.shape = store.grid.shape
+        self._seed = int(seed) & (2 ** 128 - 1)
         self.rng = np.random.Generator(np.random.SFC64(np.random.SeedSequence(
-            int(seed) & (2 ** 128 - 1), spawn_key=(stream, zlib.crc32(name.encode())))))
+            self._seed, spawn_key=(stream, zlib.crc32(name.encode())))))
 
     def render(self, frames: np.ndarray) -> np.ndarray:
         """Frames ``frames`` (indices into the run) rendered again with fresh noise: float32
@@ -111,6 +113,14 @@ class RunRenderer:
             self.model.render_batch(self.world, self.poses[frames], self.rng, out=out)
         return out.astype(np.float32, copy=False)
 
+
+    def with_stream(self, stream: int) -> "RunRenderer":
+        """The same run's renderer with its own noise stream ``stream`` (the world, poses and
+        sonar model shared, not rebuilt)."""
+        other = copy.copy(self)
+        other.rng = np.random.Generator(np.random.SFC64(np.random.SeedSequence(
+            self._seed, spawn_key=(stream, zlib.crc32(self.name.encode())))))
+        return other
 
     def render_observed(self, context: np.ndarray, frames: np.ndarray) -> np.ndarray:
         """Frames ``frames`` re-rendered from only what the run's frames ``context`` heard (the

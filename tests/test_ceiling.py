@@ -164,7 +164,12 @@ def test_observed_world_keeps_only_what_the_context_heard():
 
 
 def test_observable_ceiling_on_a_window(sim):
-    r = RunRenderer(sim, "test_000", seed=4, stream=0x6F627376)
+    from sonarset.ceiling import OBSERVABLE_STREAM
+
+    r = RunRenderer(sim, "test_000", seed=4).with_stream(OBSERVABLE_STREAM)
+    again = RunRenderer(sim, "test_000", seed=4, stream=OBSERVABLE_STREAM)
+    assert np.array_equal(r.render_observed(np.arange(7, 10), np.array([10])),
+                          again.render_observed(np.arange(7, 10), np.array([10])))
     target = sim.run("test_000").read("images", 10, 20).astype(np.float32)
     from sonarset.metrics import cc
 
