@@ -162,6 +162,17 @@ class Block(nn.Module):
         return x + self.ff(self.ln2(x))
 
 
+class GELU(nn.GELU):
+    """``nn.GELU`` that runs a channels-last image as the dense (B, H, W, C) tensor it is: the
+    elementwise kernel is ~1.8x faster on it than on the strided NCHW view (bf16, 16 x 8 x 200 x 90,
+    one thread), with the same values."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.dim() == 4 and not x.is_contiguous() and x.is_contiguous(memory_format=torch.channels_last):
+            return F.gelu(x.permute(0, 2, 3, 1), approximate=self.approximate).permute(0, 3, 1, 2)
+        return F.gelu(x, approximate=self.approximate)
+
+
 def conv(cin: int, cout: int, kernel: tuple[int, int]) -> nn.Conv2d:
     return nn.Conv2d(cin, cout, kernel, padding="same")
 
@@ -180,18 +191,19 @@ class EchoPT(nn.Module):
         self.ln_f = nn.LayerNorm(cfg.d_model)
         self.unembed = nn.Linear(cfg.d_model, pr * pa, bias=False)
         c1, c2 = cfg.tf_channels
-        self.tf_convs = nn.Sequential(conv(1, c1, k), nn.GELU(), conv(c1, c2, k), nn.GELU())
+        self.tf_convs = nn.Sequential(conv(1, c1, k), GELU(), conv(c1, c2, k), GELU())
         # convolutional branch over the frame stack (two layers; both feed the head: 16 + 16)
         fc = cfg.frame_channels
         self.frame_conv1 = conv(cfg.n_in, fc, k)
         self.frame_conv2 = conv(fc, fc, k)
+        self.frame_act = GELU()
         # command MLP
         self.mlp = nn.Sequential(nn.Linear(cfg.n_cmd, cfg.mlp_hidden), nn.GELU(),
                                  nn.Linear(cfg.mlp_hidden, cfg.mlp_hidden), nn.GELU(),
                                  nn.Linear(cfg.mlp_hidden, cfg.mlp_out))
         # head over the depth-concatenation: c2 + 2 fc + 1 channels (32 + 32 + 1 = 65 in the paper)
         h1, h2 = cfg.head_channels
-        self.head = nn.Sequential(conv(c2 + 2 * fc + 1, h1, k), nn.GELU(), conv(h1, h2, k), nn.GELU(), conv(h2, 1, k))
+        self.head = nn.Sequential(conv(c2 + 2 * fc + 1, h1, k), GELU(), conv(h1, h2, k), GELU(), conv(h2, 1, k))
         self.register_buffer("cmd_scale", torch.tensor([1 / V_SCALE, 1 / W_SCALE] * (cfg.n_in + 1)), persistent=False)
         # pixel centres of the grid (range [m], azimuth [rad]) for the flow prior
         (r0, r1), (a0, a1) = cfg.range_edges, cfg.azimuth_edges
@@ -239,8 +251,8 @@ class EchoPT(nn.Module):
         img = pix.view(B, gr, ga, pr, pa).permute(0, 1, 3, 2, 4).reshape(B, 1, R, A)
         t = self.tf_convs(img)
         # convolutional branch
-        f1 = F.gelu(self.frame_conv1(frames))
-        f2 = F.gelu(self.frame_conv2(f1))
+        f1 = self.frame_act(self.frame_conv1(frames))
+        f2 = self.frame_act(self.frame_conv2(f1))
         # command branch, resized to the grid
         side = int(math.sqrt(cfg.mlp_out / 2))
         m = self.mlp(c).view(B, 1, 2 * side, side) if 2 * side * side == cfg.mlp_out else self.mlp(c).view(B, 1, cfg.mlp_out, 1)

@@ -20,7 +20,7 @@ from sonarset.arrays import FRAME_INTERVAL_TOLERANCE
 from sonarset.ceiling import CEILING, CEILINGS, OBSERVABLE
 from sonarset.echoes import ECHO_METRICS, EchoMatching, echo_scores, find_echoes
 from sonarset.errors import FormatError, SonarSetError
-from sonarset.metrics import cc, nrmsd
+from sonarset.metrics import cc_and_nrmsd
 from sonarset.report import horizon_name
 from sonarset.schema import RobotRig
 from sonarset.stats import Comparison, compare, holm
@@ -390,8 +390,8 @@ class _Scores:
 def score_images(pred: np.ndarray, target: np.ndarray, grid, matching: EchoMatching,
                  target_echoes=None) -> dict[str, np.ndarray]:
     """{metric in METRICS: (N,) per-image values} of predictions against targets, both (N, R, A)."""
-    return {"cc": cc(pred, target), "nrmsd": nrmsd(pred, target),
-            **echo_scores(pred, target, grid, matching, target_echoes)}
+    cc, nrmsd = cc_and_nrmsd(pred, target)
+    return {"cc": cc, "nrmsd": nrmsd, **echo_scores(pred, target, grid, matching, target_echoes)}
 
 
 def _ceiling_scores(store: SonarStore, bank: FrameBank, index: WindowIndex, ids: list[tuple[str, int]],

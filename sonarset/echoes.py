@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from .schema import SensorGrid
 
@@ -68,30 +70,74 @@ def find_echoes(images: np.ndarray, grid: SensorGrid, matching: EchoMatching = E
     x = x.reshape(-1, *x.shape[-2:])
     half_r = max(1, int(np.ceil(matching.range_tol_m / grid.range_step - 1e-9)))
     half_a = max(1, int(np.ceil(np.radians(matching.azimuth_tol_deg) / grid.azimuth_step - 1e-9)))
-    local_max = ndimage.maximum_filter(x, size=(1, 2 * half_r + 1, 2 * half_a + 1), mode="constant", cval=-np.inf)
-    mask = (x >= local_max) & (x >= matching.level)
-    img, ri, ai = np.nonzero(mask)
-    if not len(img):
-        empty = np.empty(0)
-        return Peaks(np.empty(0, np.int64), empty, empty, len(x))
-    # one echo per connected plateau of maxima, within an image (no connection across images);
-    # most maxima are single pixels, and then labelling (a third of the cost) is skipped
-    touching = (mask[:, 1:] & mask[:, :-1]).any() or (mask[:, :, 1:] & mask[:, :, :-1]).any() or \
-        (mask[:, 1:, 1:] & mask[:, :-1, :-1]).any() or (mask[:, 1:, :-1] & mask[:, :-1, 1:]).any()
-    if not touching:
+    idx = _local_maxima(x, half_r, half_a, matching.level)
+    _, R, A = x.shape
+    img, rem = np.divmod(idx, R * A)
+    ri, ai = np.divmod(rem, A)
+    plateau = _plateaus(idx, ri, ai, R, A)
+    if plateau is None:  # the usual case: every maximum a single pixel
         centre = [img, ri, ai]
-    else:
-        structure = np.zeros((3, 3, 3), bool)
-        structure[1] = True
-        labels, n = ndimage.label(mask, structure=structure)
-        # each plateau's centre: the mean position of its pixels (bincount: ndimage.center_of_mass
-        # costs 6x more, one Python call per label)
-        lab = labels[img, ri, ai]
-        count = np.bincount(lab, minlength=n + 1)[1:]
-        centre = [np.bincount(lab, weights=v, minlength=n + 1)[1:] / count for v in (img, ri, ai)]
+    else:  # one echo per connected plateau of maxima, at the mean position of its pixels
+        n = int(plateau.max()) + 1
+        count = np.bincount(plateau, minlength=n)
+        centre = [np.bincount(plateau, weights=v, minlength=n) / count for v in (img, ri, ai)]
     r = grid.range_min_m + (centre[1] + 0.5) * grid.range_step
     az = np.degrees(grid.azimuth_min_rad + (centre[2] + 0.5) * grid.azimuth_step)
-    return Peaks(np.rint(centre[0]).astype(np.int64), r, az, len(x))
+    return Peaks(np.rint(centre[0]).astype(np.int64), np.asarray(r, float), np.asarray(az, float), len(x))
+
+
+#: Above this share of candidate pixels (>= level), one maximum filter over the whole batch is
+#: cheaper than comparing each candidate with its window (measured break-even ~25% on smooth
+#: images; sonar frames hold ~2.5%, where the comparison is 5x faster).
+_SPARSE_SHARE = 0.25
+
+
+def _local_maxima(x: np.ndarray, half_r: int, half_a: int, level: float) -> np.ndarray:
+    """The sorted flat indices into ``x`` (N, R, A) of the pixels >= ``level`` that are the largest
+    within +-half_r range and +-half_a azimuth bins (the window clipped to the image, as a maximum
+    filter padded with -inf would have it)."""
+    flat = x.reshape(-1)
+    idx = np.flatnonzero(flat >= level)
+    if len(idx) > _SPARSE_SHARE * flat.size:
+        local_max = ndimage.maximum_filter(x, size=(1, 2 * half_r + 1, 2 * half_a + 1), mode="constant",
+                                           cval=-np.inf)
+        return idx[flat[idx] >= local_max.reshape(-1)[idx]]
+    # Only candidates can be echoes. Each is compared with its window ring by ring, nearest first,
+    # and dropped at its first larger neighbour: most fall in the first ring. An index clipped at
+    # an edge lands on a pixel inside both the image and the window, so the maximum is the filter's.
+    _, R, A = x.shape
+    img, rem = np.divmod(idx, R * A)
+    ri, ai = np.divmod(rem, A)
+    base, value = img * (R * A), flat[idx]
+    for ring in range(1, max(half_r, half_a) + 1):
+        keep = np.ones(len(idx), bool)
+        for dr in range(-min(ring, half_r), min(ring, half_r) + 1):
+            row = base + np.clip(ri + dr, 0, R - 1) * A
+            das = range(-min(ring, half_a), min(ring, half_a) + 1) if abs(dr) == ring else \
+                [d for d in (-ring, ring) if ring <= half_a]
+            for da in das:
+                keep &= flat[row + np.clip(ai + da, 0, A - 1)] <= value
+        idx, ri, ai, base, value = idx[keep], ri[keep], ai[keep], base[keep], value[keep]
+    return idx
+
+
+def _plateaus(idx: np.ndarray, ri: np.ndarray, ai: np.ndarray, R: int, A: int) -> np.ndarray | None:
+    """The plateau number of each maximum (``idx`` sorted flat indices; 8-connected within an
+    image, numbered in raster order as ``ndimage.label`` would), or None when no two touch."""
+    src, dst = [], []
+    for dr, da in ((0, 1), (1, -1), (1, 0), (1, 1)):  # each neighbouring pair once
+        inside = (ri + dr < R) & (ai + da >= 0) & (ai + da < A)
+        nb = idx + dr * A + da
+        at = np.minimum(np.searchsorted(idx, nb), len(idx) - 1)
+        hit = inside & (idx[at] == nb) if len(idx) else inside
+        src.append(np.flatnonzero(hit))
+        dst.append(at[hit])
+    src, dst = np.concatenate(src), np.concatenate(dst)
+    if not len(src):
+        return None
+    graph = coo_matrix((np.ones(len(src), np.int8), (src, dst)), shape=(len(idx), len(idx)))
+    # components are numbered in order of their first node, and nodes are in raster order
+    return connected_components(graph, directed=False)[1]
 
 
 def match_echoes(pred: Peaks, target: Peaks, matching: EchoMatching = EchoMatching()) -> dict[str, np.ndarray]:

@@ -81,3 +81,39 @@ def test_batches_score_each_pair_on_its_own():
     a, b = echo_image((40, 20, 0.8)), echo_image((120, 70, 0.6), (60, 30, 0.7))
     batch = echo_scores(np.stack([a, b, a]), np.stack([a, b, b]), GRID, MATCH)
     assert batch["echo_f1"].tolist() == [1.0, 1.0, 0.0]
+
+
+def reference_echoes(x, half_r, half_a, level):
+    """Echo detection the plain way: a maximum filter, ndimage.label, ndimage.center_of_mass."""
+    from scipy import ndimage
+
+    local_max = ndimage.maximum_filter(x, size=(1, 2 * half_r + 1, 2 * half_a + 1), mode="constant", cval=-np.inf)
+    structure = np.zeros((3, 3, 3), bool)
+    structure[1] = True
+    labels, n = ndimage.label((x >= local_max) & (x >= level), structure=structure)
+    return np.array(ndimage.center_of_mass(np.ones_like(x), labels, range(1, n + 1))).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("share", [0.01, 0.05, 0.3])
+def test_detection_matches_a_plain_maximum_filter(monkeypatch, share):
+    """find_echoes compares only pixels >= level with their windows when they are few, and groups
+    plateaus on a sparse graph: both paths must give the plain detection, edges (clipped windows),
+    touching plateaus and ties included."""
+    import sonarset.echoes as echoes
+
+    rng = np.random.default_rng(7)
+    x = rng.random((6, *GRID.shape)).astype(np.float32) * 0.25
+    hot = rng.random(x.shape) < share
+    x[hot] = rng.choice([0.3, 0.5, 0.9, 1.0], size=int(hot.sum())).astype(np.float32)  # ties, plateaus
+    x[:, 0, :5] = x[:, -1, -5:] = 1.0  # plateaus on the image's edges and corners
+    x[2, 50:53, 30] = 1.0
+    x[2, 53, 31] = 1.0  # a diagonal touch
+    want = reference_echoes(x, 5, 3, MATCH.level)  # 10 cm / 2.25 cm bins, rounded up; 6 deg / 2 deg bins
+    assert len(want) > 10
+    for threshold in (1.0, 0.0):  # the sparse path, then the filter
+        monkeypatch.setattr(echoes, "_SPARSE_SHARE", threshold)
+        got = find_echoes(x, GRID, MATCH)
+        np.testing.assert_array_equal(got.image, np.rint(want[:, 0]))
+        np.testing.assert_allclose(got.range_m, GRID.range_min_m + (want[:, 1] + 0.5) * GRID.range_step, atol=1e-12)
+        np.testing.assert_allclose(got.azimuth_deg, np.degrees(GRID.azimuth_min_rad + (want[:, 2] + 0.5)
+                                                              * GRID.azimuth_step), atol=1e-9)

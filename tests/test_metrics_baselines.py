@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from sonarset.metrics import cc, nrmsd, slip_error
+from sonarset.metrics import cc, cc_and_nrmsd, nrmsd, slip_error
 from sonarset.schema import RobotRig, SensorGrid
 from sonarset.stats import auc, compare, holm, mcnemar_p, wilson_interval
 from sonarset.windows import N_IN
@@ -31,6 +31,25 @@ def test_cc_nrmsd_slip_by_hand():
     assert cc(batch, batch).shape == (3, 4) and np.allclose(cc(batch, batch), 1)
     assert np.allclose(nrmsd(batch, batch), 0)
     assert cc(-batch, batch) == pytest.approx(-np.ones((3, 4)))
+
+
+def test_the_one_pass_scores_match_the_textbook_formulas():
+    """cc_and_nrmsd works from centred moments: it must equal the direct definitions, for
+    near-identical images (where ||p - m|| cancels), constant images (NaN cc) and empty targets."""
+    rng = np.random.default_rng(3)
+    m = (rng.random((5, 40, 30)) ** 6).astype(np.float32)
+    preds = [rng.random(m.shape).astype(np.float32), m + np.float32(1e-4) * rng.random(m.shape).astype(np.float32), m]
+    for p in preds:
+        pf, mf = p.reshape(5, -1).astype(np.float64), m.reshape(5, -1).astype(np.float64)
+        pc, mc = pf - pf.mean(1, keepdims=True), mf - mf.mean(1, keepdims=True)
+        want_cc = (pc * mc).sum(1) / np.sqrt((pc ** 2).sum(1) * (mc ** 2).sum(1))
+        want_nrmsd = np.linalg.norm(pf - mf, axis=1) / np.linalg.norm(mf, axis=1)
+        got_cc, got_nrmsd = cc_and_nrmsd(p, m)
+        np.testing.assert_allclose(got_cc, want_cc, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(got_nrmsd, want_nrmsd, rtol=1e-7, atol=1e-12)
+    flat, empty = np.full((4, 3), 0.5), np.zeros((4, 3))
+    assert math.isnan(cc(flat, m[0, :4, :3])) and nrmsd(flat, flat) == 0.0
+    assert math.isinf(nrmsd(flat, empty)) and math.isnan(nrmsd(empty, empty))
 
 
 def test_holm_and_paired_comparison():
