@@ -9,6 +9,7 @@ energy at every step.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import os
 import time
 from dataclasses import dataclass, field
 from itertools import combinations
@@ -466,12 +467,17 @@ def _ceiling_scores(store: SonarStore, bank: FrameBank, index: WindowIndex, ids:
 
 
 def _compare_all(res: EvalResult, seed: int) -> list[Comparison]:
-    comps = []
-    for h in res.horizons:
-        for a, b in combinations(res.predictors, 2):  # the noise ceiling is no predictor
-            for k in METRICS:
-                comps.append(compare(res.per_window[a][h][k], res.per_window[b][h][k], metric=k,
-                                     horizon=h, names=(a, b), seed=seed))
+    pairs = [(h, a, b, k) for h in res.horizons for a, b in combinations(res.predictors, 2)  # ceilings: no predictors
+             for k in METRICS]
+
+    def one(pair: tuple) -> Comparison:
+        h, a, b, k = pair
+        return compare(res.per_window[a][h][k], res.per_window[b][h][k], metric=k, horizon=h, names=(a, b), seed=seed)
+
+    # the bootstraps (168 in the demo) spend their time in NumPy, which releases the GIL; each is
+    # seeded on its own, so the threads change no value
+    with cf.ThreadPoolExecutor(min(4, os.cpu_count() or 1)) as pool:
+        comps = list(pool.map(one, pairs))
     for c, p in zip(comps, holm([c.t_paired_p for c in comps])):
         c.p_holm = p
     return comps
