@@ -32,7 +32,9 @@ ERTIS = Processing.ertis()
 SETTINGS = {
     "raw (delay-and-sum, no post-processing)": Processing.raw(),
     "ertis (default)": ERTIS,
-    "toolbox smoothing 0.38 m x 7 deg": ERTIS.model_copy(update={"smoothing_range_m": 0.38, "smoothing_azimuth_deg": 7.0}),
+    # the toolbox's filterSize [101, 7] is a sigma in decimated samples x direction columns, 2 deg apart
+    "toolbox smoothing 0.385 m x 14 deg": ERTIS.model_copy(update={"smoothing_range_m": 0.385,
+                                                                   "smoothing_azimuth_deg": 14.0}),
     "smoothing 0.045 m x 2 deg": ERTIS.model_copy(update={"smoothing_range_m": 0.045}),
     "smoothing 0.09 m x 4 deg": ERTIS.model_copy(update={"smoothing_range_m": 0.09, "smoothing_azimuth_deg": 4.0}),
     "no smoothing": ERTIS.model_copy(update={"smoothing_range_m": 0.0, "smoothing_azimuth_deg": 0.0}),
