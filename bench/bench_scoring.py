@@ -45,15 +45,15 @@ def per_image_ms(fn, batches: list, n_images: int, rounds: int) -> float:
     return 1e3 * best / n_images
 
 
+DEFAULT_SHARE = echoes._SPARSE_SHARE
+
+
 def detection(x: np.ndarray, grid: SensorGrid, sparse: bool):
     echoes._SPARSE_SHARE = 1.0 if sparse else 0.0
     try:
         return find_echoes(x, grid)
     finally:
         echoes._SPARSE_SHARE = DEFAULT_SHARE
-
-
-DEFAULT_SHARE = echoes._SPARSE_SHARE
 
 
 def main() -> None:

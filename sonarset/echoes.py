@@ -83,7 +83,7 @@ def find_echoes(images: np.ndarray, grid: SensorGrid, matching: EchoMatching = E
         centre = [np.bincount(plateau, weights=v, minlength=n) / count for v in (img, ri, ai)]
     r = grid.range_min_m + (centre[1] + 0.5) * grid.range_step
     az = np.degrees(grid.azimuth_min_rad + (centre[2] + 0.5) * grid.azimuth_step)
-    return Peaks(np.rint(centre[0]).astype(np.int64), np.asarray(r, float), np.asarray(az, float), len(x))
+    return Peaks(np.rint(centre[0]).astype(np.int64), r, az, len(x))
 
 
 #: Above this share of candidate pixels (>= level), one maximum filter over the whole batch is
@@ -128,8 +128,8 @@ def _plateaus(idx: np.ndarray, ri: np.ndarray, ai: np.ndarray, R: int, A: int) -
     for dr, da in ((0, 1), (1, -1), (1, 0), (1, 1)):  # each neighbouring pair once
         inside = (ri + dr < R) & (ai + da >= 0) & (ai + da < A)
         nb = idx + dr * A + da
-        at = np.minimum(np.searchsorted(idx, nb), len(idx) - 1)
-        hit = inside & (idx[at] == nb) if len(idx) else inside
+        at = np.minimum(np.searchsorted(idx, nb), max(len(idx) - 1, 0))
+        hit = inside & (idx[at] == nb)
         src.append(np.flatnonzero(hit))
         dst.append(at[hit])
     src, dst = np.concatenate(src), np.concatenate(dst)
