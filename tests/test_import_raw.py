@@ -24,7 +24,7 @@ from sonarset.raw_recording import load_raw
 from sonarset.rawimport import import_raw
 from sonarset.recording_files import RawSource
 from sonarset.schema import Processing, SensorGrid
-from sonarset.sim.beamform import SignalBeamformer, read_layout_csv
+from sonarset.sim.beamform import SignalBeamformer, read_layout_csv, steering_projection
 from sonarset.sim.reference import microphone_signals, reference_amplitude, write_raw_recording
 from sonarset.sim.sonar import Echoes, SonarModel, sweep
 from sonarset.validate import validate_store
@@ -100,13 +100,66 @@ def test_fast_path_matches_the_exact_one_and_the_reference(beamformer, signals4)
 
 
 def test_reference_bit_identical_after_the_refactor():
-    """reference_amplitude now runs beamform's exact path; these numbers were taken before."""
+    """reference_amplitude runs beamform's exact path; these numbers were taken before that refactor
+    (DAS) and after rectification replaced |hilbert| as DMAS3-CF's detector (issue 24)."""
     grid = SensorGrid(range_min_m=0.5, range_max_m=3.0, n_range=40, azimuth_min_rad=-math.pi / 2,
                       azimuth_max_rad=math.pi / 2, n_azimuth=20)
     e = Echoes(np.array([1.0, 2.2, 2.9]), np.radians([0.0, 35.0, -55.0]), np.array([0.3, 0.15, 0.1]))
     assert reference_amplitude(e, grid, "das", coherent=True).sum() == pytest.approx(0.5979414793429497, rel=1e-12)
     assert reference_amplitude(e, grid, "dmas3-cf", realizations=3, seed=4).sum() == pytest.approx(
-        0.052227299789331, rel=1e-12)
+        0.04566878195254939, rel=1e-12)
+
+
+# ---- the envelope: no streak along a target's azimuth ------------------------------------------
+
+def _point_target(grid, fs, emitted, r, azimuth, n):
+    """Signals (32, n) of one far-field point target of unit amplitude, delays exact (frequency domain)."""
+    from scipy import fft as sfft
+
+    proj = steering_projection(read_layout_csv(), np.array([azimuth]))[0]
+    N = sfft.next_fast_len(n + len(emitted), real=True)
+    f = sfft.rfftfreq(N, 1 / fs)
+    t0 = (2 * r - proj) / 343.0
+    return sfft.irfft(sfft.rfft(emitted, N)[None] * np.exp(-2j * np.pi * f[None] * t0[:, None]), N)[:, :n]
+
+
+@pytest.mark.parametrize("fs,f_start,f_end", [(450e3, 80e3, 20e3), (450e3, 25e3, 50e3), (200e3, 25e3, 50e3)])
+def test_isolated_point_target_column_stays_at_the_floor(fs, f_start, f_end):
+    """After the ertis post-processing, the column through an isolated target at +30 deg stays black
+    away from its range, for both beamformers. At a 450 kHz recording DMAS3's odd harmonics fold onto
+    0 Hz at the 225 kHz output rate; |hilbert| of that baseband spreads it over all ranges (the
+    streak of issue 24), which the rectifier (the toolbox's order, the default) and the square law keep at the echo's range."""
+    from sonarset.raw_recording import chirp
+    from sonarset.sim.sonar import SonarModel
+
+    grid = SensorGrid(range_min_m=0.5, range_max_m=3.5, n_range=120, azimuth_min_rad=-math.pi / 2,
+                      azimuth_max_rad=math.pi / 2, n_azimuth=60)
+    emitted = chirp(f_start, f_end, 0.0025, fs)
+    n = int((2 * grid.range_max_m / 343 + 0.004) * fs)
+    sig = _point_target(grid, fs, emitted, 1.5, math.radians(30), n).astype(np.float32)
+    column = np.argmin(np.abs(grid.azimuth_centres() - math.radians(30)))
+    away = np.abs(grid.range_centres() - 1.5) > 0.3
+
+    def column_away(beamformer, detector=None):
+        sb = SignalBeamformer(grid, read_layout_csv(), emitted, fs, n, beamformer, detector=detector)
+        amp = sb.amplitude(sig)
+        model = SonarModel(grid, processing=Processing.ertis().model_copy(update={"beamformer": beamformer}))
+        px = model.pixels(amp / amp.max())  # the target at full scale: the streak at its strongest
+        assert px.max() > 0.5  # the target itself, bright (smoothing and the azimuth mean lower it)
+        return float(px[away, column].max())
+
+    for beamformer in ("das", "dmas3-cf"):
+        assert column_away(beamformer) < 0.01, beamformer  # under 0.6 dB above the -60 dB floor
+    assert column_away("dmas3-cf", "square") < 0.01  # the square law does the same
+    if fs == 450e3:
+        assert column_away("dmas3-cf", "analytic") > 0.05  # the streak this test is there to catch
+
+
+def test_detector_choices_are_checked():
+    with pytest.raises(ValueError, match="detector must be one of"):
+        SignalBeamformer(SMALL, read_layout_csv(), sweep(FS), FS, 4000, "dmas3-cf", detector="peak")
+    with pytest.raises(ValueError, match="analytic"):
+        SignalBeamformer(SMALL, read_layout_csv(), sweep(FS), FS, 4000, "das", detector="square")
 
 
 # ---- round trip: a simulated run's scene, rendered to microphone signals ------------------------
@@ -142,6 +195,37 @@ def test_round_trip_matches_the_simulators_images(round_trip, capsys):
     # one realization of the echo phases per frame: speckle that the simulator's expected energies lack
     assert np.mean(ccs) >= 0.9 and min(ccs) >= 0.85, ccs
     assert validate_store(imp.location) == []
+
+
+@pytest.mark.parametrize("profile", ["ertis", "raw"])
+def test_signal_path_matches_the_fast_model_like_for_like(round_trip, profile, capsys):
+    """The round trip above compares a noise-free recording of one realization of the echo phases
+    with images that carry the simulator's noise floor (-55 dB re full scale) and no speckle. Like
+    for like: the run's scenes without noise, 4 realizations a frame through import-raw's
+    beamformer, their energy averaged, against the fast model's noise-free images."""
+    from sonarset.sim.families import load_world
+    from sonarset.sim.robot import sensor_pose
+    from sonarset.sim.sonar import visible_echoes
+
+    sim, _, _ = round_trip
+    grid, src = sim.store.grid, sim.attrs.source
+    world = load_world(src["world"], int(src["world_seed"]))
+    proc = Processing.named(profile)
+    model = SonarModel(grid, processing=proc)
+    pixels = (lambda a: model.pixels(a)) if proc.post_processed else (lambda a: model.encode(a * a))
+    sb = None
+    ccs = []
+    for k, pose in enumerate(sim["pose"][:]):
+        echoes = visible_echoes(world, sensor_pose(pose), grid.range_max_m + 0.1)
+        sig = microphone_signals(echoes, grid, seed=k, realizations=4)
+        if sb is None:
+            sb = SignalBeamformer(grid, read_layout_csv(), sweep(FS), FS, sig.shape[2], proc.beamformer)
+        amp = np.sqrt(np.mean([sb.amplitude(x) ** 2 for x in sig], axis=0)).astype(np.float32)
+        ccs.append(_cc(pixels(amp), pixels(model.amplitude(echoes, 1)[0][0])))
+    with capsys.disabled():
+        print(f"\nsignal path vs fast model, noise-free, 4 realizations ({profile}): per frame "
+              f"{np.round(ccs, 3).tolist()}, mean {np.mean(ccs):.3f}")
+    assert np.mean(ccs) >= 0.97 and min(ccs) >= 0.95, ccs
 
 
 def test_pretrained_echopt_evaluates_on_the_imported_run(round_trip):

@@ -7,6 +7,18 @@ coherence factor -> envelope -> envelope low-pass -> sample at the grid's ranges
 2r/c). The energyscape post-processing that follows is an image operation
 (``energyscape.postprocess``).
 
+The envelope (``DETECTORS``): delay-and-sum's output is the analytic signal itself, band-limited to
+the sweep's band, so its modulus is the exact envelope. DMAS3 x CF's output is not band-limited:
+the cube roots make odd harmonics that fold at the output rate (at 225 kHz the fifth of 45 kHz lands
+on 0 Hz) and the coherence factor modulates it, so it has baseband content, and the modulus of its
+analytic signal spreads that into 1/t tails (the Hilbert kernel): a streak along every target's
+azimuth over all ranges that survives the post-processing. So DMAS3-CF is detected as the toolbox
+does it: rectify, low-pass, then decimate (``rectify``; the bin average is the decimation), which
+keeps every echo at its range and gives a lone echo the fast model's range PSF (the low-passed
+envelope). The square law (``square``) keeps echoes at their ranges too, but widens the range PSF
+(the low-pass acts on the energy): a lone echo's bin reads 7% above the fast model's. BENCHMARKS.md,
+"The envelope of DMAS3-CF", has the measurements.
+
 Two implementations of the same stage share the pieces below:
 
 - ``exact``: steering in the frequency domain (exact fractional delays), one inverse FFT per
@@ -103,10 +115,43 @@ def steering(f: np.ndarray, proj: np.ndarray, c: float = C_SOUND) -> np.ndarray:
     return np.exp(-2j * np.pi * f[:, None, None] * proj[None] / c)
 
 
-def sweep_norm(s: np.ndarray, fs: float) -> float:
-    """Peak of the low-passed matched-filter envelope of a lone echo ``s``: a lone echo of amplitude
-    a at a microphone then peaks at a after dividing by it."""
-    return float(envelope_lowpass(np.abs(signal.hilbert(signal.correlate(s, s))), fs).max())
+#: Envelope detectors of a real beamformed signal; each beamformer's default first in ``DEFAULT_DETECTOR``.
+DETECTORS = ("analytic", "square", "rectify")
+DEFAULT_DETECTOR = {"das": "analytic", "dmas3-cf": "rectify"}
+
+
+def check_detector(beamformer: str, detector: str | None) -> str:
+    """The detector ``beamformer`` uses (its default for None); ValueError with a one-line reason."""
+    if beamformer not in BEAMFORMERS:
+        raise ValueError(f"beamformer must be one of {', '.join(BEAMFORMERS)}, got {beamformer!r}")
+    detector = detector or DEFAULT_DETECTOR[beamformer]
+    if detector not in DETECTORS:
+        raise ValueError(f"detector must be one of {', '.join(DETECTORS)}, got {detector!r}")
+    if beamformer == "das" and detector != "analytic":
+        raise ValueError("delay-and-sum sums the analytic channels: its modulus is the envelope (detector 'analytic')")
+    return detector
+
+
+def detect(x: np.ndarray, fs: float, detector: str) -> np.ndarray:
+    """Low-passed envelope of real signals ``x`` along the last axis: ``analytic`` |hilbert(x)|,
+    ``square`` sqrt(2 lowpass(x^2)) (the square law), ``rectify`` pi/2 lowpass(|x|) (the toolbox's
+    order). A carrier of amplitude a gives a with each."""
+    if detector == "analytic":
+        return envelope_lowpass(analytic_envelope(x), fs, axis=-1)
+    if detector == "square":
+        return np.sqrt(np.maximum(2 * envelope_lowpass(np.square(x), fs, axis=-1), 0))
+    if detector == "rectify":
+        return np.pi / 2 * envelope_lowpass(np.abs(x), fs, axis=-1)
+    raise ValueError(f"detector must be one of {', '.join(DETECTORS)}, got {detector!r}")
+
+
+def sweep_norm(s: np.ndarray, fs: float, detector: str = "analytic") -> float:
+    """Peak of the low-passed matched-filter envelope of a lone echo ``s`` through ``detector``: a
+    lone echo of amplitude a at a microphone then peaks at a after dividing by it."""
+    mf = signal.correlate(s, s)
+    if detector == "analytic":
+        return float(envelope_lowpass(np.abs(signal.hilbert(mf)), fs).max())
+    return float(detect(mf, fs, detector).max())
 
 
 def range_samples(grid: SensorGrid, fs: float, n: int, c: float = C_SOUND, start_s: float = 0.0) -> np.ndarray:
@@ -156,7 +201,7 @@ def dmas3_cf(z: np.ndarray, axis: int = 1) -> np.ndarray:
 
 
 def dmas3_cf_envelope(Y: np.ndarray, steer: np.ndarray, band: np.ndarray, n_fft: int, fs: float,
-                      t_idx: np.ndarray) -> np.ndarray:
+                      t_idx: np.ndarray, detector: str = "square") -> np.ndarray:
     """DMAS3-CF envelope (K, A, n_fft), zero outside the grid's ranges plus a margin: the channels
     steered in the frequency domain, one azimuth at a time (K, M, T)."""
     K, M = Y.shape[:2]
@@ -168,18 +213,20 @@ def dmas3_cf_envelope(Y: np.ndarray, steer: np.ndarray, band: np.ndarray, n_fft:
         full[:, :, band] = 2 * Y * steer[:, a, :].T[None]
         z = sfft.ifft(full, axis=2)[:, :, t0:t1]
         out = dmas3_cf(z, axis=1)
-        env[:, a, t0:t1] = envelope_lowpass(np.abs(signal.hilbert(out, axis=-1)), fs, axis=-1)
+        if detector == "analytic":  # in double precision, as before the detectors
+            env[:, a, t0:t1] = envelope_lowpass(np.abs(signal.hilbert(out, axis=-1)), fs, axis=-1)
+        else:
+            env[:, a, t0:t1] = detect(out, fs, detector)
     return env
 
 
 def band_envelope(Y: np.ndarray, steer: np.ndarray, band: np.ndarray, n_fft: int, fs: float,
-                  t_idx: np.ndarray, beamformer: str) -> np.ndarray:
+                  t_idx: np.ndarray, beamformer: str, detector: str | None = None) -> np.ndarray:
     """The exact path: envelope (K, A, n_fft) of ``beamformer`` from matched-filtered spectra."""
-    if beamformer not in BEAMFORMERS:
-        raise ValueError(f"beamformer must be one of {', '.join(BEAMFORMERS)}, got {beamformer!r}")
+    detector = check_detector(beamformer, detector)
     if beamformer == "das":
         return das_envelope(Y, steer, band, n_fft, fs)
-    return dmas3_cf_envelope(Y, steer, band, n_fft, fs, t_idx)
+    return dmas3_cf_envelope(Y, steer, band, n_fft, fs, t_idx, detector)
 
 
 # ---- the fast path ----------------------------------------------------------------------------
@@ -263,10 +310,10 @@ class SignalBeamformer:
     c: float = C_SOUND
     start_s: float = 0.0
     band_hz: tuple[float, float] | None = None
+    detector: str | None = None  # None: the beamformer's (``DEFAULT_DETECTOR``)
 
     def __post_init__(self) -> None:
-        if self.beamformer not in BEAMFORMERS:
-            raise ValueError(f"beamformer must be one of {', '.join(BEAMFORMERS)}, got {self.beamformer!r}")
+        self.detector = check_detector(self.beamformer, self.detector)
         fs = float(self.fs)
         self.decim = max(1, int(fs // FS_PROCESS))  # the output never slower than the reference's rate
         self.up = max(1, int(math.ceil(UPSAMPLED_HZ / fs - 1e-9)))
@@ -322,8 +369,7 @@ class SignalBeamformer:
         n = max(0, min(len(self.sweep), self.n_samples - k0))
         sig[:, k0:k0 + n] = self.sweep[:n]  # broadside: every channel at once
         look = np.full((1, len(self.positions)), self.j0 * self.stride - self.w0, np.int64)
-        out = _gather(*self.analytic(sig, False), look, self.n_out, False)
-        return float(envelope_lowpass(out, self.fs_out, axis=-1).max())
+        return float(self._envelope(sig, look).max())
 
     def analytic(self, sig: np.ndarray, dmas: bool = True) -> tuple[np.ndarray, ...]:
         """Per-channel polyphase tables (M, stride, Q) float32 of the matched-filtered analytic
@@ -360,13 +406,16 @@ class SignalBeamformer:
         pw += zi * zi
         return zr, zi, np.cbrt(zr), pw
 
-    def envelope(self, sig: np.ndarray, beamformer: str | None = None) -> np.ndarray:
+    def _envelope(self, sig: np.ndarray, shift: np.ndarray) -> np.ndarray:
+        dmas = self.beamformer != "das"
+        out = _gather(*self.analytic(sig, dmas), shift, self.n_out, dmas)
+        if not dmas:  # already the analytic signal's modulus
+            return envelope_lowpass(out, self.fs_out, axis=-1)
+        return detect(out, self.fs_out, self.detector)
+
+    def envelope(self, sig: np.ndarray) -> np.ndarray:
         """Low-passed envelope (A, n_out) on the output window."""
-        bf = beamformer or self.beamformer
-        out = _gather(*self.analytic(sig, bf != "das"), self.shift, self.n_out, bf != "das")
-        if bf != "das":
-            out = analytic_envelope(out)
-        return envelope_lowpass(out, self.fs_out, axis=-1) / self.norm
+        return self._envelope(sig, self.shift) / self.norm
 
     def amplitude(self, sig: np.ndarray) -> np.ndarray:
         """Envelope amplitude (R, A) float32 of one measurement's signals (M, n_samples)."""
@@ -381,9 +430,10 @@ class SignalBeamformer:
         X = sfft.rfft(np.asarray(sig, float), n_fft, axis=1)[None, :, band]
         Y = X * np.conj(sfft.rfft(self.sweep, n_fft)[band])
         t_idx = range_samples(self.grid, fs, n_fft, self.c, self.start_s)
-        env = band_envelope(Y, steering(f, self.proj, self.c), band, n_fft, fs, t_idx, self.beamformer)
+        env = band_envelope(Y, steering(f, self.proj, self.c), band, n_fft, fs, t_idx, self.beamformer,
+                            self.detector)
         edges = range_edges(self.grid, fs, n_fft, self.c, self.start_s)
-        return bin_average(env[0] / sweep_norm(self.sweep, fs), edges)
+        return bin_average(env[0] / sweep_norm(self.sweep, fs, self.detector), edges)
 
 
 def analytic_envelope(x: np.ndarray) -> np.ndarray:

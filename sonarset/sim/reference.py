@@ -20,8 +20,7 @@ import numpy as np
 from scipy import fft as sfft
 
 from ..schema import SensorGrid
-from .beamform import band_bins, band_envelope, range_samples, steering, sweep_norm
-from .energyscape import BEAMFORMERS
+from .beamform import band_bins, band_envelope, check_detector, range_samples, steering, sweep_norm
 from .ertis import C_SOUND, F_HI, F_LO, SWEEP_S, microphone_y
 from .sonar import Echoes, sweep
 
@@ -47,15 +46,14 @@ def reference_amplitude(echoes: Echoes, grid: SensorGrid, beamformer: str = "das
     and the energy is averaged over ``realizations``. ``coherent=True`` keeps all phases at zero.
     The beamforming is ``beamform``'s exact path, which ``sonarset import-raw`` checks itself against.
     """
-    if beamformer not in BEAMFORMERS:
-        raise ValueError(f"beamformer must be one of {', '.join(BEAMFORMERS)}, got {beamformer!r}")
+    detector = check_detector(beamformer, None)
     y = microphone_y()
     s = sweep(fs)
     n_fft = sfft.next_fast_len(2 * _n_signal(grid, fs))
     band, f = band_bins(n_fft, fs, (15e3, 60e3))  # the sweep has no energy elsewhere
     S = sfft.rfft(s, n_fft)[band]
     steer = steering(f, y[None, :] * np.sin(grid.azimuth_centres())[:, None])  # (F, A, M)
-    norm = sweep_norm(s, fs)
+    norm = sweep_norm(s, fs, detector)
     t_idx = range_samples(grid, fs, n_fft)
     X = _echo_spectra(echoes, f, y, 1 if coherent else max(1, realizations), coherent, seed)
     Y = X * (np.abs(S) ** 2)[None, None, :]  # sweep spectrum times its matched filter
