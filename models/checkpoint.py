@@ -54,7 +54,10 @@ def load_checkpoint(spec: str | os.PathLike, grid: SensorGrid | None = None, dev
     try:
         card = json.loads(card_path.read_text())
         cfg = EchoPTConfig.from_dict(card["config"])
-    except (ValueError, KeyError, TypeError) as exc:
+        cfg.check()
+    except GridMismatchError as exc:
+        raise GridMismatchError(f"{card_path}: {exc}") from None
+    except (ValueError, KeyError, TypeError, RecursionError) as exc:
         raise SonarSetError(f"{card_path}: not an EchoPT model card ({exc})") from None
     trained = SensorGrid.model_validate(card["grid"]) if "grid" in card else None
     if grid is not None and trained is not None and not trained.matches(grid):

@@ -77,6 +77,35 @@ class EchoPTConfig:
         return self.n_range // self.patch[0], self.n_azimuth // self.patch[1]
 
     def check(self) -> None:
+        """ValueError (GridMismatchError for the grid) naming the first setting no network can have:
+        a model card is data from a file, and a bad one must fail here, not deep in torch."""
+        sizes = {"n_range": self.n_range, "n_azimuth": self.n_azimuth, "n_in": self.n_in, "d_embed": self.d_embed,
+                 "n_layers": self.n_layers, "n_heads": self.n_heads, "d_ff": self.d_ff,
+                 "max_tokens": self.max_tokens, "frame_channels": self.frame_channels,
+                 "mlp_hidden": self.mlp_hidden, "mlp_out": self.mlp_out}
+        pairs = {"patch": self.patch, "kernel": self.kernel, "tf_channels": self.tf_channels,
+                 "head_channels": self.head_channels}
+        for name, pair in pairs.items():
+            if not (isinstance(pair, tuple) and len(pair) == 2):
+                raise ValueError(f"{name} must be a pair of integers, got {pair!r}")
+            sizes.update({f"{name}[{i}]": v for i, v in enumerate(pair)})
+        for name, v in sizes.items():
+            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= _MAX_SIZE.get(name, 100_000):
+                raise ValueError(f"{name} must be an integer in 1..{_MAX_SIZE.get(name, 100_000)}, got {v!r}")
+        for name in ("dt", "sensor_offset", "dropout"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ValueError(f"{name} must be a finite number, got {v!r}")
+        if self.dt <= 0:
+            raise ValueError(f"dt (the frame interval) must be > 0 s, got {self.dt}")
+        if not 0 <= self.dropout < 1:
+            raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
+        for name in ("range_edges", "azimuth_edges"):
+            lo_hi = getattr(self, name)
+            if not (isinstance(lo_hi, tuple) and len(lo_hi) == 2 and all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in lo_hi)
+                    and lo_hi[0] < lo_hi[1]):
+                raise ValueError(f"{name} must be two finite increasing numbers, got {lo_hi!r}")
         if self.n_range % self.patch[0] or self.n_azimuth % self.patch[1]:
             raise GridMismatchError(f"grid {self.n_range}x{self.n_azimuth} is not divisible by the "
                                     f"{self.patch[0]}x{self.patch[1]} patch")
@@ -100,6 +129,11 @@ class EchoPTConfig:
 
 
 PRIORS = ("none", "last", "flow")
+# Upper bounds on a card's sizes, far above any network here (the paper's: 8 layers, 376 + 8 wide,
+# 2000 tokens) but below what would exhaust memory building one; unlisted sizes: 100,000.
+_MAX_SIZE = {"n_layers": 256, "n_heads": 256, "n_in": 64, "d_embed": 8192, "d_ff": 32768, "max_tokens": 100_000,
+             "frame_channels": 1024, "mlp_hidden": 4096, "tf_channels[0]": 1024, "tf_channels[1]": 1024,
+             "head_channels[0]": 1024, "head_channels[1]": 1024}
 
 
 PRESETS: dict[str, dict] = {

@@ -118,6 +118,28 @@ def test_checkpoint_is_safetensors_with_a_card(tmp_path):
         load_checkpoint(tmp_path / "bad", TINY_GRID)
 
 
+@pytest.mark.parametrize("field,value,message", [
+    ("dt", 0, "dt"), ("dt", float("nan"), "dt"), ("n_heads", 0, "n_heads"), ("patch", [0, 5], "patch"),
+    ("n_range", 0, "n_range"), ("d_embed", -8, "d_embed"), ("d_embed", 10 ** 9, "d_embed"),
+    ("n_layers", 10 ** 6, "n_layers"), ("prior", "magic", "prior"), ("kernel", [3], "kernel"),
+    ("range_edges", [5.0, 0.5], "range_edges"), ("n_heads", 7, "heads")])
+def test_impossible_model_cards_are_refused_with_the_card_named(tiny_store, tmp_path, field, value, message):
+    """A card is data from a file: settings no network can have fail at load, in one line, before
+    torch builds anything (1e6 layers took 98 s and ended in a traceback)."""
+    model = EchoPT(make_config("tiny", *TINY_GRID.shape))
+    path = save_checkpoint(tmp_path / "m", model, {"grid": TINY_GRID.model_dump(), "preset": "tiny"})
+    card = json.loads((tmp_path / "m.json").read_text())
+    card["config"][field] = value
+    (tmp_path / "m.json").write_text(json.dumps(card))
+    with pytest.raises(SonarSetError, match=message) as err:
+        load_checkpoint(path, TINY_GRID)
+    assert "m.json" in str(err.value) and "\n" not in str(err.value)
+    if field == "dt":  # and the command line says the same, in one line, exit 1
+        r = CliRunner().invoke(app, ["eval", tiny_store.location, "--models", f"echopt:{path}", "--horizons", "1",
+                                     "--samples", "2", "--no-figures", "--out", str(tmp_path / "ev")])
+        assert r.exit_code == 1 and "m.json" in r.output and "Traceback" not in r.output, r.output
+
+
 def test_train_and_eval_cli(tiny_store, tmp_path):
     r = CliRunner().invoke(app, ["train", tiny_store.location, "--preset", "tiny", "--out", str(tmp_path / "run"),
                                  "--max-steps", "4", "--eval-every", "2", "--n-val", "20", "--batch-size", "8",
