@@ -70,7 +70,11 @@ class SonarWindowDataset(Dataset):
 
     def __getitem__(self, k: int | Sequence[int] | np.ndarray) -> dict[str, torch.Tensor]:
         single = np.isscalar(k) or (isinstance(k, np.ndarray) and k.ndim == 0)
-        which = np.atleast_1d(np.asarray(k, dtype=np.int64))
+        raw = np.atleast_1d(np.asarray(k))
+        # an index is a whole number: ds[1.7] must not quietly read window 1, nor ds[True] window 1
+        if raw.dtype.kind not in "iu" and not (raw.dtype.kind == "f" and raw.size == 0):
+            raise TypeError(f"window indices must be integers, got {raw.dtype} ({k!r:.60})")
+        which = raw.astype(np.int64)
         if which.size and (which.min() < -len(self) or which.max() >= len(self)):
             raise IndexError(f"window index out of range for {len(self)} windows")
         batch = self.batcher.gather(self.index, which)

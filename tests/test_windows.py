@@ -85,6 +85,10 @@ def test_torch_dataset_and_loader(store):
     assert batches[0]["frames"].dtype == torch.float32
     with pytest.raises(IndexError):
         ds[len(ds)]
+    for bad in (1.7, np.float32(2.0), True, [0.5, 1.0], "3"):  # never a quiet round-down or a bool as 1
+        with pytest.raises(TypeError, match="integers"):
+            ds[bad]
+    assert ds[[]]["frames"].shape[0] == 0 and torch.equal(ds[np.int32(4)]["targets"], one["targets"])
 
 
 def test_batcher_takes_the_first_k_targets_of_longer_windows():
