@@ -137,7 +137,7 @@ def detect(x: np.ndarray, fs: float, detector: str) -> np.ndarray:
     ``square`` sqrt(2 lowpass(x^2)) (the square law), ``rectify`` pi/2 lowpass(|x|) (the toolbox's
     order). A carrier of amplitude a gives a with each."""
     if detector == "analytic":
-        return envelope_lowpass(analytic_envelope(x), fs, axis=-1)
+        return envelope_lowpass(np.abs(signal.hilbert(x, axis=-1)), fs, axis=-1)
     if detector == "square":
         return np.sqrt(np.maximum(2 * envelope_lowpass(np.square(x), fs, axis=-1), 0))
     if detector == "rectify":
@@ -148,10 +148,7 @@ def detect(x: np.ndarray, fs: float, detector: str) -> np.ndarray:
 def sweep_norm(s: np.ndarray, fs: float, detector: str = "analytic") -> float:
     """Peak of the low-passed matched-filter envelope of a lone echo ``s`` through ``detector``: a
     lone echo of amplitude a at a microphone then peaks at a after dividing by it."""
-    mf = signal.correlate(s, s)
-    if detector == "analytic":
-        return float(envelope_lowpass(np.abs(signal.hilbert(mf)), fs).max())
-    return float(detect(mf, fs, detector).max())
+    return float(detect(signal.correlate(s, s), fs, detector).max())
 
 
 def range_samples(grid: SensorGrid, fs: float, n: int, c: float = C_SOUND, start_s: float = 0.0) -> np.ndarray:
@@ -201,7 +198,7 @@ def dmas3_cf(z: np.ndarray, axis: int = 1) -> np.ndarray:
 
 
 def dmas3_cf_envelope(Y: np.ndarray, steer: np.ndarray, band: np.ndarray, n_fft: int, fs: float,
-                      t_idx: np.ndarray, detector: str = "square") -> np.ndarray:
+                      t_idx: np.ndarray, detector: str = DEFAULT_DETECTOR["dmas3-cf"]) -> np.ndarray:
     """DMAS3-CF envelope (K, A, n_fft), zero outside the grid's ranges plus a margin: the channels
     steered in the frequency domain, one azimuth at a time (K, M, T)."""
     K, M = Y.shape[:2]
@@ -213,10 +210,7 @@ def dmas3_cf_envelope(Y: np.ndarray, steer: np.ndarray, band: np.ndarray, n_fft:
         full[:, :, band] = 2 * Y * steer[:, a, :].T[None]
         z = sfft.ifft(full, axis=2)[:, :, t0:t1]
         out = dmas3_cf(z, axis=1)
-        if detector == "analytic":  # in double precision, as before the detectors
-            env[:, a, t0:t1] = envelope_lowpass(np.abs(signal.hilbert(out, axis=-1)), fs, axis=-1)
-        else:
-            env[:, a, t0:t1] = detect(out, fs, detector)
+        env[:, a, t0:t1] = detect(out, fs, detector)
     return env
 
 
@@ -434,18 +428,6 @@ class SignalBeamformer:
                             self.detector)
         edges = range_edges(self.grid, fs, n_fft, self.c, self.start_s)
         return bin_average(env[0] / sweep_norm(self.sweep, fs, self.detector), edges)
-
-
-def analytic_envelope(x: np.ndarray) -> np.ndarray:
-    """|hilbert(x)| along the last axis, zero-padded to a fast length, in single precision
-    (``scipy.signal.hilbert`` transforms the real input as complex, in double: twice the work)."""
-    n = x.shape[-1]
-    N = sfft.next_fast_len(n, real=True)
-    X = sfft.rfft(np.asarray(x, np.float32), N, axis=-1)
-    X[..., 1:(N + 1) // 2] *= 2  # positive frequencies doubled; DC (and Nyquist) kept once
-    full = np.zeros((*x.shape[:-1], N), np.complex64)
-    full[..., :X.shape[-1]] = X
-    return np.abs(sfft.ifft(full, axis=-1, overwrite_x=True)[..., :n])
 
 
 def sweep_band(sweep: np.ndarray, fs: float) -> tuple[float, float]:
