@@ -25,9 +25,9 @@ import time
 from pathlib import Path
 
 from sonarset import open_store
-from sonarset.models.eval_report import write_report
-from sonarset.models.evaluate import evaluate
-from sonarset.models.train import TrainConfig, train
+from sonarset.models.eval.report import write_report
+from sonarset.models.eval.evaluate import evaluate
+from sonarset.models.echopt.train import TrainConfig, train
 
 #: The recipes: what differs between them. Everything else is shared (COMMON).
 RECIPES = {
@@ -81,7 +81,7 @@ def main() -> None:
             trained[key] = (run, res.steps, minutes)
             print(f"{key}: {res.steps} steps, {res.epochs_done:.3f} epochs, {minutes:.1f} min, best val "
                   f"{res.best_val_loss:.5f}", flush=True)
-    from sonarset.models.echopt_predictor import load_echopt_predictor
+    from sonarset.models.echopt.predictor import load_echopt_predictor
 
     learned = {}
     for name, (run, _, _) in trained.items():

@@ -22,8 +22,8 @@ import time
 
 import numpy as np
 
-from sonarset.control import BurstDetector
-from sonarset.schema import Processing, SensorGrid
+from sonarset.sim.control import BurstDetector
+from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.sim.sonar import SonarModel
 from sonarset.sim.world import corridor_world, lab_world
 

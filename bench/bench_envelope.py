@@ -28,10 +28,10 @@ import numpy as np
 from scipy import fft as sfft
 
 from sonarset import open_store
-from sonarset.raw_recording import chirp
-from sonarset.schema import Processing, SensorGrid
+from sonarset.ingest.raw_recording import chirp
+from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.sim import generate
-from sonarset.sim.beamform import DETECTORS, SignalBeamformer, read_layout_csv, steering_projection
+from sonarset.sensor.beamform import DETECTORS, SignalBeamformer, read_layout_csv, steering_projection
 from sonarset.sim.families import load_world
 from sonarset.sim.reference import microphone_signals
 from sonarset.sim.robot import sensor_pose

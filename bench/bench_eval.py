@@ -17,7 +17,7 @@ import time
 
 from sonarset import RobotRig, open_store
 from sonarset.models.baselines import AcousticFlow, NaiveShift, Persistence
-from sonarset.models.evaluate import evaluate
+from sonarset.models.eval.evaluate import evaluate
 from sonarset.sim import generate
 
 

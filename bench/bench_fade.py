@@ -33,7 +33,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     from sonarset.models.baselines import rollout
-    from sonarset.models.evaluate import baseline_rig
+    from sonarset.models.eval.evaluate import baseline_rig
     from sonarset.models.registry import make_predictor
 
     store = open_store(args.store)

@@ -20,9 +20,9 @@ import time
 from pathlib import Path
 
 from sonarset import open_store
-from sonarset.models.eval_report import write_report
-from sonarset.models.evaluate import evaluate
-from sonarset.report import horizon_name
+from sonarset.models.eval.report import write_report
+from sonarset.models.eval.evaluate import evaluate
+from sonarset.report.numbers import horizon_name
 
 KEYS = ("cc", "nrmsd", "echo_f1")
 

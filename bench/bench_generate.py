@@ -19,7 +19,7 @@ import resource
 import tempfile
 import time
 
-from sonarset.schema import Processing, SensorGrid
+from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.sim import generate, plan_runs, simulate_blocks
 from sonarset.sim.sonar import beam_table, range_psf_table
 

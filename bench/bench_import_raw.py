@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 
 from sonarset import open_store
-from sonarset.rawimport import import_raw
-from sonarset.schema import SensorGrid
+from sonarset.ingest.raw import import_raw
+from sonarset.format.attrs import SensorGrid
 from sonarset.sim import generate
-from sonarset.sim.beamform import SignalBeamformer, read_layout_csv
+from sonarset.sensor.beamform import SignalBeamformer, read_layout_csv
 from sonarset.sim.reference import write_raw_recording
 from sonarset.sim.sonar import sweep
 

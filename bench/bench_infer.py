@@ -26,11 +26,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from sonarset.models.checkpoint import load_checkpoint
-from sonarset.models.echopt import EchoPT, make_config
-from sonarset.models.echopt_predictor import INFERENCE_BATCH, EchoPTPredictor
-from sonarset.models.onnx_export import random_windows
-from sonarset.models.precision import cpu_bf16_flags, resolve_precision
+from sonarset.models.echopt.checkpoint import load_checkpoint
+from sonarset.models.echopt.model import EchoPT, make_config
+from sonarset.models.echopt.predictor import INFERENCE_BATCH, EchoPTPredictor
+from sonarset.models.echopt.onnx_export import random_windows
+from sonarset.models.echopt.precision import cpu_bf16_flags, resolve_precision
 
 warnings.filterwarnings("ignore", message="Using padding='same'")
 
@@ -104,7 +104,7 @@ def main() -> None:
     try:
         import onnxruntime  # noqa: F401
 
-        from sonarset.models.onnx_export import export_onnx
+        from sonarset.models.echopt.onnx_export import export_onnx
 
         if not args.random:
             onnx_path = Path(tempfile.mkdtemp()) / "model.onnx"

@@ -22,8 +22,8 @@ import time
 import numpy as np
 
 from sonarset import open_store
-from sonarset.models.evaluate import evaluate
-from sonarset.schema import Processing, SensorGrid
+from sonarset.models.eval.evaluate import evaluate
+from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.sim import generate
 from sonarset.sim.sonar import SonarModel
 from sonarset.sim.families import load_world

@@ -36,11 +36,11 @@ from pathlib import Path
 import numpy as np
 
 from bench_windows import synthetic_run  # bench/ is the script's folder, first on sys.path
-from sonarset.arrays import frame_interval_problem, value_problem
-from sonarset.integrity import ChunkChecker
-from sonarset.plausibility import command_problems
-from sonarset.schema import Processing, SensorGrid
-from sonarset.store import create_store, open_store
+from sonarset.format.arrays import frame_interval_problem, value_problem
+from sonarset.store.integrity import ChunkChecker
+from sonarset.format.plausibility import command_problems
+from sonarset.format.attrs import Processing, SensorGrid
+from sonarset.store.store import create_store, open_store
 from sonarset.windows import FrameBank
 
 

@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 from sonarset.sim import generate
-from sonarset.store import open_store
+from sonarset.store.store import open_store
 from sonarset.testing import serve_directory
 from sonarset.windows import FrameBank
 

@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-import sonarset.echoes as echoes
-from sonarset.echoes import EchoMatching, find_echoes
-from sonarset.metrics import cc_and_nrmsd
-from sonarset.schema import SensorGrid
+import sonarset.scoring.echoes as echoes
+from sonarset.scoring.echoes import EchoMatching, find_echoes
+from sonarset.scoring.metrics import cc_and_nrmsd
+from sonarset.format.attrs import SensorGrid
 
 
 def textbook_cc_nrmsd(p: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -16,9 +16,9 @@ import time
 import warnings
 from pathlib import Path
 
-from sonarset.models.checkpoint import load_checkpoint
-from sonarset.models.train import TrainConfig, train, validation_loss
-from sonarset.store import open_store
+from sonarset.models.echopt.checkpoint import load_checkpoint
+from sonarset.models.echopt.train import TrainConfig, train, validation_loss
+from sonarset.store.store import open_store
 from sonarset.torchdata import torch_batcher
 from sonarset.windows import FrameBank, WindowIndex
 

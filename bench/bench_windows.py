@@ -22,8 +22,8 @@ import time
 
 import numpy as np
 
-from sonarset.schema import SensorGrid
-from sonarset.store import create_store, open_store
+from sonarset.format.attrs import SensorGrid
+from sonarset.store.store import create_store, open_store
 from sonarset.windows import N_IN, FrameBank, WindowIndex, iter_batches
 
 

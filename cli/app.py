@@ -20,11 +20,11 @@ from rich.table import Table
 
 from sonarset import __version__
 
-from .choices import (Beamformer, Device, Optimizer, Precision, Preset, Prior, ProcessingProfile, Psf, Schedule,
+from sonarset.cli.choices import (Beamformer, Device, Optimizer, Precision, Preset, Prior, ProcessingProfile, Psf, Schedule,
                       SchemaKind, value)
-from .common import err, fail, out, per_name_progress, progress_bar, user_errors
-from .experiment import experiment_app
-from .options import MetaPath, Model, ModelDevice, ModelPrecision, OutStore, Overwrite, RunName, RunSplit
+from sonarset.cli.common import err, fail, out, per_name_progress, progress_bar, user_errors
+from sonarset.cli.experiment import experiment_app
+from sonarset.cli.options import MetaPath, Model, ModelDevice, ModelPrecision, OutStore, Overwrite, RunName, RunSplit
 
 app = typer.Typer(
     name="sonarset",
@@ -53,8 +53,8 @@ def info(
     as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
 ) -> None:
     """Summarise a store: format version, grid, runs, frames and size."""
-    from sonarset.overview import describe_sensing, human_bytes, store_summary
-    from sonarset.store import open_store
+    from sonarset.report.overview import describe_sensing, human_bytes, store_summary
+    from sonarset.store.store import open_store
 
     s = open_store(store, check=True)
     summary = store_summary(s)
@@ -86,10 +86,10 @@ def validate(
                                            help="Report implausible values (unit mistakes?) as warnings, not errors."),
 ) -> None:
     """Check a store against the SonarSet spec: exit 0 if valid, 1 with one line per problem."""
-    from sonarset.validate import validate_store
+    from sonarset.store.validate import validate_store
 
     if consolidate:
-        from sonarset.store import open_store
+        from sonarset.store.store import open_store
 
         open_store(store, "r+").consolidate()
     with progress_bar() as bar:
@@ -99,7 +99,7 @@ def validate(
             bar.update(task, description=where.rsplit("/", 2)[-2], completed=done, total=total)
 
         problems = validate_store(store, check_data=not quick, progress=progress)
-    from sonarset.plausibility import Implausible
+    from sonarset.format.plausibility import Implausible
 
     allowed = [p for p in problems if allow_implausible and isinstance(p, Implausible)]
     problems = [p for p in problems if not (allow_implausible and isinstance(p, Implausible))]
@@ -125,7 +125,7 @@ def import_(
                                                 "each is printed as a warning."),
 ) -> None:
     """Validate an external recording completely, then write it as one run of a store."""
-    from sonarset.importer import import_recording
+    from sonarset.ingest.images import import_recording
 
     def warn(line: str) -> None:
         err.print(f"[yellow]warning:[/] {line}", highlight=False, soft_wrap=True)
@@ -146,7 +146,7 @@ def import_raw_(
     workers: int = typer.Option(2, "--workers", min=1, help="Threads beamforming measurements."),
 ) -> None:
     """Beamform raw microphone recordings into energyscapes, validated completely, as one run of a store."""
-    from sonarset.rawimport import import_raw
+    from sonarset.ingest.raw import import_raw
 
     with progress_bar() as bar:
         task = bar.add_task("beamforming", total=None)
@@ -163,7 +163,7 @@ def schema(
     kind: SchemaKind = typer.Argument("store", help="The document."),
 ) -> None:
     """Print the JSON Schema of a SonarSet document (root, run or import-sidecar attributes)."""
-    from sonarset.schema import json_schema_text
+    from sonarset.format.attrs import json_schema_text
 
     sys.stdout.write(json_schema_text(kind.value))
 
@@ -200,7 +200,7 @@ def generate(
 
     from rich.progress import MofNCompleteColumn, TimeElapsedColumn
 
-    from sonarset.schema import SensorGrid
+    from sonarset.format.attrs import SensorGrid
     from sonarset.sim import generate as gen
     from sonarset.sim.runs import world_mix
 
@@ -238,8 +238,8 @@ def show(
     out_png: Path = typer.Option(Path("sonarset-show.png"), "--out", help="PNG to write."),
 ) -> None:
     """Plot the world and trajectory of a run and one energyscape (image and polar fan)."""
-    from sonarset.overview import show as show_store
-    from sonarset.store import open_store
+    from sonarset.report.overview import show as show_store
+    from sonarset.store.store import open_store
 
     out.print(f"wrote {show_store(open_store(store, check=True), run, frame, out_png)}")
 
@@ -277,9 +277,9 @@ def eval_(
                                       "heard: how much the context could know)."),
 ) -> None:
     """Evaluate predictors on the same windows: the paper's table, statistics and figures."""
-    from sonarset.store import open_store
-    from sonarset.models.eval_report import results_table, write_report
-    from sonarset.models.evaluate import evaluate
+    from sonarset.store.store import open_store
+    from sonarset.models.eval.report import results_table, write_report
+    from sonarset.models.eval.evaluate import evaluate
 
     specs = [m.strip() for m in models.split(",") if m.strip()]
     s = open_store(store, check=True)
@@ -370,9 +370,9 @@ def train(
     """Train EchoPT; the best validation weights are kept as OUT/model.safetensors with a model card.
 
     Killed at any point, the same command with --resume continues exactly (OUT/state.safetensors)."""
-    from sonarset.models.train import TrainConfig, add_test_metrics
-    from sonarset.models.train import train as run_training
-    from sonarset.store import open_store
+    from sonarset.models.echopt.train import TrainConfig, add_test_metrics
+    from sonarset.models.echopt.train import train as run_training
+    from sonarset.store.store import open_store
 
     s = open_store(store, check=True)
     cfg = TrainConfig(preset=preset.value, epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
@@ -412,7 +412,7 @@ def demo(
     import time
 
     from sonarset.models import demo as pipeline
-    from sonarset.models.eval_report import results_table, write_report
+    from sonarset.models.eval.report import results_table, write_report
 
     pipeline.check_model(model)  # a bad model fails now, not after the simulation
     t0 = time.perf_counter()
@@ -446,7 +446,7 @@ def export_onnx_(
 ) -> None:
     """Export EchoPT to ONNX for onnxruntime: a dynamic batch axis, the flow prior inside the graph,
     the model card in the metadata; checked against torch before it is written."""
-    from sonarset.models.onnx_export import export_onnx
+    from sonarset.models.echopt.onnx_export import export_onnx
 
     e = export_onnx(model, out_path)
     out.print(f"wrote {e.path} ({e.bytes / 1e6:.1f} MB)", highlight=False)

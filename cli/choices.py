@@ -11,7 +11,7 @@ from __future__ import annotations
 import enum
 from typing import Iterable, get_args
 
-from sonarset.schema import SCHEMAS, Processing
+from sonarset.format.attrs import SCHEMAS, Processing
 
 
 def _choices(name: str, values: Iterable[str]) -> type[enum.Enum]:

@@ -9,9 +9,9 @@ import typer
 from rich.progress import Progress
 from rich.table import Table
 
-from .choices import Device, Precision, value
-from .common import out, progress_bar, user_errors
-from .options import ExperimentProcessing, Model, ModelDevice, ModelPrecision, Workers
+from sonarset.cli.choices import Device, Precision, value
+from sonarset.cli.common import out, progress_bar, user_errors
+from sonarset.cli.options import ExperimentProcessing, Model, ModelDevice, ModelPrecision, Workers
 
 experiment_app = typer.Typer(help="The paper's robot experiments: wheel-slip detection, corridor control.",
                              no_args_is_help=True)

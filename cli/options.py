@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from .choices import Device, Precision, ProcessingProfile
+from sonarset.cli.choices import Device, Precision, ProcessingProfile
 
 OutStore = Annotated[str, typer.Argument(metavar="OUT", help="Store to create or append to.")]
 MetaPath = Annotated[Optional[Path], typer.Option("--meta", help="Metadata (sidecar) JSON (default: SRC.json / "

@@ -15,7 +15,7 @@ from typing import ClassVar, Protocol
 import numpy as np
 from scipy import ndimage
 
-from sonarset.schema import RobotRig, SensorGrid
+from sonarset.format.attrs import RobotRig, SensorGrid
 from sonarset.windows import N_IN
 
 

@@ -6,22 +6,22 @@ from __future__ import annotations
 import os
 from typing import Callable
 
-from sonarset.report import format_p, horizon_name
-from sonarset.schema import SensorGrid
+from sonarset.report.numbers import format_p, horizon_name
+from sonarset.format.attrs import SensorGrid
 from sonarset.sim import generate
-from sonarset.store import SonarStore, open_store
+from sonarset.store.store import SonarStore, open_store
 
-from .cards import card_processing, describe_images, read_card
-from .checkpoint import load_checkpoint
-from .evaluate import EvalResult, evaluate
-from .registry import BASELINES
+from sonarset.models.echopt.cards import card_processing, describe_images, read_card
+from sonarset.models.echopt.checkpoint import load_checkpoint
+from sonarset.models.eval.evaluate import EvalResult, evaluate
+from sonarset.models.registry import BASELINES
 
 
 def check_model(model: str) -> None:
     """Load the checkpoint (or ONNX export) ``model`` on the default grid: a bad one fails before
     the simulation."""
     if str(model).endswith(".onnx"):
-        from .onnx_runtime import load_onnx_predictor
+        from sonarset.models.echopt.onnx_runtime import load_onnx_predictor
 
         load_onnx_predictor(model, SensorGrid.default())
     else:
@@ -32,8 +32,8 @@ def runs_in(model: str, precision: str, device: str) -> str:
     """How EchoPT will compute: "EchoPT runs in bf16 (CPU flags avx512_bf16)"."""
     if str(model).endswith(".onnx"):
         return "EchoPT runs in fp32 (onnxruntime)"
-    from .checkpoint import resolve_device
-    from .precision import describe_precision
+    from sonarset.models.echopt.checkpoint import resolve_device
+    from sonarset.models.echopt.precision import describe_precision
 
     return f"EchoPT runs in {describe_precision(precision, resolve_device(device))}"
 

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from sonarset.errors import SonarSetError
-from sonarset.schema import RobotRig, SensorGrid
+from sonarset.format.attrs import RobotRig, SensorGrid
 
-from .baselines import AcousticFlow, NaiveShift, Persistence, Predictor
+from sonarset.models.baselines import AcousticFlow, NaiveShift, Persistence, Predictor
 
 BASELINES = ("persistence", "naive", "flow")
 
@@ -24,11 +24,11 @@ def make_predictor(spec: str, grid: SensorGrid, rig: RobotRig, *, device: str = 
         return AcousticFlow(grid, rig)
     if name == "echopt":
         if arg.endswith(".onnx"):  # onnxruntime, no torch
-            from .onnx_runtime import load_onnx_predictor
+            from sonarset.models.echopt.onnx_runtime import load_onnx_predictor
 
             return load_onnx_predictor(arg, grid)
         try:
-            from .echopt_predictor import load_echopt_predictor
+            from sonarset.models.echopt.predictor import load_echopt_predictor
         except ImportError as exc:
             raise SonarSetError(f"model {spec!r}: EchoPT is not available in this installation ({exc})") from None
         return load_echopt_predictor(arg or "pretrained", grid, device=device, precision=precision)

@@ -3,10 +3,10 @@
 This package never imports torch; ``sonarset.models`` and ``sonarset.cli`` do, lazily.
 """
 
-from .version import __version__
-from .errors import FormatError, GridMismatchError, InputValidationError, SonarSetError
-from .schema import FORMAT_VERSION, Processing, RecordingMeta, RobotRig, RunAttrs, SensorGrid, StoreAttrs
-from .store import Run, RunData, RunWriter, SonarStore, create_store, open_or_create_store, open_store
+from sonarset.version import __version__
+from sonarset.errors import FormatError, GridMismatchError, InputValidationError, SonarSetError
+from sonarset.format.attrs import FORMAT_VERSION, Processing, RecordingMeta, RobotRig, RunAttrs, SensorGrid, StoreAttrs
+from sonarset.store.store import Run, RunData, RunWriter, SonarStore, create_store, open_or_create_store, open_store
 
 __all__ = [
     "__version__", "FORMAT_VERSION", "FormatError", "GridMismatchError", "InputValidationError",

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler, SequentialSampler
 
-from .windows import FrameBank, WindowBatcher, WindowIndex
+from sonarset.windows import FrameBank, WindowBatcher, WindowIndex
 
 
 @dataclass(frozen=True)

@@ -21,9 +21,9 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-from .errors import SonarSetError
-from .schema import SensorGrid
-from .store import SonarStore
+from sonarset.errors import SonarSetError
+from sonarset.format.attrs import SensorGrid
+from sonarset.store.store import SonarStore
 
 #: Input frames of a window: the paper's geometry (DESIGN.md §2), the one definition. A learned
 #: model's own count is in its config (EchoPT's defaults to this); the baselines are fed these windows.

@@ -3,8 +3,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sonarset.schema import SensorGrid
-from sonarset.store import create_store
+from sonarset.format.attrs import SensorGrid
+from sonarset.store.store import create_store
 
 TINY = SensorGrid(range_min_m=0.5, range_max_m=2.5, n_range=8, azimuth_min_rad=-1.2, azimuth_max_rad=1.2, n_azimuth=6)
 

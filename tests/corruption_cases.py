@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 import zarr
 
-from sonarset.schema import SensorGrid
+from sonarset.format.attrs import SensorGrid
 
 GRID = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=50, azimuth_min_rad=-math.pi / 2,
                   azimuth_max_rad=math.pi / 2, n_azimuth=30)

@@ -9,14 +9,14 @@ import pytest
 from typer.testing import CliRunner
 
 from sonarset import open_store
-from sonarset.ceiling import CeilingUnavailable, RunRenderer, rerender
+from sonarset.scoring.ceiling import CeilingUnavailable, RunRenderer, rerender
 from sonarset.cli.app import app
-from sonarset.models.eval_report import write_report
-from sonarset.models.evaluate import evaluate
-from sonarset.schema import SensorGrid
+from sonarset.models.eval.report import write_report
+from sonarset.models.eval.evaluate import evaluate
+from sonarset.format.attrs import SensorGrid
 from sonarset.sim import generate
 from sonarset.sim import sonar
-from sonarset.store import create_store
+from sonarset.store.store import create_store
 
 GRID = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=100, azimuth_min_rad=-math.pi / 2,
                   azimuth_max_rad=math.pi / 2, n_azimuth=45)
@@ -137,7 +137,7 @@ def test_eval_cli_ceiling(sim, mixed, tmp_path):
 
 
 def test_observed_world_keeps_only_what_the_context_heard():
-    from sonarset.ceiling import observed_world
+    from sonarset.scoring.ceiling import observed_world
     from sonarset.sim.sonar import SonarModel
     from sonarset.sim.world import World, WorldSpec
 
@@ -164,14 +164,14 @@ def test_observed_world_keeps_only_what_the_context_heard():
 
 
 def test_observable_ceiling_on_a_window(sim):
-    from sonarset.ceiling import OBSERVABLE_STREAM
+    from sonarset.scoring.ceiling import OBSERVABLE_STREAM
 
     r = RunRenderer(sim, "test_000", seed=4).with_stream(OBSERVABLE_STREAM)
     again = RunRenderer(sim, "test_000", seed=4, stream=OBSERVABLE_STREAM)
     assert np.array_equal(r.render_observed(np.arange(7, 10), np.array([10])),
                           again.render_observed(np.arange(7, 10), np.array([10])))
     target = sim.run("test_000").read("images", 10, 20).astype(np.float32)
-    from sonarset.metrics import cc
+    from sonarset.scoring.metrics import cc
 
     near = r.render_observed(np.arange(7, 10), np.array([10]))
     assert near.shape == (1, *GRID.shape) and near.dtype == np.float32

@@ -98,10 +98,10 @@ def test_closed_choices_are_the_librarys():
     import pytest
 
     from sonarset.cli import choices
-    from sonarset.models.echopt import PRESETS, PRIORS
-    from sonarset.models.precision import PRECISIONS
-    from sonarset.schema import Processing
-    from sonarset.sim.energyscape import BEAMFORMERS
+    from sonarset.models.echopt.model import PRESETS, PRIORS
+    from sonarset.models.echopt.precision import PRECISIONS
+    from sonarset.format.attrs import Processing
+    from sonarset.sensor.energyscape import BEAMFORMERS
     from sonarset.sim.sonar import BEAMS
 
     values = lambda enum: {c.value for c in enum}  # noqa: E731

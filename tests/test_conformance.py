@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from sonarset.validate import validate_store
+from sonarset.store.validate import validate_store
 
 FIX = Path(__file__).resolve().parents[1] / "spec" / "fixtures"
 MANIFEST = json.loads((FIX / "manifest.json").read_text())

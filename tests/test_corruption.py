@@ -192,9 +192,9 @@ def test_metadata_fuzz_never_crashes(base_store, tmp_path):
 def test_remote_store_checks_each_chunk_as_it_is_read(base_store, tmp_path):
     """Over a URL the open check cannot fetch every chunk; the read that needs one checks it."""
     from sonarset.errors import FormatError
-    from sonarset.store import open_store
+    from sonarset.store.store import open_store
     from sonarset.testing import serve_directory
-    from sonarset.validate import validate_store
+    from sonarset.store.validate import validate_store
     from sonarset.windows import FrameBank
 
     shutil.copytree(base_store, tmp_path / "s.zarr")
@@ -213,8 +213,8 @@ def test_remote_store_checks_each_chunk_as_it_is_read(base_store, tmp_path):
 def test_eval_takes_dt_from_the_time_stamps(tmp_path, monkeypatch):
     """The baselines step by the median spacing of the time stamps, not by the declared rate."""
     from sonarset.models import registry
-    from sonarset.models.evaluate import evaluate
-    from sonarset.store import create_store
+    from sonarset.models.eval.evaluate import evaluate
+    from sonarset.store.store import create_store
     from tests.conftest import TINY, make_run
 
     s = create_store(tmp_path / "s.zarr", TINY)  # declares 5 Hz; the stamps are 4 % slower
@@ -233,9 +233,9 @@ def test_eval_takes_dt_from_the_time_stamps(tmp_path, monkeypatch):
 
 
 def test_eval_counts_windows_whose_cc_is_undefined(tmp_path):
-    from sonarset.models.eval_report import results_table
-    from sonarset.models.evaluate import evaluate
-    from sonarset.store import create_store
+    from sonarset.models.eval.report import results_table
+    from sonarset.models.eval.evaluate import evaluate
+    from sonarset.store.store import create_store
     from tests.conftest import TINY, make_run
 
     run = make_run(20)

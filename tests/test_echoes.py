@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from sonarset.echoes import ECHO_METRICS, EchoMatching, echo_scores, find_echoes
-from sonarset.schema import SensorGrid
+from sonarset.scoring.echoes import ECHO_METRICS, EchoMatching, echo_scores, find_echoes
+from sonarset.format.attrs import SensorGrid
 
 GRID = SensorGrid.default()  # 200 x 90: 2.25 cm x 2 deg bins
 MATCH = EchoMatching()
@@ -99,7 +99,7 @@ def test_detection_matches_a_plain_maximum_filter(monkeypatch, share):
     """find_echoes compares only pixels >= level with their windows when they are few, and groups
     plateaus on a sparse graph: both paths must give the plain detection, edges (clipped windows),
     touching plateaus and ties included."""
-    import sonarset.echoes as echoes
+    import sonarset.scoring.echoes as echoes
 
     rng = np.random.default_rng(7)
     x = rng.random((6, *GRID.shape)).astype(np.float32) * 0.25

@@ -10,11 +10,11 @@ from typer.testing import CliRunner
 
 from sonarset import GridMismatchError, SonarSetError, open_store
 from sonarset.cli.app import app
-from sonarset.models.checkpoint import load_checkpoint, save_checkpoint
-from sonarset.models.echopt import EchoPT, make_config
-from sonarset.models.evaluate import evaluate
-from sonarset.models.train import TrainConfig, train
-from sonarset.schema import SensorGrid
+from sonarset.models.echopt.checkpoint import load_checkpoint, save_checkpoint
+from sonarset.models.echopt.model import EchoPT, make_config
+from sonarset.models.eval.evaluate import evaluate
+from sonarset.models.echopt.train import TrainConfig, train
+from sonarset.format.attrs import SensorGrid
 from sonarset.sim import generate
 
 TINY_GRID = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=50, azimuth_min_rad=-math.pi / 2,
@@ -174,7 +174,7 @@ def test_killed_at_any_write_phase_resumes_to_the_uninterrupted_result(tiny_stor
     """A kill after each write of a checkpoint (between the best weights and their card, after the
     card, after the state, after the metrics), the first and the last time it happens: --resume
     ends with the weights, optimizer state, best model and metrics of an uninterrupted run."""
-    import sonarset.models.train as tr
+    import sonarset.models.echopt.train as tr
 
     cfg = _cfg(max_steps=6, eval_every=2, curriculum="0:1,2:2", context_noise=0.02)
     phases: list[str] = []
@@ -216,7 +216,7 @@ def test_killed_at_any_write_phase_resumes_to_the_uninterrupted_result(tiny_stor
 
 def test_rollout_training_options_and_priors(tiny_store, tmp_path):
     from sonarset.models.baselines import AcousticFlow
-    from sonarset.models.echopt import grid_and_rig
+    from sonarset.models.echopt.model import grid_and_rig
 
     # an untrained flow-prior model is exactly the flow baseline, with the store's rig
     model = EchoPT(make_config("tiny", *TINY_GRID.shape, **grid_and_rig(TINY_GRID, tiny_store.rig))).eval()

@@ -10,10 +10,10 @@ from typer.testing import CliRunner
 
 from sonarset import SonarSetError, open_store
 from sonarset.cli.app import app
-from sonarset.echoes import ECHO_METRICS, EchoMatching
-from sonarset.models.eval_report import metrics_document, write_report
-from sonarset.models.evaluate import evaluate
-from sonarset.schema import SensorGrid
+from sonarset.scoring.echoes import ECHO_METRICS, EchoMatching
+from sonarset.models.eval.report import metrics_document, write_report
+from sonarset.models.eval.evaluate import evaluate
+from sonarset.format.attrs import SensorGrid
 from sonarset.sim import generate
 
 GRID = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=100, azimuth_min_rad=-math.pi / 2,

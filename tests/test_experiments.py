@@ -8,14 +8,14 @@ import pytest
 from typer.testing import CliRunner
 
 from sonarset.cli.app import app
-from sonarset.control import BurstDetector, SubsumptionController
-from sonarset.models.checkpoint import save_checkpoint
-from sonarset.models.echopt import EchoPT, make_config
+from sonarset.sim.control import BurstDetector, SubsumptionController
+from sonarset.models.echopt.checkpoint import save_checkpoint
+from sonarset.models.echopt.model import EchoPT, make_config
 from sonarset.models.experiments.common import predictor
 from sonarset.models.experiments.control import BurstSchedule, Episode, run_control_experiment, run_episode
 from sonarset.models.experiments.slip import SlipPeriod, SlipTrial, frame_labels, run_slip_experiment, slip_signals
 from sonarset.models.experiments.slip_report import write_slip_report
-from sonarset.schema import Processing, SensorGrid
+from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.windows import N_IN
 from sonarset.sim.robot import apply_slip, integrate
 from sonarset.sim.sonar import SonarModel
@@ -71,7 +71,7 @@ def test_slip_raises_the_flow_detector_signal(processing):
 
 def test_one_rollout_serves_every_horizon():
     """slip_signals takes horizon h from step h of one rollout; it must equal a rollout to h alone."""
-    from sonarset.metrics import slip_error
+    from sonarset.scoring.metrics import slip_error
     from sonarset.models.baselines import rollout
 
     world, rng = lab_world(4), np.random.default_rng(2)
@@ -131,7 +131,7 @@ def test_slip_experiment_end_to_end_with_a_tiny_echopt(tmp_path):
     assert {(a["predictor"], a["detector"]) for a in doc["auc"]} >= {("echopt", "eps"), ("flow", "ratio")}
     assert (tmp_path / "out" / "fig5_slip.png").stat().st_size > 10_000
     assert "| echopt | AR-5 |" in (tmp_path / "out" / "report.md").read_text()
-    from sonarset.models.precision import resolve_precision
+    from sonarset.models.echopt.precision import resolve_precision
 
     assert doc["precision"] == {"echopt": resolve_precision("auto", "cpu")}  # what auto chose, as it ran
 

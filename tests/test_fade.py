@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from sonarset import open_store
-from sonarset.models.eval_report import write_report
-from sonarset.models.evaluate import ECHO_FLOOR, FADE_TOLERANCE, EvalResult, evaluate, fade_summary, peak_and_energy
-from sonarset.schema import SensorGrid
+from sonarset.models.eval.report import write_report
+from sonarset.models.eval.evaluate import ECHO_FLOOR, FADE_TOLERANCE, EvalResult, evaluate, fade_summary, peak_and_energy
+from sonarset.format.attrs import SensorGrid
 from sonarset.sim import generate
 from sonarset.windows import N_IN
 
@@ -117,7 +117,7 @@ def test_a_tiny_model_that_learned_a_moving_scene_does_not_fade(tmp_path):
     little margin to assert it across machines' floating point."""
     import torch
 
-    from sonarset.models.train import TrainConfig, train
+    from sonarset.models.echopt.train import TrainConfig, train
 
     path = tmp_path / "tiny.zarr"
     generate(path, runs=3, test_runs=1, minutes=1.0, seed=3, workers=1, grid=TINY_GRID)

@@ -23,7 +23,7 @@ from typer.testing import CliRunner
 
 from sonarset import open_store
 from sonarset.cli.app import app
-from sonarset.validate import validate_store
+from sonarset.store.validate import validate_store
 
 # Two runs of 66 frames (two image chunks each) on a small grid: every kind of write happens, and
 # each kill costs about two seconds. (Grids of 12x8 or 16x12 bins trip the sonar model itself.)

@@ -20,14 +20,14 @@ from typer.testing import CliRunner
 from sonarset import open_store
 from sonarset.cli.app import app
 from sonarset.errors import InputValidationError, SonarSetError
-from sonarset.raw_recording import load_raw
-from sonarset.rawimport import import_raw
-from sonarset.recording_files import RawSource
-from sonarset.schema import Processing, SensorGrid
-from sonarset.sim.beamform import SignalBeamformer, read_layout_csv, steering_projection
+from sonarset.ingest.raw_recording import load_raw
+from sonarset.ingest.raw import import_raw
+from sonarset.ingest.files import RawSource
+from sonarset.format.attrs import Processing, SensorGrid
+from sonarset.sensor.beamform import SignalBeamformer, read_layout_csv, steering_projection
 from sonarset.sim.reference import microphone_signals, reference_amplitude, write_raw_recording
 from sonarset.sim.sonar import Echoes, SonarModel, sweep
-from sonarset.validate import validate_store
+from sonarset.store.validate import validate_store
 
 SMALL = SensorGrid(range_min_m=0.5, range_max_m=1.5, n_range=24, azimuth_min_rad=-1.2, azimuth_max_rad=1.2,
                    n_azimuth=12)
@@ -129,7 +129,7 @@ def test_isolated_point_target_column_stays_at_the_floor(fs, f_start, f_end):
     away from its range, for both beamformers. At a 450 kHz recording DMAS3's odd harmonics fold onto
     0 Hz at the 225 kHz output rate; |hilbert| of that baseband spreads it over all ranges (the
     streak of issue 24), which the rectifier (the toolbox's order, the default) and the square law keep at the echo's range."""
-    from sonarset.raw_recording import chirp
+    from sonarset.ingest.raw_recording import chirp
     from sonarset.sim.sonar import SonarModel
 
     grid = SensorGrid(range_min_m=0.5, range_max_m=3.5, n_range=120, azimuth_min_rad=-math.pi / 2,
@@ -418,7 +418,7 @@ def test_missing_sidecar_and_existing_store_left_untouched(tmp_path, signals4):
 
 KILLER = """
 import os, signal, sys
-from sonarset import rawimport
+from sonarset.ingest import raw as rawimport
 real = rawimport.RawProcessor.images
 calls = []
 def images(self, block):

@@ -9,8 +9,8 @@ from hypothesis.extra import numpy as hnp
 
 from sonarset import SonarSetError, open_store
 from sonarset.errors import InputValidationError
-from sonarset.importer import import_recording, load_recording
-from sonarset.validate import validate_store
+from sonarset.ingest.images import import_recording, load_recording
+from sonarset.store.validate import validate_store
 from tests.conftest import TINY, make_run
 
 
@@ -267,7 +267,7 @@ def test_absurd_sidecars_are_one_line(tmp_path, text, match):
 
 
 def test_deep_embedded_metadata_and_huge_sidecar(tmp_path, monkeypatch):
-    import sonarset.sidecar as sidecar
+    import sonarset.ingest.metadata as sidecar
 
     a = good_arrays()
     src = write_npz(tmp_path / "rec.npz", None, metadata=np.array("[" * 5000 + "]" * 5000), **a)
@@ -397,7 +397,7 @@ def test_full_disk_new_store_or_new_run_leaves_nothing(tmp_path, monkeypatch, ex
 
 
 def test_overwrite_without_renameat2_swaps_with_two_renames(tmp_path, monkeypatch):
-    import sonarset.atomic as atomic
+    import sonarset.store.atomic as atomic
 
     out = tmp_path / "s.zarr"
     import_recording(write_npz(tmp_path / "old.npz", {"name": "X"}, **good_arrays(12)), out)

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from sonarset.errors import SonarSetError
-from sonarset.models.losses import LOSSES, echo_energy_loss, image_loss, parse_loss, value_distribution_loss
+from sonarset.models.echopt.losses import LOSSES, echo_energy_loss, image_loss, parse_loss, value_distribution_loss
 
 
 def _echo(centre: int, width: float, amplitude: float = 1.0) -> torch.Tensor:

@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from sonarset.metrics import cc, cc_and_nrmsd, nrmsd, slip_error
-from sonarset.schema import RobotRig, SensorGrid
-from sonarset.stats import auc, compare, holm, mcnemar_p, wilson_interval
+from sonarset.scoring.metrics import cc, cc_and_nrmsd, nrmsd, slip_error
+from sonarset.format.attrs import RobotRig, SensorGrid
+from sonarset.scoring.stats import auc, compare, holm, mcnemar_p, wilson_interval
 from sonarset.windows import N_IN
 from sonarset.models.baselines import AcousticFlow, NaiveShift, Persistence, rollout
 from sonarset.models.registry import make_predictor
@@ -174,8 +174,8 @@ def test_rollout_passes_each_step_its_own_commands():
 
 
 def test_report_formats_and_the_wilcoxon_guard():
-    from sonarset.report import format_p, horizon_name
-    from sonarset.stats import wilcoxon_p
+    from sonarset.report.numbers import format_p, horizon_name
+    from sonarset.scoring.stats import wilcoxon_p
 
     assert [format_p(p) for p in (None, float("nan"), 0.5, 0.0004, 1e-301)] == ["n/a", "n/a", "0.500", "4.0e-04",
                                                                                   "< 1e-300"]

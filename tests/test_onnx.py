@@ -13,13 +13,13 @@ pytest.importorskip("onnxscript")
 
 from sonarset import GridMismatchError, SonarSetError, open_store  # noqa: E402
 from sonarset.cli.app import app  # noqa: E402
-from sonarset.models.checkpoint import save_checkpoint  # noqa: E402
-from sonarset.models.echopt import EchoPT, grid_and_rig, make_config  # noqa: E402
-from sonarset.models.evaluate import evaluate  # noqa: E402
-from sonarset.models.onnx_export import PARITY_TOLERANCE, export_onnx, random_windows  # noqa: E402
-from sonarset.models.onnx_runtime import CARD_KEY, OnnxEchoPTPredictor, open_session, read_onnx_card  # noqa: E402
+from sonarset.models.echopt.checkpoint import save_checkpoint  # noqa: E402
+from sonarset.models.echopt.model import EchoPT, grid_and_rig, make_config  # noqa: E402
+from sonarset.models.eval.evaluate import evaluate  # noqa: E402
+from sonarset.models.echopt.onnx_export import PARITY_TOLERANCE, export_onnx, random_windows  # noqa: E402
+from sonarset.models.echopt.onnx_runtime import CARD_KEY, OnnxEchoPTPredictor, open_session, read_onnx_card  # noqa: E402
 from sonarset.models.registry import make_predictor  # noqa: E402
-from sonarset.schema import SensorGrid  # noqa: E402
+from sonarset.format.attrs import SensorGrid  # noqa: E402
 from sonarset.sim import generate  # noqa: E402
 
 GRID = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=50, azimuth_min_rad=-math.pi / 2,

@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_import_sonarset_does_not_import_torch():
-    code = ("import sys, sonarset, sonarset.store, sonarset.windows, sonarset.validate, sonarset.importer; "
+    code = ("import sys, sonarset, sonarset.store.store, sonarset.windows, sonarset.store.validate, sonarset.ingest.images; "
             "assert 'torch' not in sys.modules, 'torch imported'")
     subprocess.run([sys.executable, "-c", code], check=True, cwd="/")
 
@@ -48,7 +48,7 @@ def test_wheel_installs_in_fresh_venv(tmp_path):
     # the sonarset that imports is the wheel's and never the checkout's.
     deps = sysconfig.get_paths()["purelib"]
     code = (f"import sys; sys.path.append({deps!r}); "
-            "import sonarset, sonarset.models, sonarset.cli.app, sonarset.store, sonarset.sim.generation, "
+            "import sonarset, sonarset.models, sonarset.cli.app, sonarset.store.store, sonarset.sim.generation, "
             "sonarset.models.experiments.control; "
             f"assert sonarset.__file__.startswith({str(venv)!r}), sonarset.__file__; "
             "import importlib.util as u; "

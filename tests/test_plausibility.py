@@ -11,11 +11,11 @@ from typer.testing import CliRunner
 from sonarset import open_store
 from sonarset.cli.app import app
 from sonarset.errors import InputValidationError
-from sonarset.importer import import_recording, load_recording
-from sonarset.plausibility import Implausible, command_problems, grid_problems, time_problems
-from sonarset.schema import RobotRig, SensorGrid
-from sonarset.store import create_store
-from sonarset.validate import validate_store
+from sonarset.ingest.images import import_recording, load_recording
+from sonarset.format.plausibility import Implausible, command_problems, grid_problems, time_problems
+from sonarset.format.attrs import RobotRig, SensorGrid
+from sonarset.store.store import create_store
+from sonarset.store.validate import validate_store
 from tests.conftest import TINY, make_run
 
 

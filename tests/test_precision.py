@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from sonarset import SonarSetError, open_store
-from sonarset.models import precision as prec
-from sonarset.models.evaluate import evaluate
+from sonarset.models.echopt import precision as prec
+from sonarset.models.eval.evaluate import evaluate
 from sonarset.models.registry import make_predictor
-from sonarset.schema import RobotRig, SensorGrid
+from sonarset.format.attrs import RobotRig, SensorGrid
 from sonarset.sim import generate
 
 X86_CPUINFO = """processor\t: 0

@@ -9,11 +9,11 @@ from typer.testing import CliRunner
 
 from sonarset import SonarSetError, create_store, open_store
 from sonarset.errors import InputValidationError
-from sonarset.importer import import_recording
-from sonarset.schema import Processing, RobotRig
+from sonarset.ingest.images import import_recording
+from sonarset.format.attrs import Processing, RobotRig
 from sonarset.sim.robot import SENSOR_OFFSET, V_MAX, W_MAX, WHEEL_BASE
-from sonarset.store import open_or_create_store
-from sonarset.validate import validate_store
+from sonarset.store.store import open_or_create_store
+from sonarset.store.validate import validate_store
 from tests.conftest import TINY, make_run
 
 FIX = Path(__file__).resolve().parents[1] / "spec" / "fixtures"
@@ -137,8 +137,8 @@ def test_import_refuses_bad_processing_or_rig_in_one_line(tmp_path, meta, expect
 def ertis_model(tmp_path):
     """A tiny EchoPT whose card says it was trained on 'ertis' images with the simulator's rig."""
     pytest.importorskip("torch")
-    from sonarset.models.checkpoint import save_checkpoint
-    from sonarset.models.echopt import EchoPT, make_config
+    from sonarset.models.echopt.checkpoint import save_checkpoint
+    from sonarset.models.echopt.model import EchoPT, make_config
 
     model = EchoPT(make_config("tiny", *TINY.shape, patch=(4, 3)))
     return save_checkpoint(tmp_path / "m" / "echopt-tiny", model, {
@@ -147,8 +147,8 @@ def ertis_model(tmp_path):
 
 
 def test_eval_notes_a_model_trained_on_other_images(store, ertis_model, tmp_path):
-    from sonarset.models.eval_report import write_report
-    from sonarset.models.evaluate import evaluate
+    from sonarset.models.eval.report import write_report
+    from sonarset.models.eval.evaluate import evaluate
 
     res = evaluate(store, ["persistence", f"echopt:{ertis_model}"], horizons=(1,), samples=5)
     assert res.notes[0].startswith("note: the store records no robot rig")
@@ -163,7 +163,7 @@ def test_eval_notes_a_model_trained_on_other_images(store, ertis_model, tmp_path
 
 
 def test_eval_is_quiet_when_model_and_store_agree(tmp_path, ertis_model):
-    from sonarset.models.evaluate import evaluate
+    from sonarset.models.eval.evaluate import evaluate
 
     s = create_store(tmp_path / "e.zarr", TINY, processing=Processing.ertis(), rig=SIM_RIG)
     s.write_run("test_000", **make_run(12), split="test")
@@ -172,7 +172,7 @@ def test_eval_is_quiet_when_model_and_store_agree(tmp_path, ertis_model):
 
 
 def test_old_cards_mean_raw_images():
-    from sonarset.models.cards import card_processing, card_rig, training_notices
+    from sonarset.models.echopt.cards import card_processing, card_rig, training_notices
 
     card = {"format": "echopt-card/1", "preset": "small", "config": {"residual": True}}  # before format 1.1
     assert "processing" not in card and card_processing(card) == Processing.raw() and card_rig(card) is None

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from sonarset.schema import SensorGrid
+from sonarset.format.attrs import SensorGrid
 from sonarset.sim import generate
-from sonarset.store import open_store
+from sonarset.store.store import open_store
 from sonarset.testing import serve_directory
-from sonarset.validate import validate_store
+from sonarset.store.validate import validate_store
 from sonarset.windows import FrameBank, WindowIndex, gather
 
 GRID = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=50, azimuth_min_rad=-math.pi / 2,
@@ -114,7 +114,7 @@ def test_store_over_http_validates_reads_identically_and_caches_chunks(local_ref
 
 @pytest.mark.slow
 def test_two_process_gloo_ddp_matches_single_process_training(local_ref, tmp_path):
-    from sonarset.models.checkpoint import load_checkpoint
+    from sonarset.models.echopt.checkpoint import load_checkpoint
 
     store = local_ref.location
     args = ["train", store, "--preset", "tiny", "--max-steps", "3", "--eval-every", "3", "--n-val", "8",
@@ -144,7 +144,7 @@ def test_chunk_cache_evicts_the_least_recently_used_values_within_its_budget():
     from zarr.core.buffer import cpu, default_buffer_prototype
     from zarr.storage import MemoryStore
 
-    from sonarset.cache import ChunkCache
+    from sonarset.store.cache import ChunkCache
 
     proto = default_buffer_prototype()
 

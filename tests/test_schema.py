@@ -3,7 +3,7 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from sonarset.schema import SCHEMAS, RecordingMeta, SensorGrid, StoreAttrs, json_schema_text, parse_version
+from sonarset.format.attrs import SCHEMAS, RecordingMeta, SensorGrid, StoreAttrs, json_schema_text, parse_version
 
 SCHEMA_DIR = Path(__file__).resolve().parents[1] / "spec" / "schema"
 

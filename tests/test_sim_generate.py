@@ -13,12 +13,12 @@ from typer.testing import CliRunner
 
 from sonarset import SonarSetError, open_store
 from sonarset.cli.app import app
-from sonarset.schema import Processing, SensorGrid
+from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.sim import ExplorationPolicy, generate, integrate, lab_world, load_world, visible_echoes, sensor_pose
 from sonarset.sim.reference import reference_amplitude
 from sonarset.sim.robot import ROBOT_RADIUS, V_MAX, W_MAX
 from sonarset.sim.sonar import Echoes, SonarModel
-from sonarset.validate import validate_store
+from sonarset.store.validate import validate_store
 
 SMALL = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=40, azimuth_min_rad=-math.pi / 2,
                    azimuth_max_rad=math.pi / 2, n_azimuth=30)
@@ -188,7 +188,7 @@ def test_beam_patterns_match_the_toolbox_side_lobe_levels():
     max re the peak, away from the main lobe (|az| > 10 deg). The Cosys-Lab toolbox's own code on
     the eRTIS layout gives DAS -19 / -14 dB, DAS + CF -47 / -37, DMAS3 -50 / -39 and DMAS3 + CF
     -79 / -60 (DESIGN.md §3). For one echo the coherence factor is the delay-and-sum pattern squared."""
-    from sonarset.sim.energyscape import dmas3_beam_table
+    from sonarset.sensor.energyscape import dmas3_beam_table
     from sonarset.sim.sonar import beam_table
 
     du, das = beam_table()
@@ -224,7 +224,7 @@ def test_energyscape_plot_puts_left_azimuths_on_the_left():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sonarset.plots import draw_energyscape
+    from sonarset.report.plots import draw_energyscape
 
     img = np.zeros(SMALL.shape, np.float32)
     img[:, -1] = 1.0  # the last column is the most positive azimuth: the robot's far left

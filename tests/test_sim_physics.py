@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from sonarset.schema import Processing, SensorGrid
+from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.sim.robot import SENSOR_OFFSET, apply_slip, integrate, sensor_pose
 from sonarset.sim.sonar import ABSORPTION_DB_PER_M, Echoes, SonarModel, visible_echoes
 from sonarset.sim.world import CircleSpec, SpawnBox, WallSpec, World, WorldSpec

@@ -5,7 +5,7 @@ import pytest
 
 from sonarset import FormatError, SonarSetError, create_store, open_store
 from sonarset.errors import InputValidationError
-from sonarset.schema import SensorGrid
+from sonarset.format.attrs import SensorGrid
 from tests.conftest import TINY, make_run
 
 
@@ -139,7 +139,7 @@ def test_fsspec_memory_url_round_trip():
 
 @pytest.mark.parametrize("dtype", [np.float16, np.float32])
 def test_unit_interval_bit_test_is_exact(dtype):
-    from sonarset.arrays import in_unit_interval
+    from sonarset.format.arrays import in_unit_interval
 
     a = np.random.default_rng(0).random(1000).astype(dtype)
     a[:3] = (0.0, -0.0, 1.0)

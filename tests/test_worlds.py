@@ -8,7 +8,7 @@ from typer.testing import CliRunner
 
 from sonarset import SonarSetError, open_store
 from sonarset.cli.app import app
-from sonarset.schema import SensorGrid
+from sonarset.format.attrs import SensorGrid
 from sonarset.sim import FAMILIES, ExplorationPolicy, SonarModel, generate, integrate, load_world, plan_runs
 from sonarset.sim.families import corridor_world
 from sonarset.sim.runs import world_mix

@@ -11,12 +11,12 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
-from sonarset.atomic import atomic_text, save_figure
+from sonarset.store.atomic import atomic_text, save_figure
 from sonarset.perf import keep_freed_memory
 from sonarset.errors import SonarSetError
-from sonarset.schema import Processing, SensorGrid
-from sonarset.report import finite_or_none
-from sonarset.stats import bootstrap_ci
+from sonarset.format.attrs import Processing, SensorGrid
+from sonarset.report.numbers import finite_or_none
+from sonarset.scoring.stats import bootstrap_ci
 from sonarset.sim.runs import simulator_rig
 
 _PREDICTORS: dict = {}
@@ -29,7 +29,7 @@ def predictor(spec: str, grid: SensorGrid, device: str = "cpu", precision: str =
     """The predictor for a model spec (``naive``, ``flow``, ``echopt:PATH``), built once per process."""
     key = (spec, grid.model_dump_json(), device, precision)
     if key not in _PREDICTORS:
-        from ..registry import make_predictor
+        from sonarset.models.registry import make_predictor
 
         _PREDICTORS[key] = make_predictor(spec, grid, RIG, device=device, precision=precision)
     return _PREDICTORS[key]
@@ -46,9 +46,9 @@ def experiment_processing(models, requested: Processing | str | None = None) -> 
     ``requested`` (a profile name or settings) is checked against the cards: a model is never fed
     images unlike its training images, so a mismatch is refused, as are models trained on different
     images in one experiment. Without a learned model, the request or the simulator's default
-    (``ertis``); the controller and the burst detector work on both profiles (``sonarset.control``).
+    (``ertis``); the controller and the burst detector work on both profiles (``sonarset.sim.control``).
     """
-    from ..cards import card_processing, read_card
+    from sonarset.models.echopt.cards import card_processing, read_card
 
     if isinstance(requested, str):
         try:
@@ -115,7 +115,7 @@ def parallel_map(fn: Callable, tasks: Sequence, workers: int | None = None,
 
 
 def mean_ci(x: np.ndarray, seed: int = 0) -> tuple[float, float, float]:
-    """Mean and its bootstrap 95% CI (``sonarset.stats.bootstrap_ci``); NaNs dropped."""
+    """Mean and its bootstrap 95% CI (``sonarset.scoring.stats.bootstrap_ci``); NaNs dropped."""
     x = np.asarray(x, float)
     x = x[np.isfinite(x)]
     if len(x) == 0:

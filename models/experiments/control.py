@@ -1,7 +1,7 @@
 """Corridor control through noise bursts (the paper's Fig. 6).
 
 A robot spawns in the corridor world's spawn box and drives to its waypoint with the subsumption
-controller of :mod:`sonarset.control`, which sees only sonar images and odometry. Three conditions,
+controller of :mod:`sonarset.sim.control`, which sees only sonar images and odometry. Three conditions,
 run from the same spawn poses and (for the last two) the same burst schedules:
 
 - ``clean``: every frame at the nominal SNR (5 dB);
@@ -24,17 +24,17 @@ from typing import Callable
 
 import numpy as np
 
-from sonarset.control import BurstDetector, ControllerGains, SubsumptionController
-from sonarset.schema import Processing, RobotRig, SensorGrid
+from sonarset.sim.control import BurstDetector, ControllerGains, SubsumptionController
+from sonarset.format.attrs import Processing, RobotRig, SensorGrid
 from sonarset.sim.runs import spawn_seeds
 from sonarset.sim.robot import ROBOT_RADIUS, integrate
 from sonarset.sim.sonar import SonarModel
 from sonarset.sim.families import corridor_world
 from sonarset.sim.world import World
-from sonarset.stats import holm, mcnemar_p, wilcoxon_p, wilson_interval
+from sonarset.scoring.stats import holm, mcnemar_p, wilcoxon_p, wilson_interval
 from sonarset.windows import N_IN
 
-from .common import RIG, experiment_processing, mean_ci, parallel_map, predictor
+from sonarset.models.experiments.common import RIG, experiment_processing, mean_ci, parallel_map, predictor
 
 CONDITIONS = ("clean", "bursts")  # plus one "bursts+<model>" condition per predictor
 GOAL_RADIUS = 0.4  # m: a run succeeds when the robot centre comes this close to the waypoint

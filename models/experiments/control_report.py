@@ -9,14 +9,14 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from sonarset.control import BurstDetector
-from sonarset.plots import pyplot
-from sonarset.report import format_p
+from sonarset.sim.control import BurstDetector
+from sonarset.report.plots import pyplot
+from sonarset.report.numbers import format_p
 from sonarset.sim.families import corridor_world
 from sonarset.sim.world import World
 
-from .common import write_outputs
-from .control import GOAL_RADIUS, ControlResult
+from sonarset.models.experiments.common import write_outputs
+from sonarset.models.experiments.control import GOAL_RADIUS, ControlResult
 
 FIGURE = "fig6_control.png"
 #: What metrics.json keeps of each run (the trajectories and per-frame flags stay out).

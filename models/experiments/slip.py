@@ -5,7 +5,7 @@ slower than commanded (both wheels: it stalls; one wheel: it turns unexpectedly)
 commands stay the same. Each predictor forecasts the next frame from measured frames and the
 logged commands, one-shot or auto-regressively over H steps; where the robot did not move as
 commanded, the forecast and the measurement disagree. The detector signal is the paper's
-eps(t) = ||I_p - I_m|| / sqrt(|CC(I_p, I_m)|) (``sonarset.metrics.slip_error``).
+eps(t) = ||I_p - I_m|| / sqrt(|CC(I_p, I_m)|) (``sonarset.scoring.metrics.slip_error``).
 
 Beyond the paper's one trajectory, :func:`run_slip_experiment` scores detection over N random
 trajectories with random slip periods: per trajectory the ROC AUC of a detector signal separating
@@ -30,16 +30,16 @@ from typing import Callable
 
 import numpy as np
 
-from sonarset.metrics import slip_error
-from sonarset.schema import Processing, RobotRig, SensorGrid
+from sonarset.scoring.metrics import slip_error
+from sonarset.format.attrs import Processing, RobotRig, SensorGrid
 from sonarset.sim.runs import spawn_seeds
 from sonarset.sim.robot import ExplorationPolicy, apply_slip, integrate
 from sonarset.sim.sonar import SonarModel
 from sonarset.sim.families import lab_world
-from sonarset.stats import auc, holm, wilcoxon_p
+from sonarset.scoring.stats import auc, holm, wilcoxon_p
 
-from ..baselines import Predictor, rollout
-from .common import RIG, experiment_processing, learned_precision, mean_ci, parallel_map, predictor
+from sonarset.models.baselines import Predictor, rollout
+from sonarset.models.experiments.common import RIG, experiment_processing, learned_precision, mean_ci, parallel_map, predictor
 
 HORIZONS = (1, 3, 5)
 KINDS = ("both", "one")

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from sonarset.plots import pyplot
-from sonarset.report import format_p, horizon_name
+from sonarset.report.plots import pyplot
+from sonarset.report.numbers import format_p, horizon_name
 
-from .common import write_outputs
-from .slip import DETECTORS, HORIZONS, KINDS, SlipPeriod, SlipResult
+from sonarset.models.experiments.common import write_outputs
+from sonarset.models.experiments.slip import DETECTORS, HORIZONS, KINDS, SlipPeriod, SlipResult
 
 DETECTOR_TEXT = {
     "eps": "the paper's eps(t) = ||I_p - I_m|| / sqrt(|CC|)",

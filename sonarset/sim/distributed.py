@@ -11,9 +11,9 @@ import os
 import time
 import uuid
 
-from ..errors import SonarSetError
-from ..schema import SensorGrid
-from .runs import write_run
+from sonarset.errors import SonarSetError
+from sonarset.format.attrs import SensorGrid
+from sonarset.sim.runs import write_run
 
 CONNECT_TIMEOUT = "15s"  # how long to wait for a scheduler address to answer
 

@@ -27,9 +27,9 @@ from typing import Callable
 import numpy as np
 from pydantic import ValidationError
 
-from ..errors import SonarSetError
-from ..schema import pydantic_problems
-from .world import CircleSpec, FenceSpec, SpawnBox, WallSpec, World, WorldSpec
+from sonarset.errors import SonarSetError
+from sonarset.format.attrs import pydantic_problems
+from sonarset.sim.world import CircleSpec, FenceSpec, SpawnBox, WallSpec, World, WorldSpec
 
 
 def _box(x0, y0, x1, y1, refl=1.0) -> list[WallSpec]:

@@ -13,15 +13,15 @@ import shutil
 from pathlib import Path
 from typing import Callable
 
-from ..atomic import aside_dir, remove_stale_asides, settle_zarr_writes
-from ..errors import SonarSetError, first_os_error, os_error_reason
-from ..schema import Processing, SensorGrid
-from ..store import SonarStore, create_store, open_or_create_store
-from ..version import __version__
-from ..zarrio import is_url
-from .runs import RunPlan, plan_runs, simulator_rig, world_mix
-from .sonar import check_psf
-from .families import load_world
+from sonarset.store.atomic import aside_dir, remove_stale_asides, settle_zarr_writes
+from sonarset.errors import SonarSetError, first_os_error, os_error_reason
+from sonarset.format.attrs import Processing, SensorGrid
+from sonarset.store.store import SonarStore, create_store, open_or_create_store
+from sonarset.version import __version__
+from sonarset.store.zarrio import is_url
+from sonarset.sim.runs import RunPlan, plan_runs, simulator_rig, world_mix
+from sonarset.sim.sonar import check_psf
+from sonarset.sim.families import load_world
 
 DESCRIPTION = f"simulated by sonarset {__version__}"
 
@@ -112,11 +112,11 @@ def _runs_to_do(store: SonarStore, plans: list[RunPlan]) -> list[RunPlan]:
 def _simulate_into(store: SonarStore, loc: str, todo: list[RunPlan], grid: SensorGrid, workers: int | None,
                    progress, scheduler, storage_options: dict | None) -> None:
     if todo and scheduler is not None:
-        from .distributed import run_on_dask  # Dask is an optional dependency
+        from sonarset.sim.distributed import run_on_dask  # Dask is an optional dependency
 
         run_on_dask(scheduler, loc, todo, grid, workers, storage_options, progress, store)
     elif todo:
-        from .local_pool import run_locally
+        from sonarset.sim.local_pool import run_locally
 
         run_locally(loc, todo, grid, workers, storage_options, progress, store)
     store.consolidate()

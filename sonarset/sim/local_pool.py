@@ -11,9 +11,9 @@ import multiprocessing as mp
 import os
 import threading
 
-from ..perf import keep_freed_memory
-from ..schema import SensorGrid
-from .runs import RunPlan, write_run
+from sonarset.perf import keep_freed_memory
+from sonarset.format.attrs import SensorGrid
+from sonarset.sim.runs import RunPlan, write_run
 
 
 def run_locally(location: str, plans: list[RunPlan], grid: SensorGrid, workers: int | None,

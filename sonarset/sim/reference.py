@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 from scipy import fft as sfft
 
-from ..schema import SensorGrid
-from .beamform import band_bins, band_envelope, check_detector, range_samples, steering, sweep_norm
-from .ertis import C_SOUND, F_HI, F_LO, SWEEP_S, microphone_y
-from .sonar import Echoes, sweep
+from sonarset.format.attrs import SensorGrid
+from sonarset.sensor.beamform import band_bins, band_envelope, check_detector, range_samples, steering, sweep_norm
+from sonarset.sensor.ertis import C_SOUND, F_HI, F_LO, SWEEP_S, microphone_y
+from sonarset.sim.sonar import Echoes, sweep
 
 FS_REF = 200e3  # Hz: above Nyquist for the 50 kHz top of the sweep
 
@@ -116,9 +116,9 @@ def write_raw_recording(run, out_dir, *, frames: slice | None = None, fs: float 
     """
     import json
 
-    from .robot import sensor_pose
-    from .sonar import visible_echoes
-    from .families import load_world
+    from sonarset.sim.robot import sensor_pose
+    from sonarset.sim.sonar import visible_echoes
+    from sonarset.sim.families import load_world
 
     src = run.attrs.source
     if src.get("kind") != "simulator":

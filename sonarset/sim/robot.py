@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .kernels import arc_clearance
-from .world import World
+from sonarset.sim.kernels import arc_clearance
+from sonarset.sim.world import World
 
 V_MAX = 0.3  # m/s (paper: linear speeds between -0.3 and 0.3 m/s)
 W_MAX = 1.0  # rad/s

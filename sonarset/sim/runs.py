@@ -14,14 +14,14 @@ from typing import Iterator
 
 import numpy as np
 
-from ..errors import SonarSetError
-from ..runwriter import DEFAULT_CHUNK_FRAMES
-from ..schema import Processing, RobotRig, SensorGrid
-from ..store import open_store
-from ..version import __version__
-from .robot import SENSOR_OFFSET, V_MAX, W_MAX, WHEEL_BASE, ExplorationPolicy, apply_slip, integrate
-from .sonar import SonarModel
-from .families import load_world
+from sonarset.errors import SonarSetError
+from sonarset.store.writer import DEFAULT_CHUNK_FRAMES
+from sonarset.format.attrs import Processing, RobotRig, SensorGrid
+from sonarset.store.store import open_store
+from sonarset.version import __version__
+from sonarset.sim.robot import SENSOR_OFFSET, V_MAX, W_MAX, WHEEL_BASE, ExplorationPolicy, apply_slip, integrate
+from sonarset.sim.sonar import SonarModel
+from sonarset.sim.families import load_world
 
 DT = 0.2  # s, 5 Hz frames
 

@@ -37,12 +37,12 @@ import numpy as np
 from scipy import fft as sfft
 from scipy import signal, special
 
-from ..schema import Processing, SensorGrid
-from .energyscape import dmas3_beam_table, dmas3_noise_gain, postprocess, smooth
-from .ertis import C_SOUND, F_HI, F_LO, SWEEP_S, microphone_y
-from .kernels import accumulate_psf_coherence, coherence_amplitude, reflector_echoes
-from .robot import sensor_pose
-from .world import World
+from sonarset.format.attrs import Processing, SensorGrid
+from sonarset.sensor.energyscape import dmas3_beam_table, dmas3_noise_gain, postprocess, smooth
+from sonarset.sensor.ertis import C_SOUND, F_HI, F_LO, SWEEP_S, microphone_y
+from sonarset.sim.kernels import accumulate_psf_coherence, coherence_amplitude, reflector_echoes
+from sonarset.sim.robot import sensor_pose
+from sonarset.sim.world import World
 
 ABSORPTION_DB_PER_M = 1.3
 ENVELOPE_LP_HZ = 6e3

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from ..errors import SonarSetError
+from sonarset.errors import SonarSetError
 
 
 class WallSpec(BaseModel):

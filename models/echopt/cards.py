@@ -1,0 +1,79 @@
+"""What a model card says about the data a model was trained on (no torch needed).
+
+A card (``NAME.json`` beside the weights, models/checkpoint.py) records the training store's grid,
+``processing`` and ``rig``. Cards written before format 1.1 have no ``processing``: their models
+were trained on 'raw' images.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+from sonarset.errors import SonarSetError
+from sonarset.format.attrs import Processing, RobotRig
+
+
+def read_card(spec: str | os.PathLike) -> dict:
+    """The card of a checkpoint spec (``pretrained``, a directory, a path, or an ONNX export), without
+    loading weights."""
+    if str(spec).endswith(".onnx"):
+        from sonarset.models.echopt.onnx_runtime import read_onnx_card
+
+        return read_onnx_card(spec)
+    from sonarset.models.echopt.checkpoint import resolve
+
+    path = resolve(spec).with_suffix(".json")
+    if not path.is_file():
+        raise SonarSetError(f"{path.with_suffix('.safetensors')}: no EchoPT checkpoint here (need {path.name})")
+    try:
+        card = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise SonarSetError(f"{path}: no readable EchoPT model card ({exc})") from None
+    if not isinstance(card, dict):
+        raise SonarSetError(f"{path}: not an EchoPT model card (not a JSON object)")
+    return card
+
+
+def card_processing(card: dict) -> Processing:
+    """How the images a model was trained on were made; cards without it (before format 1.1) mean 'raw'."""
+    raw = card.get("processing")
+    return Processing.raw() if raw is None else Processing.model_validate(raw)
+
+
+def card_rig(card: dict) -> RobotRig | None:
+    """The robot rig of the model's training store, None when not recorded."""
+    raw = card.get("rig")
+    return None if raw is None else RobotRig.model_validate(raw)
+
+
+def _quoted(p: Processing, noun: str = "") -> str:
+    return f"'{p.profile}'{noun}{p.describe()[len(p.profile):]}"
+
+
+def describe_images(p: Processing) -> str:
+    """A processing in a sentence: "'raw' images (das, no post-processing)"."""
+    return _quoted(p, " images")
+
+
+def training_notices(label: str, card: dict, processing: Processing, rig: RobotRig | None = None) -> list[str]:
+    """One-line notes when a model meets images (or a robot) other than those it was trained on.
+
+    Not errors: evaluating across processings is legitimate, but the scores then say nothing
+    about the model on its own kind of images.
+    """
+    try:
+        trained, trained_rig = card_processing(card), card_rig(card)
+    except ValueError as exc:  # pydantic's ValidationError
+        return [f"note: {label}'s model card has an invalid processing or rig ({str(exc).splitlines()[0]})"]
+    notes = []
+    if processing.profile == "unknown":
+        notes.append(f"note: {label} was trained on {describe_images(trained)}; this store's images are of "
+                     "unknown processing: scores may not be comparable to its training")
+    elif not trained.same_images(processing):
+        notes.append(f"note: {label} was trained on {describe_images(trained)}; this store's images are "
+                     f"{_quoted(processing)}: scores are not comparable to its training")
+    if trained_rig is not None and rig is not None and trained_rig != rig:
+        notes.append(f"note: {label} was trained on a robot with {trained_rig.describe()}; this store's robot has "
+                     f"{rig.describe()}: scores are not comparable to its training")
+    return notes

@@ -1,0 +1,80 @@
+"""EchoPT weights as safetensors with a JSON model card; no pickle is ever loaded.
+
+A checkpoint is two files: ``NAME.safetensors`` (the weights) and ``NAME.json`` (the card: preset,
+config, grid, the training store's image processing and robot rig (models/cards.py), training
+store and command, epochs, validation loss, test metrics).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from sonarset.store.atomic import atomic_text, atomic_write
+from sonarset.errors import GridMismatchError, SonarSetError
+from sonarset.format.attrs import SensorGrid
+
+from sonarset.models.echopt.model import EchoPT, EchoPTConfig
+
+PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained" / "echopt-small.safetensors"
+
+
+def save_checkpoint(path: str | os.PathLike, model: EchoPT, card: dict, after_weights=None) -> Path:
+    """Weights, then the card (``after_weights(phase)`` is called between the two: tests kill there)."""
+    path = Path(path).with_suffix(".safetensors")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
+    atomic_write(path, lambda p: save_file(state, str(p), metadata={"format": "echopt", "card": path.with_suffix(".json").name}))
+    if after_weights is not None:
+        after_weights("best-weights")
+    card = {**card, "config": model.cfg.to_dict(), "n_params": model.n_params()}
+    atomic_text(path.with_suffix(".json"), json.dumps(card, indent=2) + "\n")
+    return path
+
+
+def resolve(spec: str | os.PathLike) -> Path:
+    if str(spec) in ("", "pretrained"):
+        return PRETRAINED
+    p = Path(spec)
+    if p.is_dir():
+        p = p / "model.safetensors"
+    return p.with_suffix(".safetensors")
+
+
+def load_checkpoint(spec: str | os.PathLike, grid: SensorGrid | None = None, device: str = "cpu") -> tuple[EchoPT, dict]:
+    """Load weights and card; refuse a model trained on another grid with a clear message."""
+    path = resolve(spec)
+    card_path = path.with_suffix(".json")
+    if not path.is_file() or not card_path.is_file():
+        raise SonarSetError(f"{path}: no EchoPT checkpoint here (need {path.name} and {card_path.name})")
+    try:
+        card = json.loads(card_path.read_text())
+        cfg = EchoPTConfig.from_dict(card["config"])
+        cfg.check()
+    except GridMismatchError as exc:
+        raise GridMismatchError(f"{card_path}: {exc}") from None
+    except (ValueError, KeyError, TypeError, RecursionError) as exc:
+        raise SonarSetError(f"{card_path}: not an EchoPT model card ({exc})") from None
+    trained = SensorGrid.model_validate(card["grid"]) if "grid" in card else None
+    if grid is not None and trained is not None and not trained.matches(grid):
+        raise GridMismatchError(f"{path}: EchoPT was trained on grid {trained.describe()}, "
+                                f"the data has {grid.describe()}; retrain on this grid")
+    model = EchoPT(cfg)
+    try:
+        state = load_file(str(path), device="cpu")
+        model.load_state_dict(state)
+    except Exception as exc:  # safetensors raises its own error types
+        raise SonarSetError(f"{path}: cannot load weights ({type(exc).__name__}: {exc})") from None
+    return model.to(device).eval(), card
+
+
+def resolve_device(device: str) -> str:
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        raise SonarSetError("--device cuda: no CUDA device is available")
+    return device

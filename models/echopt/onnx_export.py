@@ -1,0 +1,175 @@
+"""Export an EchoPT checkpoint to ONNX (``sonarset export-onnx MODEL OUT.onnx``).
+
+The graph is the predictor a robot runs: ``frames`` (batch, n_in, R, A) in [0, 1] and
+``commands`` (batch, n_in + 1, 2) in m/s and rad/s give ``next_frame`` (batch, R, A), clamped to
+[0, 1] as in evaluation, with the acoustic-flow prior computed inside the graph. The batch axis is
+dynamic. The checkpoint's card goes into the ONNX metadata (models/onnx_runtime.py reads it), and
+the export is checked against torch on random sparse windows before it is written.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import logging
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from sonarset import __version__
+from sonarset.store.atomic import atomic_write
+from sonarset.errors import SonarSetError
+
+from sonarset.models.echopt.checkpoint import load_checkpoint
+from sonarset.models.echopt.model import EchoPT
+from sonarset.models.echopt.onnx_runtime import CARD_KEY, INPUTS, OUTPUT
+
+#: The largest torch-vs-onnxruntime difference an export may have (images are in [0, 1]).
+PARITY_TOLERANCE = 1e-4
+OPSET = 18
+
+
+class DeployedEchoPT(nn.Module):
+    """EchoPT as a predictor runs it: the output clamped to the energyscape's [0, 1]."""
+
+    def __init__(self, model: EchoPT):
+        super().__init__()
+        self.model = model
+
+    def forward(self, frames: torch.Tensor, commands: torch.Tensor) -> torch.Tensor:
+        return self.model(frames, commands).clamp(0, 1)
+
+
+@dataclass
+class Export:
+    path: Path
+    bytes: int
+    max_abs_diff: float | None  # torch vs onnxruntime on the check windows; None without onnxruntime
+    check_windows: int
+
+
+def random_windows(model: EchoPT, n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n`` windows shaped like sonar data: sparse frames (about 12% of pixels lit, as in the
+    default 'ertis' images) and commands within the simulator's limits."""
+    cfg = model.cfg
+    g = torch.Generator().manual_seed(seed)
+    shape = (n, cfg.n_in, cfg.n_range, cfg.n_azimuth)
+    frames = torch.rand(shape, generator=g) * (torch.rand(shape, generator=g) > 0.88)
+    commands = (torch.rand((n, cfg.n_in + 1, 2), generator=g) * 2 - 1) * torch.tensor([0.3, 1.0])
+    return frames, commands
+
+
+def metadata(card: dict, model: EchoPT) -> dict[str, str]:
+    """The ONNX metadata of an export: the whole card, and its main facts as flat keys."""
+    cfg = model.cfg
+    grid = card.get("grid") or {}
+    flat = {
+        CARD_KEY: json.dumps({**card, "config": cfg.to_dict(), "n_params": model.n_params()}),
+        "echopt.preset": str(card.get("preset", "")),
+        "echopt.prior": cfg.prior,
+        "echopt.n_in": str(cfg.n_in),
+        "echopt.grid": json.dumps(grid),
+        "echopt.processing": json.dumps(card.get("processing")),
+        "echopt.rig": json.dumps(card.get("rig")),
+        "echopt.trained_precision": str((card.get("training") or {}).get("precision", "fp32")),
+        "echopt.inputs": (f"frames: float32 (batch, {cfg.n_in}, {cfg.n_range}, {cfg.n_azimuth}) energyscapes "
+                          f"in [0, 1], oldest first; commands: float32 (batch, {cfg.n_in + 1}, 2) (v m/s, "
+                          "omega rad/s), commands[:, -1] moves the robot from the last frame to the predicted one"),
+        "echopt.output": f"next_frame: float32 (batch, {cfg.n_range}, {cfg.n_azimuth}) in [0, 1]",
+        "sonarset.version": __version__,
+    }
+    return flat
+
+
+def _hypot(x, y):
+    """aten::hypot in ONNX, which has no such operator: sqrt(x^2 + y^2) (the flow prior's ranges are
+    metres, far from where hypot's overflow guard matters)."""
+    from onnxscript import opset18 as op
+
+    return op.Sqrt(op.Add(op.Mul(x, x), op.Mul(y, y)))
+
+
+def _onnx_modules():
+    try:
+        import onnx  # noqa: F401
+        import onnxscript  # noqa: F401  torch's ONNX exporter translates through it
+    except ImportError:
+        raise SonarSetError("export-onnx needs onnx and onnxscript: pip install 'sonarset[onnx]'") from None
+    import onnx
+
+    return onnx
+
+
+def export_onnx(spec: str | os.PathLike, out: str | os.PathLike, *, check_windows: int = 8,
+                opset: int = OPSET) -> Export:
+    """Export the checkpoint ``spec`` (``pretrained``, a run directory or a ``.safetensors`` path)
+    to ``out``; written atomically, after the onnxruntime check where onnxruntime is installed."""
+    out = Path(out)
+    if out.suffix != ".onnx":
+        raise SonarSetError(f"{out}: the output must be an .onnx file")
+    if out.is_dir():
+        raise SonarSetError(f"{out}: is a directory")
+    onnx = _onnx_modules()
+    model, card = load_checkpoint(str(spec).removeprefix("echopt:"))
+    model = model.float().eval()
+    deployed = DeployedEchoPT(model).eval()
+    example = random_windows(model, 2, seed=1)
+    batch = torch.export.Dim("batch", min=1, max=1 << 16)
+    log = io.StringIO()
+    exporter_log = logging.getLogger("torch.onnx")
+    level = exporter_log.level
+    try:
+        # the exporter narrates each stage on stdout and logs optional torchvision ops it skips
+        exporter_log.setLevel(logging.ERROR)
+        with warnings.catch_warnings(), contextlib.redirect_stdout(log):
+            warnings.simplefilter("ignore")
+            program = torch.onnx.export(deployed, example, input_names=list(INPUTS), output_names=[OUTPUT],
+                                        dynamic_shapes=({0: batch}, {0: batch}), opset_version=opset,
+                                        dynamo=True, optimize=True, verbose=False, external_data=False,
+                                        custom_translation_table={torch.ops.aten.hypot.default: _hypot})
+    except Exception as exc:  # the exporter's own error types; the log says which op
+        raise SonarSetError(f"{spec}: ONNX export failed ({type(exc).__name__}: {str(exc).splitlines()[0]})") from None
+    finally:
+        exporter_log.setLevel(level)
+    proto = program.model_proto
+    proto.doc_string = (f"EchoPT ({card.get('preset', 'custom')} preset, {model.cfg.prior} prior) exported by "
+                        f"sonarset {__version__}: next sonar energyscape from {model.cfg.n_in} frames and "
+                        f"{model.cfg.n_in + 1} velocity commands")
+    del proto.metadata_props[:]
+    for k, v in metadata(card, model).items():
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = k, v
+    onnx.checker.check_model(proto)
+    data = proto.SerializeToString()
+    diff = _parity(data, deployed, check_windows) if check_windows else None
+    if diff is not None and diff > PARITY_TOLERANCE:
+        raise SonarSetError(f"{spec}: the ONNX graph differs from torch by {diff:.2e} (more than "
+                            f"{PARITY_TOLERANCE:g}) on {check_windows} random windows; not written")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(out, lambda p: p.write_bytes(data))
+    return Export(out, len(data), diff, check_windows)
+
+
+@torch.no_grad()
+def _parity(data: bytes, deployed: DeployedEchoPT, n: int) -> float | None:
+    """Max |torch - onnxruntime| on ``n`` random windows of a few batch sizes; None without onnxruntime."""
+    try:
+        import onnxruntime as ort
+    except ImportError:
+        return None
+    sess = ort.InferenceSession(data, providers=["CPUExecutionProvider"])
+    frames, commands = random_windows(deployed.model, n, seed=2)
+    worst = 0.0
+    for lo, hi in ((0, 1), (1, n)):  # batch 1 and the rest: the batch axis is dynamic
+        if hi <= lo:
+            continue
+        ref = deployed(frames[lo:hi], commands[lo:hi]).numpy()
+        got = sess.run([OUTPUT], {"frames": frames[lo:hi].numpy(), "commands": commands[lo:hi].numpy()})[0]
+        worst = max(worst, float(np.abs(ref - got).max()))
+    return worst

@@ -1,0 +1,126 @@
+"""EchoPT exported to ONNX (``sonarset export-onnx``), run by onnxruntime behind the predictor
+interface: ``echopt:PATH.onnx`` wherever an EchoPT runs (eval, demo, experiments).
+
+No torch here: a robot that has NumPy and onnxruntime can run the model. The model card travels
+inside the file, as ONNX metadata (``echopt.card``: the JSON card of the checkpoint it came from,
+plus flat keys for tools that only list metadata); the grid check and the notes on the images a
+model was trained on read it as they read a checkpoint's card.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from sonarset.errors import GridMismatchError, SonarSetError
+from sonarset.format.attrs import SensorGrid
+
+#: The metadata key of the model card (the JSON card of the exported checkpoint).
+CARD_KEY = "echopt.card"
+INPUTS = ("frames", "commands")
+OUTPUT = "next_frame"
+#: Windows per session run: onnxruntime's samples/s on 2 CPU cores peak near 16 windows and fall
+#: by ~10% at 128 (bench/bench_infer.py, BENCHMARKS.md).
+ONNX_BATCH = 16
+
+
+def _runtime():
+    try:
+        import onnxruntime
+    except ImportError:
+        raise SonarSetError("ONNX models need onnxruntime: pip install 'sonarset[onnx]'") from None
+    return onnxruntime
+
+
+def _threads() -> int:
+    """Intra-op threads: OMP_NUM_THREADS where set (the experiments' workers get one core each),
+    else onnxruntime's default (0: one per physical core)."""
+    try:
+        return max(0, int(os.environ.get("OMP_NUM_THREADS", "0")))
+    except ValueError:
+        return 0
+
+
+def open_session(path: str | os.PathLike, threads: int | None = None):
+    """An onnxruntime CPU session of the ONNX file ``path``; one-line errors for a missing or bad file."""
+    ort = _runtime()
+    path = Path(path)
+    if not path.is_file():
+        raise SonarSetError(f"{path}: no ONNX model here")
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = _threads() if threads is None else threads
+    opts.inter_op_num_threads = 1
+    opts.log_severity_level = 3  # errors only: its warnings are about the graph, not the user's input
+    try:
+        return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises its own exception types
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise SonarSetError(f"{path}: not a readable ONNX model ({first})") from None
+
+
+def session_card(session, path: str | os.PathLike) -> dict:
+    """The EchoPT card in a session's metadata."""
+    meta = session.get_modelmeta().custom_metadata_map
+    if CARD_KEY not in meta:
+        raise SonarSetError(f"{path}: an ONNX model without an EchoPT card (metadata {CARD_KEY!r}); "
+                            "export it with 'sonarset export-onnx'")
+    try:
+        card = json.loads(meta[CARD_KEY])
+    except ValueError as exc:
+        raise SonarSetError(f"{path}: its EchoPT card (metadata {CARD_KEY!r}) is not JSON ({exc})") from None
+    if not isinstance(card, dict) or not isinstance(card.get("config"), dict):
+        raise SonarSetError(f"{path}: its EchoPT card (metadata {CARD_KEY!r}) has no model config")
+    names = [i.name for i in session.get_inputs()], [o.name for o in session.get_outputs()]
+    if tuple(names[0]) != INPUTS or names[1][:1] != [OUTPUT]:
+        raise SonarSetError(f"{path}: inputs {names[0]} and outputs {names[1]}, not an EchoPT export "
+                            f"({', '.join(INPUTS)} -> {OUTPUT})")
+    return card
+
+
+def read_onnx_card(path: str | os.PathLike) -> dict:
+    """The EchoPT card inside an ONNX export."""
+    return session_card(open_session(path, threads=1), path)
+
+
+class OnnxEchoPTPredictor:
+    """An exported EchoPT under onnxruntime: the predictor interface of ``EchoPTPredictor``."""
+
+    precision = "fp32"  # the exported graph's; onnxruntime runs it as written
+
+    def __init__(self, path: str | os.PathLike, grid: SensorGrid | None = None, batch_size: int = ONNX_BATCH,
+                 threads: int | None = None):
+        self.path = Path(path)
+        self.session = open_session(self.path, threads)
+        self.card = session_card(self.session, self.path)
+        cfg = self.card["config"]
+        try:
+            self.n_in = int(cfg["n_in"])
+            self.shape = (int(cfg["n_range"]), int(cfg["n_azimuth"]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise SonarSetError(f"{self.path}: its EchoPT card's config lacks the grid or n_in ({exc})") from None
+        trained = SensorGrid.model_validate(self.card["grid"]) if "grid" in self.card else None
+        if grid is not None and trained is not None and not trained.matches(grid):
+            raise GridMismatchError(f"{self.path}: EchoPT was trained on grid {trained.describe()}, "
+                                    f"the data has {grid.describe()}; retrain on this grid")
+        if grid is not None and grid.shape != self.shape:
+            raise GridMismatchError(f"{self.path}: the model takes {self.shape[0]}x{self.shape[1]} images, "
+                                    f"the data has {grid.shape[0]}x{grid.shape[1]}")
+        self.grid = grid
+        self.batch_size = batch_size
+        self.name = "echopt"
+        self.label = f"echopt {self.path.name}"
+
+    def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:
+        out = np.empty((frames.shape[0], *frames.shape[2:]), dtype=np.float32)
+        for lo in range(0, len(frames), self.batch_size):
+            feed = {"frames": np.ascontiguousarray(frames[lo:lo + self.batch_size], dtype=np.float32),
+                    "commands": np.ascontiguousarray(commands[lo:lo + self.batch_size], dtype=np.float32)}
+            out[lo:lo + len(feed["frames"])] = self.session.run([OUTPUT], feed)[0]  # clamped in the graph
+        return out
+
+
+def load_onnx_predictor(path: str | os.PathLike, grid: SensorGrid | None = None) -> OnnxEchoPTPredictor:
+    return OnnxEchoPTPredictor(path, grid)

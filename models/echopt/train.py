@@ -1,0 +1,495 @@
+"""Training EchoPT on a SonarSet store (``sonarset train``).
+
+Paper defaults: Adam, lr 5e-5, batch 64, L2 1e-4, 1600 random validation windows, best validation
+loss kept. All frames of the training runs are held in memory (on the GPU when there is one), and
+each batch is one gather from them (sonarset.torchdata.torch_batcher), so the loader never starves
+the model.
+
+For auto-regressive use (beyond the paper): an unrolled loss over k steps, each step fed the
+model's own previous predictions, with a curriculum on k (``curriculum="0:1,400:2,800:4"``: from
+step 0 k = 1, from step 400 k = 2, ...); optionally "pushforward" (the first k - 1 steps without
+gradient, so memory stays that of one step); Gaussian noise on the measured context frames; and a
+loss choice (``mse``, ``l1``, ``gdl`` image-gradient difference, ``cc`` = 1 - correlation, or a
+weighted sum such as ``mse=1,gdl=0.5``). Validation is the mean MSE over a rollout of
+``val_horizon`` steps (1: the paper's one-step loss).
+
+Precision (models/precision.py): ``auto`` trains under bf16 autocast where the hardware has bf16
+units (a GPU, or a CPU with AMX or AVX-512 BF16) and in fp32 elsewhere; the losses, the optimizer
+and the weights stay fp32. The card records the precision a model was trained in.
+
+Crash-safe and resumable: the whole training state (weights, Adam moments, step, best loss,
+metrics history) is one file, ``state.safetensors`` (models/train_state.py), replaced
+atomically every ``eval_every`` steps; a kill at any point leaves either the previous state or the
+new one. ``metrics.jsonl`` and the best model are derived from it and rewritten on resume. The
+batch order and the augmentation noise are pure functions of (seed, epoch, step), so a resumed
+run replays exactly the steps an uninterrupted one would have taken.
+
+Distributed (models/distributed.py): started by ``torchrun`` (WORLD_SIZE > 1), every process
+draws the same global batch order and trains on its own contiguous slice of each global batch of
+``batch_size`` windows, under DistributedDataParallel (NCCL on GPUs, gloo on CPUs). DDP averages
+the gradients of the slices, which is the gradient of the global batch's mean loss: the same
+optimizer steps as one process with that batch, up to floating-point summation order. Validation
+is sharded and all-reduced; only rank 0 writes checkpoints, logs and reports progress.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shlex
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from sonarset import __version__
+from sonarset.store.atomic import atomic_text
+from sonarset.errors import SonarSetError
+from sonarset.store.store import SonarStore
+from sonarset.torchdata import torch_batcher
+from sonarset.windows import FrameBank, WindowBatcher, WindowIndex
+
+from sonarset.models.echopt.checkpoint import load_checkpoint, resolve_device, save_checkpoint
+from sonarset.models.echopt.distributed import Dist, destroy_process_group, init_distributed
+from sonarset.models.echopt.model import PRIORS, EchoPT, grid_and_rig, make_config
+from sonarset.models.echopt.losses import image_loss, parse_loss
+from sonarset.models.echopt.precision import autocast, resolve_precision
+from sonarset.models.echopt.train_state import STATE, load_state, save_state, write_metrics
+
+#: Called with a phase name after each write of a checkpoint (tests kill training there).
+_AFTER_WRITE: Callable[[str], None] | None = None
+
+
+def _written(phase: str) -> None:
+    if _AFTER_WRITE is not None:
+        _AFTER_WRITE(phase)
+
+
+@dataclass
+class TrainConfig:
+    preset: str = "small"
+    epochs: int = 1000
+    batch_size: int = 64
+    lr: float = 5e-5
+    weight_decay: float = 1e-4  # L2, as Adam's weight_decay (MATLAB's L2Regularization)
+    # adam: the paper's, L2 added to the gradient; adamw: decoupled decay (Loshchilov & Hutter).
+    # With a prior the last convolution starts at zero, so the layers behind it see almost no
+    # gradient at first, and Adam's normalised L2 alone shrinks them by ~lr a step: in short runs
+    # they never learn (measured on the tiny preset). AdamW's decay does not go through Adam's scaling.
+    optimizer: str = "adam"
+    schedule: str = "none"  # none (paper) | cosine (decays to 1% of lr over the run, 2% warm-up)
+    seed: int = 0
+    device: str = "auto"
+    n_val: int = 1600
+    eval_every: int = 0  # steps between validations and checkpoints; 0 = once per epoch
+    max_steps: int = 0  # stop after this many optimizer steps in total (0 = no limit)
+    max_minutes: float = 0.0  # stop after this much wall time in this process (0 = no limit)
+    compile: bool = False  # torch.compile (GPU)
+    precision: str = "auto"  # auto | fp32 | bf16 autocast (models/precision.py); auto: bf16 where the hardware has it
+    test_samples: int = 1000  # one-shot + AR test metrics in the card (0 = skip)
+    prior: str = ""  # none | last | flow; "" = the preset's (paper: none, small and tiny: flow)
+    loss: str = "mse"  # a term of losses.LOSSES (mse, l1, gdl, cc, w1, energy), or a weighted sum "mse=1,w1=2"
+    curriculum: str = "1"  # rollout length k: "k", or "step:k,step:k,..." from those steps on
+    pushforward: bool = False  # only the last of the k steps carries gradient
+    context_noise: float = 0.0  # std of Gaussian noise added to the measured context frames
+    val_horizon: int = 0  # rollout steps of the validation loss (0 = the curriculum's longest)
+    init: str = ""  # fine-tune: start from this checkpoint's weights (same preset, prior, grid, images)
+    worlds: str = ""  # comma-separated world families to train on ("" = every training run)
+    n_in: int = 0  # input frames per window (0 = the preset's: the paper's 3)
+    command: str = field(default_factory=lambda: " ".join(shlex.quote(a) for a in sys.argv))
+
+    def stages(self) -> list[tuple[int, int]]:
+        """The curriculum as (first step, k) pairs, sorted."""
+        try:
+            if ":" not in self.curriculum:
+                out = [(0, int(self.curriculum))]
+            else:
+                out = sorted((int(a), int(b)) for a, b in (p.split(":") for p in self.curriculum.split(",")))
+        except ValueError:
+            raise SonarSetError(f"--curriculum {self.curriculum!r}: expected k or step:k,step:k (e.g. 0:1,400:2)") from None
+        if not out or out[0][0] != 0 or any(k < 1 for _, k in out):
+            raise SonarSetError(f"--curriculum {self.curriculum!r}: must start at step 0 with k >= 1")
+        return out
+
+    def world_list(self) -> list[str] | None:
+        """The world families to train on, or None for every training run."""
+        names = [w.strip() for w in self.worlds.split(",") if w.strip()]
+        return names or None
+
+    def k_at(self, step: int) -> int:
+        return [k for s, k in self.stages() if s <= step][-1]
+
+    @property
+    def k_max(self) -> int:
+        return max(k for _, k in self.stages())
+
+
+#: Settings that must not change when a run is resumed.
+_RESUME_KEYS = ("preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps", "prior", "loss",
+                "curriculum", "pushforward", "context_noise", "val_horizon", "optimizer", "weight_decay", "init",
+                "worlds", "n_in")
+
+
+@dataclass
+class TrainResult:
+    out_dir: Path
+    steps: int
+    epochs_done: float
+    best_val_loss: float
+    history: list[dict]
+
+
+def _lr_at(cfg: TrainConfig, step: int, total: int) -> float:
+    if cfg.schedule == "none" or total <= 0:
+        return cfg.lr
+    warm = max(1, int(0.02 * total))
+    if step < warm:
+        return cfg.lr * (step + 1) / warm
+    t = min(1.0, (step - warm) / max(1, total - warm))
+    return cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch.Tensor, terms: dict[str, float],
+                   pushforward: bool = False, precision: str = "fp32") -> list[torch.Tensor]:
+    """One loss per rollout step: step h predicts target h from the last n_in frames, measured or
+    the model's own (clamped to [0, 1], as in evaluation) predictions. With ``pushforward`` all
+    steps but the last run without gradient, and only the last step's loss is returned."""
+    n_in, k = frames.shape[1], targets.shape[1]
+    buf = list(frames.unbind(1))
+    losses = []
+    for h in range(k):
+        grad = torch.is_grad_enabled() and (not pushforward or h == k - 1)
+        ctx = torch.stack(buf[h:h + n_in], 1).contiguous(memory_format=torch.channels_last)
+        with torch.set_grad_enabled(grad), autocast(ctx.device, precision):
+            pred = fwd(ctx, cmds[:, h:h + n_in + 1]).float()  # the losses in fp32
+        if grad or not pushforward:
+            losses.append(image_loss(pred, targets[:, h], terms))
+        buf.append(pred.clamp(0, 1))
+    return losses
+
+
+@torch.no_grad()
+def validation_loss(model: EchoPT, batcher: WindowBatcher, index: WindowIndex, horizon: int = 1,
+                    batch_size: int = 128, dist: Dist = Dist(), terms: dict[str, float] | None = None,
+                    precision: str = "fp32") -> float:
+    """The training loss (``terms``, default MSE) per pixel over ``index``, averaged over a rollout
+    of ``horizon`` steps; each process takes every world-th batch. The kept model is the best by
+    the objective it was trained for: with a sharpness term, the MSE alone would prefer the
+    blurrier weights."""
+    model.eval()
+    total, n = 0.0, 0
+    starts = range(0, len(index), batch_size)
+    for lo in list(starts)[dist.rank::dist.world]:
+        b = batcher.gather(index, np.arange(lo, min(len(index), lo + batch_size)), horizon)
+        losses = rollout_losses(model, b.frames, b.commands, b.targets, terms or {"mse": 1.0}, precision=precision)
+        total += float(sum(losses)) / horizon * len(b)
+        n += len(b)
+    model.train()
+    total, n = dist.all_sum(total, n)
+    return total / n
+
+
+def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, resume: bool = False,
+          progress: Callable[[dict], None] | None = None) -> TrainResult:
+    out = Path(out_dir)
+    if out.exists() and any(out.iterdir()) and not resume:
+        raise SonarSetError(f"{out}: exists and is not empty (use --resume to continue, or another --out)")
+    # --resume on a run killed before its first checkpoint (no state yet) starts it from step 0
+    cfg.stages()
+    parse_loss(cfg.loss)
+    if cfg.prior and cfg.prior not in PRIORS:
+        raise SonarSetError(f"--prior must be one of {', '.join(PRIORS)}, got {cfg.prior!r}")
+    dist, device, started = init_distributed(resolve_device(cfg.device))
+    try:
+        if cfg.batch_size % dist.world:
+            raise SonarSetError(f"--batch-size {cfg.batch_size} is not a multiple of the {dist.world} processes")
+        dist.barrier()  # every rank has checked the run directory before rank 0 writes to it
+        return _train(store, out, cfg, resume, progress, dist, device)
+    finally:
+        if started:
+            destroy_process_group()
+
+
+def _init_from(model: EchoPT, spec: str, store: SonarStore) -> None:
+    """Copy a trained model's weights into ``model``, which must be the same network on the same grid,
+    trained on the same images (a fine-tune continues a model; it cannot change what it is)."""
+    from sonarset.models.echopt.cards import card_processing
+
+    trained, card = load_checkpoint(spec, store.grid)
+    if trained.cfg != model.cfg:
+        diff = ", ".join(f"{k}: {getattr(trained.cfg, k)!r} vs {getattr(model.cfg, k)!r}"
+                         for k in model.cfg.__dataclass_fields__ if getattr(trained.cfg, k) != getattr(model.cfg, k))
+        raise SonarSetError(f"--init {spec}: another network than --preset/--prior make here ({diff})")
+    if not card_processing(card).same_images(store.processing):
+        raise SonarSetError(f"--init {spec}: trained on {card_processing(card).profile} images, "
+                            f"{store.location} has {store.processing.profile}")
+    model.load_state_dict(trained.state_dict())
+
+
+def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[EchoPT, torch.optim.Optimizer]:
+    """The network for the store's grid and robot (seeded, or --init's weights) on ``device``, and
+    its optimizer."""
+    torch.manual_seed(cfg.seed)
+    overrides = grid_and_rig(store.grid, store.rig)
+    if cfg.prior:
+        overrides["prior"] = cfg.prior
+    if cfg.n_in:
+        overrides["n_in"] = cfg.n_in
+    try:
+        model = EchoPT(make_config(cfg.preset, *store.grid.shape, **overrides))
+    except ValueError as exc:  # e.g. an --n-in whose command values leave d_model indivisible by the heads
+        what = f"--n-in {cfg.n_in}" if cfg.n_in else f"--preset {cfg.preset}"
+        raise SonarSetError(f"{what}: {exc}") from None
+    if cfg.init:
+        _init_from(model, cfg.init, store)
+    model = model.to(device).to(memory_format=torch.channels_last)
+    if cfg.optimizer not in ("adam", "adamw"):
+        raise SonarSetError(f"--optimizer must be adam or adamw, got {cfg.optimizer!r}")
+    opt_cls = torch.optim.AdamW if cfg.optimizer == "adamw" else torch.optim.Adam
+    opt = opt_cls(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=cfg.weight_decay)
+    return model, opt
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """A run's length in optimizer steps, and how often it validates and saves."""
+
+    steps_per_epoch: int
+    total_steps: int
+    eval_every: int
+
+    @classmethod
+    def of(cls, cfg: TrainConfig, n_train: int, location: str) -> "_Plan":
+        steps_per_epoch = n_train // cfg.batch_size  # drop the last partial batch
+        if steps_per_epoch == 0:
+            raise SonarSetError(f"{location}: {n_train} training windows, fewer than one batch")
+        total_steps = cfg.epochs * steps_per_epoch
+        if cfg.max_steps:
+            total_steps = min(total_steps, cfg.max_steps)
+        return cls(steps_per_epoch, total_steps, cfg.eval_every or steps_per_epoch)
+
+
+def _resumed(out: Path, model: EchoPT, opt: torch.optim.Optimizer, cfg: TrainConfig,
+             dist: Dist) -> tuple[int, float, list[dict]]:
+    """(step, best validation loss, history) of the saved state, loaded into ``model`` and ``opt``,
+    after checking that the settings that shape the run are the saved ones."""
+    meta = load_state(out, model, opt)
+    saved = meta["train_config"]
+    for key in _RESUME_KEYS:
+        if saved.get(key, getattr(TrainConfig, key, None)) != getattr(cfg, key):
+            raise SonarSetError(f"{out}: --resume with {key}={getattr(cfg, key)!r}, but the run used {saved.get(key)!r}")
+    if dist.main:  # derived from the state: whatever a kill left behind, rewrite it
+        write_metrics(out, list(meta["history"]))
+    return int(meta["step"]), float(meta["best_val_loss"]), list(meta["history"])
+
+
+def _forward(model: EchoPT, cfg: TrainConfig, dist: Dist, device: str):
+    """The model as a training step calls it: under DistributedDataParallel across processes,
+    compiled on request (GPU)."""
+    fwd = model
+    if dist.world > 1:
+        from torch.nn.parallel import DistributedDataParallel
+
+        fwd = DistributedDataParallel(model, device_ids=[dist.local_rank] if device.startswith("cuda") else None)
+    if cfg.compile and device.startswith("cuda"):
+        fwd = torch.compile(fwd)
+    return fwd
+
+
+def _card_base(store: SonarStore, cfg: TrainConfig, bank: FrameBank, n_train: int, n_val: int,
+               steps_per_epoch: int, precision: str) -> dict:
+    """What every checkpoint's card says about the model's data and training."""
+    return {
+        "format": "echopt-card/1", "preset": cfg.preset, "grid": store.grid.model_dump(),
+        # what the model knows: the images' processing and the robot (models/cards.py reads them)
+        "processing": store.processing.model_dump(mode="json"),
+        "rig": store.rig.model_dump(mode="json") if store.rig is not None else None,
+        "training": {"store": store.location, "runs": bank.run_names, "worlds": _run_worlds(store, bank.run_names),
+                     "command": cfg.command,
+                     "sonarset": __version__, "config": asdict(cfg), "windows_train": n_train,
+                     "windows_val": n_val, "steps_per_epoch": steps_per_epoch, "precision": precision},
+    }
+
+
+def _run_worlds(store: SonarStore, names: list[str]) -> dict[str, int]:
+    """{world family: training runs} of ``names`` (runs whose provenance names no world are left out)."""
+    out: dict[str, int] = {}
+    for name in names:
+        world = (store.run(name).attrs.source or {}).get("world")
+        if world is not None:
+            out[str(world)] = out.get(str(world), 0) + 1
+    return out
+
+
+@dataclass
+class _Tally:
+    """Training loss and throughput since the last validation."""
+
+    loss: float = 0.0
+    n: int = 0
+    samples: int = 0
+    t0: float = field(default_factory=time.perf_counter)
+
+
+@dataclass
+class _Run:
+    """What every step of one training run needs."""
+
+    cfg: TrainConfig
+    out: Path
+    dist: Dist
+    model: EchoPT
+    fwd: Callable
+    opt: torch.optim.Optimizer
+    terms: dict[str, float]
+    batcher: WindowBatcher
+    train_idx: WindowIndex
+    val_idx: WindowIndex
+    plan: _Plan
+    val_horizon: int
+    precision: str  # resolved: fp32 | bf16
+    card_base: dict
+    progress: Callable[[dict], None] | None
+    t_start: float = field(default_factory=time.perf_counter)
+
+    def batch(self, step: int, which: np.ndarray, k: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Input frames, commands and ``k`` rollout targets of the training windows ``which``."""
+        b = self.batcher.gather(self.train_idx, which, k)
+        frames = b.frames
+        if self.cfg.context_noise:
+            # drawn from (seed, step): a resumed run adds the same noise
+            gen = torch.Generator().manual_seed(self.cfg.seed * 1_000_003 + step)
+            noise = torch.randn(frames.shape, generator=gen) * self.cfg.context_noise
+            frames = (frames + noise.to(frames.device)).clamp_(0, 1)
+        return frames, b.commands, b.targets
+
+    def optimizer_step(self, step: int, which: np.ndarray, k: int) -> torch.Tensor:
+        """One step on the windows ``which`` with a ``k``-step rollout; returns its loss."""
+        frames, cmds, targets = self.batch(step, which, k)
+        for g in self.opt.param_groups:
+            g["lr"] = _lr_at(self.cfg, step, self.plan.total_steps)
+        losses = rollout_losses(self.fwd, frames, cmds, targets, self.terms, self.cfg.pushforward, self.precision)
+        loss = sum(losses) / len(losses)
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        return loss
+
+    def out_of_time(self) -> bool:
+        """Whether --max-minutes is spent; every rank agrees, so that all stop at the same step."""
+        late = bool(self.cfg.max_minutes) and (time.perf_counter() - self.t_start) > 60 * self.cfg.max_minutes
+        if self.dist.world > 1 and self.cfg.max_minutes:
+            late = bool(self.dist.all_sum(float(late))[0])
+        return late
+
+    def validate(self, step: int, k: int, tally: _Tally, history: list[dict], best: float) -> float:
+        """Validate, append to ``history``, save (rank 0) and report; returns the best loss so far."""
+        dist = self.dist
+        val = validation_loss(self.model, self.batcher, self.val_idx, self.val_horizon, dist=dist, terms=self.terms,
+                              precision=self.precision)
+        run_loss, run_n = dist.all_sum(tally.loss, tally.n)
+        rate = tally.samples / (time.perf_counter() - tally.t0)
+        rec = {"step": step, "epoch": step / self.plan.steps_per_epoch, "train_loss": run_loss / max(run_n, 1),
+               "val_loss": val, "rollout_k": k, "lr": self.opt.param_groups[0]["lr"], "samples_per_s": rate,
+               "elapsed_s": time.perf_counter() - self.t_start}
+        history.append(rec)
+        if dist.main:
+            self.save(step, val, best, history)
+            if self.progress:
+                self.progress({**rec, "total_steps": self.plan.total_steps, "best_val_loss": min(best, val)})
+        return min(best, val)
+
+    def save(self, step: int, val: float, best: float, history: list[dict]) -> None:
+        """Rank 0's writes. Order matters for a kill at any point: the best model first (a resumed
+        run redoes these steps and rewrites it identically), then the state, the commit point, then
+        the metrics derived from it."""
+        if val < best:
+            save_checkpoint(self.out / "model.safetensors", self.model, {
+                **self.card_base, "epochs": step / self.plan.steps_per_epoch, "steps": step, "val_loss": val,
+                "val_horizon": self.val_horizon, "processes": self.dist.world}, after_weights=_written)
+            _written("best")
+        save_state(self.out, self.model, self.opt, {"step": step, "best_val_loss": min(best, val),
+                                                    "train_config": asdict(self.cfg), "history": history})
+        _written("state")
+        write_metrics(self.out, history)
+        _written("metrics")
+
+
+def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progress, dist: Dist,
+           device: str) -> TrainResult:
+    model, opt = _build_model(store, cfg, device)
+    precision = resolve_precision(cfg.precision, device)
+    terms = parse_loss(cfg.loss)
+    val_horizon = cfg.val_horizon or cfg.k_max
+    bank = FrameBank.from_store(store, split="train", worlds=cfg.world_list())
+    # a window holds the model's input frames and the longest rollout's targets
+    index = WindowIndex.build(bank, model.cfg.n_in, max(cfg.k_max, val_horizon))
+    train_idx, val_idx = index.split(cfg.n_val, seed=cfg.seed)
+    if dist.main:
+        out.mkdir(parents=True, exist_ok=True)
+    batcher = torch_batcher(bank, device)
+    plan = _Plan.of(cfg, len(train_idx), store.location)
+    step, best, history = 0, float("inf"), []
+    if resume and (out / STATE).is_file():
+        step, best, history = _resumed(out, model, opt, cfg, dist)
+    run = _Run(cfg, out, dist, model, _forward(model, cfg, dist, device), opt, terms, batcher, train_idx, val_idx,
+               plan, val_horizon, precision,
+               _card_base(store, cfg, bank, len(train_idx), len(val_idx), plan.steps_per_epoch, precision), progress)
+    step, best = _steps(run, step, best, history)
+    dist.barrier()  # rank 0's last checkpoint is on disk before any process returns
+    return TrainResult(out, step, step / plan.steps_per_epoch, best, history)
+
+
+def _steps(run: _Run, step: int, best: float, history: list[dict]) -> tuple[int, float]:
+    """Train from ``step`` to the plan's end or --max-minutes; returns (step reached, best loss).
+
+    Each epoch's window order is drawn from (seed, epoch), and each process takes its slice of
+    every global batch: a resumed run replays the steps an uninterrupted one would have taken.
+    """
+    cfg, plan, dist = run.cfg, run.plan, run.dist
+    local = cfg.batch_size // dist.world  # this process's slice of each global batch
+    run.model.train()
+    tally = _Tally()
+    while step < plan.total_steps:
+        epoch, pos = divmod(step, plan.steps_per_epoch)
+        order = np.random.default_rng([cfg.seed, epoch]).permutation(len(run.train_idx))
+        for b in range(pos, plan.steps_per_epoch):
+            which = order[b * cfg.batch_size:(b + 1) * cfg.batch_size][dist.rank * local:(dist.rank + 1) * local]
+            k = cfg.k_at(step)
+            loss = run.optimizer_step(step, which, k)
+            step += 1
+            tally.loss += loss.item() * len(which)
+            tally.n += len(which)
+            tally.samples += cfg.batch_size
+            out_of_time = run.out_of_time()
+            if step % plan.eval_every == 0 or step == plan.total_steps or out_of_time:
+                best = run.validate(step, k, tally, history, best)
+                tally = _Tally()
+            elif run.progress and dist.main and step % 10 == 0:
+                run.progress({"step": step, "total_steps": plan.total_steps, "train_loss": loss.item()})
+            if step >= plan.total_steps or out_of_time:
+                return step, best
+    return step, best
+
+
+def add_test_metrics(out_dir: str | os.PathLike, store: SonarStore, samples: int = 1000, seed: int = 0,
+                     device: str = "cpu", precision: str = "auto") -> dict:
+    """Evaluate the best model against the baselines on the store's test split; record in the card."""
+    from sonarset.models.eval.evaluate import evaluate
+    from sonarset.models.registry import BASELINES
+
+    path = Path(out_dir) / "model.safetensors"
+    res = evaluate(store, [*BASELINES, f"echopt:{path}"], samples=samples, seed=seed, device=device, precision=precision)
+    card_path = path.with_suffix(".json")
+    card = json.loads(card_path.read_text())
+    card["test"] = {"store": store.location, "split": "test", "windows": len(res.window_ids), "seed": seed,
+                    "precision": res.precision.get("echopt"),
+                    "results": res.summary(),
+                    "echopt_vs_flow": [c.to_dict() for c in res.comparisons if {c.a, c.b} == {"echopt", "flow"}]}
+    atomic_text(card_path, json.dumps(card, indent=2) + "\n")
+    return card["test"]

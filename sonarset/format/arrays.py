@@ -1,0 +1,261 @@
+"""The arrays of a run group (spec/FORMAT.md §2) and the checks every writer applies to them."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from sonarset.format.attrs import SensorGrid
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    dims: tuple[str, ...]
+    dtypes: tuple[str, ...]
+    required: bool
+    write_dtype: str  # what the reference writer stores (images: float16 unless asked otherwise)
+    last: int | None = None  # fixed size of the last axis, if any
+    units: str | None = None
+    description: str = ""
+
+    def layout(self) -> str:
+        """The shape this array must have, in words (``T`` frames; a grid's bins are the store's)."""
+        if self.dims[0] != "time":
+            return "a 1-D array of bin centres"
+        if self.last is None and len(self.dims) > 1:
+            return f"{len(self.dims)}-D ({', '.join(self.dims)})"
+        return f"shape (T, {self.last})" if self.last is not None else "shape (T,)"
+
+
+#: Every array a run group may hold. Time-indexed arrays all have length n_frames.
+ARRAYS: dict[str, ArraySpec] = {
+    "images": ArraySpec(("time", "range", "azimuth"), ("float16", "float32"), True, "float16",
+                        units="1", description="energyscape, log energy in [0, 1]"),
+    "velocity": ArraySpec(("time", "velocity_component"), ("float32", "float64"), True, "float32", last=2,
+                          units="m/s, rad/s", description="command (v, omega) that moved the robot from frame k-1 to k"),
+    "time": ArraySpec(("time",), ("float64",), True, "float64", units="s", description="frame time stamps"),
+    "range": ArraySpec(("range",), ("float64", "float32"), True, "float64", units="m", description="range bin centres"),
+    "azimuth": ArraySpec(("azimuth",), ("float64", "float32"), True, "float64", units="rad",
+                         description="azimuth bin centres, positive to the left"),
+    "pose": ArraySpec(("time", "pose_component"), ("float64", "float32"), False, "float64", last=3,
+                      units="m, m, rad", description="ground-truth robot pose (x, y, heading) in the world frame"),
+    "snr_db": ArraySpec(("time",), ("float32", "float64"), False, "float32", units="dB",
+                        description="per-frame SNR at the microphones"),
+    "slip": ArraySpec(("time", "wheel"), ("float32", "float64"), False, "float32", last=2, units="1",
+                      description="wheel speed factors (left, right); 1 = no slip"),
+}
+OPTIONAL_ARRAYS = [k for k, s in ARRAYS.items() if not s.required]
+#: The arrays indexed by frame (their first axis is ``time``), and those no run can lack.
+FRAME_ARRAYS = tuple(k for k, s in ARRAYS.items() if s.dims[0] == "time")
+REQUIRED_FRAME_ARRAYS = tuple(k for k in FRAME_ARRAYS if ARRAYS[k].required)
+
+
+def expected_shape(key: str, n_frames: int, grid_shape: tuple[int, int]) -> tuple[int, ...]:
+    """The shape array ``key`` must have in a run of ``n_frames`` frames on a grid (R, A)."""
+    spec = ARRAYS[key]
+    sizes = {"time": n_frames, "range": grid_shape[0], "azimuth": grid_shape[1]}
+    return tuple(sizes.get(d, spec.last) for d in spec.dims)
+
+
+def coordinates_match(values: np.ndarray, centres: np.ndarray) -> bool:
+    """Whether a run's coordinate array holds the grid's bin ``centres`` (to 1e-6 of their scale)."""
+    tol = 1e-6 * max(1.0, float(np.max(np.abs(centres))))
+    return bool(np.allclose(values, centres, rtol=0, atol=tol))
+
+
+_ONE_BITS = {np.dtype(np.float16): (np.uint16, 0x3C00, 0x8000), np.dtype(np.float32): (np.uint32, 0x3F800000, 0x80000000)}
+
+
+def in_unit_interval(images: np.ndarray) -> bool:
+    """All values finite and in [0, 1], in one integer pass over the bit patterns.
+
+    Non-negative IEEE floats order like their bit patterns; negatives set the sign bit and NaN/inf
+    lie above 1.0, so ``bits <= bits(1.0)`` (or -0.0) is exactly the test. Float16 min/max in
+    NumPy are several times slower than this.
+    """
+    spec = _ONE_BITS.get(images.dtype)
+    if spec is None:
+        return bool(np.all(np.isfinite(images)) and images.min() >= 0 and images.max() <= 1)
+    utype, one, negzero = spec
+    bits = np.ascontiguousarray(images).view(utype).reshape(-1)  # a flat max is ~1.5x faster than a 3-D one
+    if bits.max() <= one:
+        return True
+    return not bool(np.any((bits > one) & (bits != negzero)))
+
+
+#: How far the median spacing of a run's time stamps may stray from the declared frame interval
+#: (relative). Clock jitter and the odd dropped frame stay well inside it; the mistakes it exists
+#: for (a 10 Hz recording declared 5 Hz, milliseconds declared as seconds) are factors of 2 to 1000.
+FRAME_INTERVAL_TOLERANCE = 0.05
+
+
+def median_interval(time: np.ndarray) -> float | None:
+    """The median spacing of time stamps, seconds; None for fewer than two."""
+    t = np.asarray(time, dtype=np.float64)
+    return float(np.median(np.diff(t))) if t.size > 1 else None
+
+
+def frame_interval_problem(time: np.ndarray, frame_rate_hz: float) -> str | None:
+    """A line when the time stamps' median spacing disagrees with ``frame_rate_hz``, else None."""
+    dt = median_interval(time)
+    if dt is None or not math.isfinite(dt) or frame_rate_hz <= 0:
+        return None
+    nominal = 1.0 / frame_rate_hz
+    if abs(dt - nominal) <= FRAME_INTERVAL_TOLERANCE * nominal:
+        return None
+    ratio = dt / nominal
+    hint = ""
+    if 500 <= ratio <= 2000:
+        hint = "; milliseconds declared as seconds?"
+    elif 5e-4 <= ratio <= 2e-3:
+        hint = "; seconds declared as milliseconds?"
+    else:
+        hint = f"; is the recording at {1 / dt:.3g} Hz?" if dt > 0 else ""
+    return (f"time stamps are {dt:.6g} s apart (median), but the store declares frame_rate_hz "
+            f"{frame_rate_hz:g} ({nominal:g} s frames, tolerance {FRAME_INTERVAL_TOLERANCE:.0%}){hint}")
+
+
+def array_meta_problems(key: str, dtype: str, dims: tuple[str, ...] | None, shape: tuple[int, ...],
+                        expected: tuple[int, ...]) -> list[str]:
+    """Every problem of array ``key``'s metadata against the spec (FORMAT.md §2), one line each."""
+    spec = ARRAYS[key]
+    out = []
+    if dtype not in spec.dtypes:
+        out.append(f"dtype {dtype} not allowed (expected {' or '.join(spec.dtypes)})")
+    if tuple(dims or ()) != spec.dims:
+        out.append(f"dimension_names {list(dims) if dims else None} must be {list(spec.dims)}")
+    if tuple(shape) != tuple(expected):
+        out.append(f"shape {tuple(shape)} does not match {tuple(expected)}")
+    return out
+
+
+def value_problem(key: str, block: np.ndarray, first_frame: int = 0) -> tuple[int, str] | None:
+    """(frame, line) of the first value of ``block`` (array ``key``, frames from ``first_frame``)
+    that the spec forbids, else None: images must be finite and in [0, 1], every other array
+    finite (FORMAT.md §2, Values)."""
+    if block.size == 0:
+        return None
+    if key == "images":
+        if in_unit_interval(block):
+            return None
+    elif np.isfinite(block).all():
+        return None
+    k = nonfinite_frame(block, first_frame)
+    if k is not None:
+        return k, f"NaN or infinite values (first at frame {k})"
+    return _outside_unit_interval(block, first_frame)
+
+
+def nonfinite_frame(block: np.ndarray, first_frame: int = 0) -> int | None:
+    """The first frame of ``block`` (frames from ``first_frame``) holding NaN or an infinity, else None."""
+    frames = block.reshape(block.shape[0], -1) if block.ndim > 1 else block[:, None]
+    finite = np.isfinite(frames)
+    if finite.all():
+        return None
+    return first_frame + int(np.flatnonzero(~finite.all(axis=1))[0])
+
+
+def unit_interval_problem(block: np.ndarray, first_frame: int = 0) -> str | None:
+    """A line when finite values of ``block`` (frames from ``first_frame``) lie outside [0, 1], else None."""
+    if block.size == 0 or in_unit_interval(block):
+        return None
+    found = _outside_unit_interval(block, first_frame)
+    return found[1] if found is not None else None
+
+
+def _outside_unit_interval(block: np.ndarray, first_frame: int) -> tuple[int, str] | None:
+    frames = block.reshape(block.shape[0], -1) if block.ndim > 1 else block[:, None]
+    finite = np.isfinite(frames)
+    outside = finite & ((frames < 0) | (frames > 1))
+    if not outside.any():
+        return None  # only NaN or infinities, which nonfinite_frame reports
+    k = first_frame + int(np.flatnonzero(outside.any(axis=1))[0])
+    values = frames[finite]
+    return k, f"values outside [0, 1] ({float(values.min()):g}..{float(values.max()):g}; first at frame {k})"
+
+
+def dtype_problem(arr) -> str | None:
+    """A line when ``arr`` does not hold real numbers (integers or floats), else None."""
+    dtype = getattr(arr, "dtype", None)  # an array, or an array's header
+    if isinstance(dtype, np.dtype) and dtype.kind in "fiu":
+        return None
+    return f"dtype {dtype if dtype is not None else type(arr).__name__} is not a real number type"
+
+
+def layout_problem(key: str, shape: tuple[int, ...]) -> str | None:
+    """A line when an array ``key`` of ``shape`` has the wrong number of axes or last axis, else None."""
+    spec = ARRAYS[key]
+    if len(shape) == len(spec.dims) and (spec.last is None or shape[-1] == spec.last):
+        return None
+    return f"expected {spec.layout()}, got shape {tuple(shape)}"
+
+
+def frame_count_problem(n: int, n_frames: int) -> str | None:
+    """A line when a per-frame array has ``n`` frames where the images have ``n_frames``."""
+    return None if n == n_frames else f"{n} frames but images has {n_frames}"
+
+
+def nonfinite_problem(arr: np.ndarray) -> str | None:
+    return "contains NaN or infinite values" if arr.size and not np.all(np.isfinite(arr)) else None
+
+
+def time_order_problem(time: np.ndarray, previous: float = -np.inf, first: int = 0,
+                       unit: str = "frame") -> str | None:
+    """A line when a time stamp does not come after the one before it (``previous`` before the
+    first, whose index is ``first``: a block of a longer array), else None."""
+    t = np.asarray(time, dtype=np.float64)
+    if t.size == 0:
+        return None
+    bad = np.flatnonzero(np.diff(t, prepend=previous) <= 0)
+    return f"not strictly increasing (first at {unit} {first + int(bad[0])})" if bad.size else None
+
+
+def check_run_arrays(grid: SensorGrid, arrays: Mapping[str, np.ndarray]) -> list[str]:
+    """Every problem with a run's arrays, one line each; empty when they can be written.
+
+    The one check of arrays before they are written: the run writer applies it to every block,
+    the importer to what it converted, and the validator's data pass applies its pieces chunk by
+    chunk (dtype, layout, frame count, finite values, images in [0, 1], time order).
+    """
+    problems = [f"{key}: missing" for key in REQUIRED_FRAME_ARRAYS if key not in arrays]
+    if problems:
+        return problems
+    images = arrays["images"]
+    T = images.shape[0] if images.ndim else -1
+    images_ok = False  # finite and in [0, 1]: the common case, checked in one fast pass
+    for key, arr in arrays.items():
+        if key not in FRAME_ARRAYS:
+            continue
+        line = dtype_problem(arr) or layout_problem(key, arr.shape) or frame_count_problem(arr.shape[0], T)
+        if line is None and key == "images" and arr.size:
+            images_ok = in_unit_interval(arr)
+        if line is None and not (key == "images" and images_ok):
+            line = nonfinite_problem(arr)
+        if line is not None:
+            problems.append(f"{key}: {line}")
+    if images.ndim == 3:
+        problems += [f"images: {line}" for line in _image_problems(grid, images, images_ok)]
+    t = arrays["time"]
+    if dtype_problem(t) is None and t.ndim == 1 and np.all(np.isfinite(t)):
+        line = time_order_problem(t)
+        if line is not None:
+            problems.append(f"time: {line}")
+    return problems
+
+
+def _image_problems(grid: SensorGrid, images: np.ndarray, in_unit: bool) -> list[str]:
+    """What the spec asks of images beyond their layout: the grid's frame shape, at least one
+    frame, a float dtype and values in [0, 1] (``in_unit``: known to be)."""
+    out = []
+    if images.shape[1:] != grid.shape:
+        out.append(f"frame shape {images.shape[1:]} does not match the grid {grid.shape}")
+    if images.shape[0] < 1:
+        out.append("a run needs at least one frame")
+    if images.dtype not in (np.float16, np.float32, np.float64):
+        out.append(f"dtype {images.dtype} must be float16 or float32")
+    elif images.size and not in_unit and np.all(np.isfinite(images)):
+        out.append(f"values must lie in [0, 1] (energyscape), found {float(images.min()):g}..{float(images.max()):g}")
+    return out

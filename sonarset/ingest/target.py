@@ -1,0 +1,168 @@
+"""Where an import writes: one run, into a new store or an existing one, built aside and moved in.
+
+A new store is built beside its destination and renamed into place; a run for an existing local
+store is built in a store beside it and renamed into the store, or swapped in atomically for the
+run it replaces. An object store has no rename: there the run writer keeps the run invisible until
+it is complete. An import that fails (a full disk) or is killed therefore never leaves a partial
+run behind, and never loses the run it replaces. ``sonarset import`` and ``sonarset import-raw``
+both write through :class:`ImportTarget`.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+from sonarset.format.arrays import median_interval
+from sonarset.store.atomic import aside_dir, exchange, settle_zarr_writes
+from sonarset.errors import SonarSetError, first_os_error, os_error_reason
+from sonarset.store.run import Run
+from sonarset.format.attrs import RUN_NAME_RE, SPLIT_RE, Processing, RobotRig, SensorGrid
+from sonarset.store.store import SonarStore, create_store, open_or_create_store, open_store
+from sonarset.store.zarrio import is_url
+
+#: Writes the imported run into ``store``; ``replace``: over a run of the same name. It must not
+#: consolidate: the target does, once the run is where it belongs.
+WriteRun = Callable[[SonarStore, bool], None]
+
+
+def check_run_options(name: str | None, split: str | None) -> None:
+    """One-line errors for a bad ``--name`` or ``--split``, before any file is read."""
+    if name is not None and not RUN_NAME_RE.match(name):
+        raise SonarSetError(f"--name {name!r}: a run name is 1-128 letters, digits, '_', '.' or '-', "
+                            "starting with a letter or digit")
+    if split is not None and not SPLIT_RE.match(split):
+        raise SonarSetError(f"--split {split!r}: a split is 1-32 lower-case letters, digits, '_' or '-', "
+                            "starting with a letter (e.g. 'train', 'val', 'test')")
+
+
+def run_name_for(src: str | os.PathLike, name: str | None, declared: str | None) -> str:
+    """The run's name: ``name``, else the metadata's, else the file's stem; it must be valid."""
+    run_name = name or declared or Path(src).stem
+    if not RUN_NAME_RE.match(run_name):
+        raise SonarSetError(f"{src}: {run_name!r} is not a valid run name; pass --name")
+    return run_name
+
+
+def nominal_frame_rate(time: np.ndarray, rig: RobotRig | None) -> float:
+    """A new store's frame rate: the rig's, else the recording's median time step, else the default."""
+    if rig is not None:
+        return 1.0 / rig.frame_interval_s
+    dt = median_interval(time)
+    if dt is not None and dt > 0:
+        return float(f"{1.0 / dt:.3g}")  # nominal: jitter must not give 4.9975 Hz
+    return 1.0 / RobotRig().frame_interval_s
+
+
+@dataclass(frozen=True)
+class ImportTarget:
+    """The store an import writes to: ``existing`` (opened for reading) or None for a new one."""
+
+    location: str
+    existing: SonarStore | None
+
+    @classmethod
+    def at(cls, out: str | os.PathLike) -> "ImportTarget":
+        loc = os.fspath(out).removeprefix("file://")  # a local path: renamed into, not written through fsspec
+        exists = is_url(loc) or (Path(loc) / "zarr.json").exists()
+        return cls(loc, open_store(loc) if exists else None)
+
+    def write(self, run_name: str, write: WriteRun, *, overwrite: bool, grid: SensorGrid,
+              processing: Processing | None, rig: RobotRig | None, new_store: Mapping[str, Any]) -> Run:
+        """Write the run ``run_name`` with ``write``; returns it, read back.
+
+        An existing store must have ``grid`` and, where given, make the same images
+        (``processing``) on the same ``rig``; a new one is made by ``create_store`` with ``grid``,
+        ``rig`` and ``new_store``'s keywords.
+        """
+        loc = self.location
+        if self.existing is None:
+            dest = write_new_store(loc, run_name, lambda store: write(store, False), grid=grid, rig=rig, **new_store)
+            return open_store(dest).run(run_name)
+        store = open_or_create_store(loc, grid, processing=processing, rig=rig)
+        if run_name in store.runs() and not overwrite:
+            raise SonarSetError(f"{loc}: run {run_name!r} already exists (use --overwrite or --name)")
+        if is_url(loc):  # object stores have no rename: the run writer keeps it invisible until complete
+            replaced = overwrite and run_name in store.group.group_keys()
+            with write_failure(loc, run_name, "the run it replaced is gone" if replaced else "nothing was changed"):
+                write(store, overwrite)
+                store.consolidate()
+        else:
+            move_run_in(store, run_name, lambda side: write(side, False))
+        return open_store(loc).run(run_name)
+
+
+def write_new_store(out_s: str, run_name: str, write: Callable[[SonarStore], None], **create) -> Path:
+    """A new store at ``out_s`` holding the run ``write(store)`` writes, made by ``create_store(**create)``
+    beside it and renamed into place: a failed or killed import leaves nothing that looks like a store."""
+    dest = Path(out_s)
+    dest = dest.resolve() if dest.is_symlink() else dest  # the store goes where the link points
+    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
+        raise SonarSetError(f"{out_s}: exists and is not a SonarSet store")
+    tmp = aside_dir(dest)
+    try:
+        with write_failure(out_s, run_name):
+            store = create_store(tmp / "store.zarr", **create)
+            write(store)
+            store.consolidate()
+        if dest.exists():
+            dest.rmdir()  # an empty directory, checked above
+        os.replace(tmp / "store.zarr", dest)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return dest
+
+
+def move_run_in(store: SonarStore, run_name: str, write: Callable[[SonarStore], None]) -> None:
+    """Build the run in a store beside ``store``, then rename it in, or swap it for the run it replaces."""
+    root = Path(store.location)
+    tmp = aside_dir(root)
+    try:
+        with write_failure(store.location, run_name):
+            side = create_store(tmp / "store.zarr", store.grid, processing=store.processing, rig=store.attrs.rig,
+                                frame_rate_hz=store.attrs.frame_rate_hz)
+            write(side)
+        new, target = tmp / "store.zarr" / run_name, root / run_name
+        # Anything at the run's path (the run replaced, or what a killed writer left) is swapped
+        # out whole and deleted with the aside directory.
+        swapped = target.exists() or target.is_symlink()
+        if swapped:
+            exchange(new, target)
+        else:
+            os.rename(new, target)
+        try:
+            with write_failure(store.location, run_name):
+                store.consolidate()
+        except BaseException:
+            # Without its consolidated metadata the store would list another run than it holds:
+            # put back what was there.
+            if swapped:
+                exchange(new, target)
+            else:
+                os.rename(target, new)
+            raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+class write_failure:
+    """Turn a write failure (a full disk, a read-only file system) into one line naming the store."""
+
+    def __init__(self, where: str, run_name: str, outcome: str = "nothing was changed"):
+        self.where, self.run_name, self.outcome = where, run_name, outcome
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is not None:
+            settle_zarr_writes()
+        if exc_type is not None and issubclass(exc_type, OSError) and not isinstance(exc, SonarSetError):
+            why = os_error_reason(first_os_error(exc))
+            raise SonarSetError(f"{self.where}: cannot write run {self.run_name!r}: {why} ({self.outcome})") from None
+        return False

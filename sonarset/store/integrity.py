@@ -1,0 +1,151 @@
+"""Chunk integrity: what a reader verifies before it lets zarr decode a chunk.
+
+zarr-python trusts storage. It reads a missing chunk as the array's fill value (zeros or NaN,
+silently), and it decodes a blosc chunk as long as the chunk's own header claims it is: a small
+chunk that blosc stored uncompressed ("memcpyed") and that was truncated in place then decodes to
+whatever memory follows the buffer, finite numbers that look like data. So before decoding, a
+reader checks that each chunk exists and that its size agrees with its header (blosc) or with the
+chunk shape (no compressor). Other codec chains (zstd, gzip, sharding...) carry no size we can
+check cheaply; for them we rely on their decoders' own errors and on the value checks.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import os
+import struct
+from typing import Iterable
+
+import numpy as np
+import zarr
+from zarr.codecs import BloscCodec, BytesCodec
+
+BLOSC_HEADER_BYTES = 16
+
+
+def chunk_coords(arr: zarr.Array, start: int = 0, stop: int | None = None) -> Iterable[tuple[int, ...]]:
+    """Grid coordinates of the stored chunks that hold frames ``start .. stop-1`` (first axis)."""
+    chunks = arr.metadata.chunk_grid.chunk_shape  # outer (shard) chunks when sharded
+    stop = arr.shape[0] if stop is None else stop
+    if arr.ndim == 0 or stop <= start:
+        return iter(())
+    first = range(start // chunks[0], math.ceil(stop / chunks[0]))
+    rest = [range(math.ceil(s / c)) for s, c in zip(arr.shape[1:], chunks[1:])]
+    return itertools.product(first, *rest)
+
+
+def blosc_problem(head: bytes, size: int, decoded_nbytes: int) -> str | None:
+    """What is wrong with a blosc chunk of ``size`` bytes starting with ``head``; None if nothing.
+
+    Blosc 1.x header: version, versionlz, flags, typesize (1 byte each), then little-endian uint32
+    nbytes (decoded size), blocksize and cbytes (the whole chunk, header included).
+    """
+    if size < BLOSC_HEADER_BYTES:
+        return f"is corrupt or truncated: {size} bytes, shorter than a blosc header"
+    nbytes, _, cbytes = struct.unpack("<III", head[4:BLOSC_HEADER_BYTES])
+    if cbytes != size:
+        return f"is corrupt or truncated: its blosc header declares {cbytes} bytes, the chunk has {size}"
+    if nbytes != decoded_nbytes:
+        return (f"is corrupt: its blosc header declares {nbytes} decoded bytes, "
+                f"the chunk shape needs {decoded_nbytes}")
+    return None
+
+
+class ChunkChecker:
+    """Checks the stored chunks of one array: present, and sized as their header or shape says."""
+
+    def __init__(self, arr: zarr.Array):
+        self.arr = arr
+        codecs = tuple(arr.metadata.codecs)
+        chunk_shape = arr.metadata.chunk_grid.chunk_shape
+        self.decoded_nbytes = int(np.prod(chunk_shape)) * np.dtype(arr.dtype).itemsize
+        plain = len(codecs) >= 1 and isinstance(codecs[0], BytesCodec)
+        if plain and len(codecs) == 1:
+            self.kind = "raw"
+        elif plain and len(codecs) == 2 and isinstance(codecs[1], BloscCodec):
+            self.kind = "blosc"
+        else:
+            self.kind = "other"
+        store = arr.store_path.store
+        root = getattr(store, "root", None)
+        # Local files: a stat and a 16-byte read per chunk (plain strings: pathlib's joins cost as
+        # much as the stat). Elsewhere one get per chunk, which a caching store (sonarset.store.cache)
+        # keeps for the decode that follows.
+        self.local = (os.path.join(str(root), arr.store_path.path) if isinstance(store, zarr.storage.LocalStore)
+                      else None)
+
+    def key(self, coords: tuple[int, ...]) -> str:
+        return self.arr.metadata.encode_chunk_key(coords)
+
+    def problem(self, coords: tuple[int, ...]) -> str | None:
+        """None when the chunk at ``coords`` looks sound, else what is wrong (a phrase)."""
+        key = self.key(coords)
+        if self.local is None:
+            return self._judge(*self._fetch([key])[0])
+        path = os.path.join(self.local, key)
+        try:
+            size = os.stat(path).st_size
+            head = b""
+            if self.kind == "blosc":
+                with open(path, "rb") as f:
+                    head = f.read(BLOSC_HEADER_BYTES)
+        except FileNotFoundError:
+            return self._missing()
+        except IsADirectoryError:
+            return "is a directory, not a chunk file"
+        return self._judge(size, head)
+
+    def _fetch(self, keys: list[str]) -> list[tuple[int | None, bytes]]:
+        """(size or None when absent, first bytes) of each chunk of a non-local store, fetched
+        concurrently, as zarr itself would: one at a time, a slab of 16 chunks would wait 16
+        round trips."""
+        import asyncio
+
+        from zarr.core.buffer import default_buffer_prototype
+        from zarr.core.sync import sync
+
+        store, base = self.arr.store_path.store, self.arr.store_path.path
+
+        async def fetch_all():
+            return await asyncio.gather(*(store.get(f"{base}/{k}", prototype=default_buffer_prototype())
+                                          for k in keys))
+
+        out = []
+        for buf in sync(fetch_all()):
+            raw = None if buf is None else buf.to_bytes()
+            out.append((None, b"") if raw is None else (len(raw), raw[:BLOSC_HEADER_BYTES]))
+        return out
+
+    def _judge(self, size: int | None, head: bytes) -> str | None:
+        if size is None:
+            return self._missing()
+        if self.kind == "blosc":
+            return blosc_problem(head, size, self.decoded_nbytes)
+        if self.kind == "raw" and size != self.decoded_nbytes:
+            return f"is corrupt or truncated: {size} bytes, the chunk shape needs {self.decoded_nbytes}"
+        return None
+
+    @staticmethod
+    def is_missing(problem: str) -> bool:
+        return problem.startswith("is missing")
+
+    def _missing(self) -> str:
+        fill = self.arr.metadata.fill_value
+        return f"is missing from storage (deleted?); zarr would silently read it as the fill value {fill}"
+
+    def first_problem(self, start: int = 0, stop: int | None = None) -> tuple[str, str] | None:
+        """(chunk key, problem) of the first unsound chunk holding frames start..stop-1, or None."""
+        coords = list(chunk_coords(self.arr, start, stop))
+        if self.local is None:
+            keys = [self.key(c) for c in coords]
+            for key, fetched in zip(keys, self._fetch(keys)):
+                p = self._judge(*fetched)
+                if p is not None:
+                    return key, p
+            return None
+        for c in coords:
+            p = self.problem(c)
+            if p is not None:
+                return self.key(c), p
+        return None
