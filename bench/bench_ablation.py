@@ -27,7 +27,8 @@ from pathlib import Path
 from sonarset import open_store
 from sonarset.models.eval.report import write_report
 from sonarset.models.eval.evaluate import evaluate
-from sonarset.models.echopt.train import TrainConfig, train
+from sonarset.models.echopt.train import train
+from sonarset.models.echopt.train_config import TrainConfig
 
 #: The recipes: what differs between them. Everything else is shared (COMMON).
 RECIPES = {

@@ -28,14 +28,15 @@ import numpy as np
 from scipy import fft as sfft
 
 from sonarset import open_store
-from sonarset.ingest.raw_recording import chirp
 from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.sim import generate
-from sonarset.sensor.beamform import DETECTORS, SignalBeamformer, read_layout_csv, steering_projection
+from sonarset.sensor.beamform import SignalBeamformer
+from sonarset.sensor.ertis import read_layout_csv, sweep
+from sonarset.sensor.exact import DETECTORS, steering_projection
 from sonarset.sim.families import load_world
 from sonarset.sim.reference import microphone_signals
 from sonarset.sim.robot import sensor_pose
-from sonarset.sim.sonar import SonarModel, sweep, visible_echoes
+from sonarset.sim.sonar import SonarModel, visible_echoes
 
 CASES = [("das", "analytic")] + [("dmas3-cf", d) for d in DETECTORS]
 
@@ -48,7 +49,7 @@ def cc(a: np.ndarray, b: np.ndarray) -> float:
 def point_column(fs: float, f0: float, f1: float, beamformer: str, detector: str) -> float:
     grid = SensorGrid(range_min_m=0.5, range_max_m=3.5, n_range=120, azimuth_min_rad=-math.pi / 2,
                       azimuth_max_rad=math.pi / 2, n_azimuth=60)
-    emitted = chirp(f0, f1, 0.0025, fs)
+    emitted = sweep(fs, f0, f1, 0.0025)
     n = int((2 * grid.range_max_m / 343 + 0.004) * fs)
     proj = steering_projection(read_layout_csv(), np.array([math.radians(30)]))[0]
     N = sfft.next_fast_len(n + len(emitted), real=True)

@@ -20,7 +20,7 @@ import tempfile
 import time
 
 from sonarset.format.attrs import Processing, SensorGrid
-from sonarset.sim import generate, plan_runs, simulate_blocks
+from sonarset.sim import GenerationSpec, generate, plan_runs, simulate_blocks
 from sonarset.sim.sonar import beam_table, range_psf_table
 
 
@@ -37,8 +37,9 @@ def main() -> None:
     rate = {}
     for name in ("raw", "ertis"):
         processing = Processing.named(name)
-        list(simulate_blocks(plan_runs(1, 0, 0.2, seed=1, processing=processing)[0], grid))  # compile, tabulate
-        plan = plan_runs(1, 0, minutes, seed=0, processing=processing)[0]
+        warm = GenerationSpec(runs=1, test_runs=0, minutes=0.2, seed=1, processing=processing)
+        list(simulate_blocks(plan_runs(warm)[0], grid))  # compile, tabulate
+        plan = plan_runs(GenerationSpec(runs=1, test_runs=0, minutes=minutes, seed=0, processing=processing))[0]
         t0 = time.perf_counter()
         n = sum(len(b["time"]) for _, b in simulate_blocks(plan, grid))
         rate[name] = n / (time.perf_counter() - t0)

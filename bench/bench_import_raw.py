@@ -33,9 +33,9 @@ from sonarset import open_store
 from sonarset.ingest.raw import import_raw
 from sonarset.format.attrs import SensorGrid
 from sonarset.sim import generate
-from sonarset.sensor.beamform import SignalBeamformer, read_layout_csv
+from sonarset.sensor.beamform import SignalBeamformer
+from sonarset.sensor.ertis import read_layout_csv, sweep
 from sonarset.sim.reference import write_raw_recording
-from sonarset.sim.sonar import sweep
 
 PROFILES = {"das": "raw", "dmas3-cf": "ertis"}
 

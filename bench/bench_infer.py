@@ -27,7 +27,8 @@ import numpy as np
 import torch
 
 from sonarset.models.echopt.checkpoint import load_checkpoint
-from sonarset.models.echopt.model import EchoPT, make_config
+from sonarset.models.echopt.config import make_config
+from sonarset.models.echopt.model import EchoPT
 from sonarset.models.echopt.predictor import INFERENCE_BATCH, EchoPTPredictor
 from sonarset.models.echopt.onnx_export import random_windows
 from sonarset.models.echopt.precision import cpu_bf16_flags, resolve_precision

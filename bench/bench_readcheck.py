@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from bench_windows import synthetic_run  # bench/ is the script's folder, first on sys.path
-from sonarset.format.arrays import frame_interval_problem, value_problem
+from sonarset.format.arrays import frame_interval_problems, value_problems
 from sonarset.store.integrity import ChunkChecker
 from sonarset.format.plausibility import command_problems
 from sonarset.format.attrs import Processing, SensorGrid
@@ -72,7 +72,7 @@ def header_time(path: str, repeats: int) -> float:
     for _ in range(repeats):
         t0 = time.process_time()
         for c in checkers:
-            assert c.first_problem() is None
+            assert not c.first_problem()
         times.append(time.process_time() - t0)
     return min(times)
 
@@ -106,12 +106,12 @@ def value_check_time(path: str, dtype, repeats: int) -> tuple[float, float]:
         for b in slabs:
             for i in range(0, len(b), chunk):
                 piece = b[i:i + chunk]
-                assert value_problem("images", piece, i) is None
+                assert not value_problems("images", piece, i)
                 bank[lo + i:lo + i + len(piece)] = piece
             lo += len(b)
         for v, t in small:
-            assert value_problem("velocity", v) is None and value_problem("time", t) is None
-            assert not command_problems(v, rig) and frame_interval_problem(t, rate) is None
+            assert not value_problems("velocity", v) and not value_problems("time", t)
+            assert not command_problems(v, rig) and not frame_interval_problems(t, rate)
 
     plain, checked = [], []
     for _ in range(repeats):

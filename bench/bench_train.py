@@ -20,7 +20,8 @@ import warnings
 import torch
 import torch.nn.functional as F
 
-from sonarset.models.echopt.model import EchoPT, make_config
+from sonarset.models.echopt.config import make_config
+from sonarset.models.echopt.model import EchoPT
 from sonarset.models.echopt.precision import cpu_bf16_flags, resolve_precision
 
 warnings.filterwarnings("ignore", message="Using padding='same'")

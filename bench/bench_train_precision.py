@@ -17,7 +17,9 @@ import warnings
 from pathlib import Path
 
 from sonarset.models.echopt.checkpoint import load_checkpoint
-from sonarset.models.echopt.train import TrainConfig, train, validation_loss
+from sonarset.models.echopt.losses import validation_loss
+from sonarset.models.echopt.train import train
+from sonarset.models.echopt.train_config import TrainConfig
 from sonarset.store.store import open_store
 from sonarset.torchdata import torch_batcher
 from sonarset.windows import FrameBank, WindowIndex

@@ -1,17 +1,22 @@
 """The closed choices of the command line, as str Enums: typer checks a value against them and
 lists them in ``--help``, so no command checks one by hand.
 
-Where the library holds the list in a module that imports quickly (the schema), it is taken from
-there; the others live in modules that import torch or the simulator, which ``--help`` must not
-load, so they are written here and ``tests/test_cli.py`` checks them against the library's.
+Each is made from the library's own list, in a module that imports neither torch nor the simulator
+(which ``--help`` must not load).
 """
 
 from __future__ import annotations
 
 import enum
-from typing import Iterable, get_args
+from typing import Iterable
 
-from sonarset.format.attrs import SCHEMAS, Processing
+from sonarset.format.attrs import BEAMFORMERS, PROCESSING_PROFILES
+from sonarset.format.schemas import SCHEMAS
+from sonarset.sensor.ertis import AZIMUTH_PSFS
+
+from sonarset.models.echopt.config import PRESETS, PRIORS
+from sonarset.models.echopt.precision import DEVICES, PRECISIONS
+from sonarset.models.echopt.train_config import OPTIMIZERS, SCHEDULES
 
 
 def _choices(name: str, values: Iterable[str]) -> type[enum.Enum]:
@@ -20,15 +25,15 @@ def _choices(name: str, values: Iterable[str]) -> type[enum.Enum]:
 
 
 SchemaKind = _choices("SchemaKind", SCHEMAS)
-Beamformer = _choices("Beamformer", get_args(Processing.model_fields["beamformer"].annotation))
-ProcessingProfile = _choices("ProcessingProfile", ("ertis", "raw"))  # Processing.named
-Psf = _choices("Psf", ("array", "mainlobe"))  # sim.sonar.BEAMS
-Device = _choices("Device", ("auto", "cpu", "cuda"))  # models.checkpoint.resolve_device
-Preset = _choices("Preset", ("small", "paper", "tiny"))  # models.echopt.PRESETS
-Prior = _choices("Prior", ("none", "last", "flow"))  # models.echopt.PRIORS
-Optimizer = _choices("Optimizer", ("adam", "adamw"))  # models.train
-Schedule = _choices("Schedule", ("none", "cosine"))  # models.train
-Precision = _choices("Precision", ("auto", "fp32", "bf16"))  # models.precision.PRECISIONS
+Beamformer = _choices("Beamformer", BEAMFORMERS)
+ProcessingProfile = _choices("ProcessingProfile", PROCESSING_PROFILES)
+Psf = _choices("Psf", AZIMUTH_PSFS)
+Device = _choices("Device", DEVICES)
+Preset = _choices("Preset", PRESETS)
+Prior = _choices("Prior", PRIORS)
+Optimizer = _choices("Optimizer", OPTIMIZERS)
+Schedule = _choices("Schedule", SCHEDULES)
+Precision = _choices("Precision", PRECISIONS)
 
 
 def value(choice: enum.Enum | None) -> str | None:

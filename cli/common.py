@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import functools
+import inspect
+import re
+import typing
 from typing import Callable
 
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from typer.models import OptionInfo
 
 from sonarset.errors import InputValidationError, SonarSetError
 
@@ -20,6 +24,45 @@ def fail(message: str, code: int = 1) -> None:
     raise typer.Exit(code)
 
 
+#: Library parameter names that a command's option spells differently (the option's Python name).
+PARAMETER_OPTIONS = {"meta_path": "meta", "max_time_s": "max_time", "model_specs": "models"}
+
+
+def _option_infos(hint) -> list[OptionInfo]:
+    """The typer options declared in an annotation (``Annotated[..., typer.Option(...)]``, also
+    inside an ``Optional``)."""
+    found = [m for m in getattr(hint, "__metadata__", ()) if isinstance(m, OptionInfo)]
+    return found + [i for arg in typing.get_args(hint) for i in _option_infos(arg)]
+
+
+def command_flags(fn: Callable) -> dict[str, str]:
+    """{parameter name: long flag} of a command function, read from its own option declarations
+    (a trailing underscore dropped: ``compile_`` is ``compile``)."""
+    hints = typing.get_type_hints(fn, include_extras=True)
+    flags = {}
+    for name, param in inspect.signature(fn).parameters.items():
+        for info in [param.default, *_option_infos(hints.get(name))]:
+            if isinstance(info, OptionInfo):
+                decls = [d.split("/")[0] for d in info.param_decls or () if d.startswith("--")]
+                flags[name.rstrip("_")] = decls[0] if decls else "--" + name.rstrip("_").replace("_", "-")
+    return flags
+
+
+def with_flag(message: str, parameter: str | None, flags: dict[str, str]) -> str:
+    """A library message as the command line says it, with the flag (of ``flags``) that sets the
+    library's ``parameter``: in place of the parameter's name where the message, or a parenthesis
+    in it, opens with that name ("batch_size 3 is ..." -> "--batch-size 3 is ...", "(allow_implausible
+    imports it)" -> "(--allow-implausible imports it)"), else after the message in parentheses. A
+    parameter no option sets (the command chose its value) leaves the message as it is."""
+    flag = flags.get(PARAMETER_OPTIONS.get(parameter, parameter)) if parameter else None
+    if flag is None:
+        return message
+    named = re.compile(rf"(^|\(){re.escape(parameter)}(?![\w-])")
+    if named.search(message):
+        return named.sub(lambda m: m[1] + flag, message)
+    return f"{message} ({flag})"
+
+
 def user_errors(fn: Callable) -> Callable:
     """Turn library errors into one-line messages with exit code 1."""
 
@@ -28,11 +71,13 @@ def user_errors(fn: Callable) -> Callable:
         try:
             return fn(*args, **kwargs)
         except InputValidationError as exc:
+            flags = command_flags(fn)
             for line in exc.problems:
-                err.print(f"[bold red]error:[/] {exc.source}: {line}", highlight=False, soft_wrap=True)
+                err.print(f"[bold red]error:[/] {exc.source}: {with_flag(line, exc.parameter, flags)}",
+                          highlight=False, soft_wrap=True)
             raise typer.Exit(1)
         except SonarSetError as exc:
-            fail(str(exc))
+            fail(with_flag(str(exc), exc.parameter, command_flags(fn)))
         except KeyboardInterrupt:
             fail("interrupted", 130)
         except (OSError, MemoryError) as exc:

@@ -2,9 +2,9 @@
 
 A predictor maps a batch of windows, ``frames`` (B, n_in, R, A) and ``commands`` (B, n_in + 1, 2),
 to the next frame (B, R, A). ``commands[:, -1]`` is the command that moves the robot from the last
-input frame to the predicted one (DESIGN.md §2). These baselines use only the last frame and that
-command, turned into image motion by the robot's rig (frame interval, sensor offset); EchoPT uses
-them all. No torch here: the baselines run wherever NumPy and SciPy do.
+input frame to the predicted one (docs/conventions.md, "Windows"). These baselines use only the
+last frame and that command, turned into image motion by the robot's rig (frame interval, sensor
+offset); EchoPT uses them all. No torch here: the baselines run wherever NumPy and SciPy do.
 """
 
 from __future__ import annotations
@@ -18,6 +18,8 @@ from scipy import ndimage
 from sonarset.format.attrs import RobotRig, SensorGrid
 from sonarset.windows import N_IN
 
+from sonarset.models.flow import arc_motion, source_points
+
 
 class Predictor(Protocol):
     name: str
@@ -30,7 +32,7 @@ class Predictor(Protocol):
 def rollout(predictor: Predictor, frames: np.ndarray, commands: np.ndarray, horizon: int) -> np.ndarray:
     """Predict ``horizon`` frames ahead, feeding each prediction back as the newest input frame.
 
-    ``commands`` holds n_in + horizon commands (window alignment, DESIGN.md §2); step h uses
+    ``commands`` holds n_in + horizon commands (docs/conventions.md, "Windows"); step h uses
     commands h .. h + n_in. Returns (B, horizon, R, A): predictions for targets 1..horizon.
     """
     n_in = frames.shape[1]
@@ -135,7 +137,7 @@ class AcousticFlow(LastFrameBaseline):
 
     Each pixel of the predicted frame is a point in the new sensor frame; moving it back through
     the robot's arc over the rig's frame interval (the sensor mounted ``sensor_offset_m`` ahead of
-    the axle) gives where it was in the last frame, which is sampled bilinearly. Under pure
+    the axle; models/flow.py) gives where it was in the last frame, which is sampled bilinearly. Under pure
     translation this moves reflectors along r sin(theta) = const. It keeps each pixel's value, so
     it deforms the sensor's point-spread function, which is the weakness the paper points out.
     """
@@ -148,18 +150,8 @@ class AcousticFlow(LastFrameBaseline):
     def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:
         xp, arr = _xp(self.backend)
         cmd = np.asarray(commands[:, -1], dtype=np.float64)
-        v, w = cmd[:, 0], cmd[:, 1]
-        dt, offset = self.rig.frame_interval_s, self.rig.sensor_offset_m
-        phi = w * dt
-        # robot displacement over dt along the arc (exact unicycle integration from the origin)
-        small = np.abs(w) < 1e-9
-        w_safe = np.where(small, 1.0, w)
-        dx = np.where(small, v * dt, v / w_safe * np.sin(phi))
-        dy = np.where(small, 0.0, v / w_safe * (1 - np.cos(phi)))
-        c, s_, dx, dy = (arr(a)[:, None, None] for a in (np.cos(phi), np.sin(phi), dx, dy))
+        # the motion in float64 NumPy on either backend, then the pixels in the backend's precision
+        motion = arc_motion(np, cmd[:, 0], cmd[:, 1], self.rig.frame_interval_s)
         r, th = _pixel_polar(self.grid, arr)
-        # point in the new sensor frame -> new robot frame -> old robot frame -> old sensor frame
-        xn, yn = r * xp.cos(th) + offset, r * xp.sin(th)
-        xo = c * xn - s_ * yn + dx - offset
-        yo = s_ * xn + c * yn + dy
+        xo, yo = source_points(xp, r, th, tuple(arr(a)[:, None, None] for a in motion), self.rig.sensor_offset_m)
         return _sample(frames[:, -1], self.grid, xp.hypot(xo, yo), xp.arctan2(yo, xo), self.backend)

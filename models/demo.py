@@ -13,7 +13,8 @@ from sonarset.store.store import SonarStore, open_store
 
 from sonarset.models.echopt.cards import card_processing, describe_images, read_card
 from sonarset.models.echopt.checkpoint import load_checkpoint
-from sonarset.models.eval.evaluate import EvalResult, evaluate
+from sonarset.models.eval.evaluate import evaluate
+from sonarset.models.eval.result import EvalResult
 from sonarset.models.registry import BASELINES
 
 
@@ -32,8 +33,7 @@ def runs_in(model: str, precision: str, device: str) -> str:
     """How EchoPT will compute: "EchoPT runs in bf16 (CPU flags avx512_bf16)"."""
     if str(model).endswith(".onnx"):
         return "EchoPT runs in fp32 (onnxruntime)"
-    from sonarset.models.echopt.checkpoint import resolve_device
-    from sonarset.models.echopt.precision import describe_precision
+    from sonarset.models.echopt.precision import describe_precision, resolve_device
 
     return f"EchoPT runs in {describe_precision(precision, resolve_device(device))}"
 

@@ -5,8 +5,9 @@ This package never imports torch; ``sonarset.models`` and ``sonarset.cli`` do, l
 
 from sonarset.version import __version__
 from sonarset.errors import FormatError, GridMismatchError, InputValidationError, SonarSetError
-from sonarset.format.attrs import FORMAT_VERSION, Processing, RecordingMeta, RobotRig, RunAttrs, SensorGrid, StoreAttrs
-from sonarset.store.store import Run, RunData, RunWriter, SonarStore, create_store, open_or_create_store, open_store
+from sonarset.format.attrs import FORMAT_VERSION, Processing, RobotRig, RunAttrs, SensorGrid, StoreAttrs
+from sonarset.format.sidecars import RecordingMeta
+from sonarset.store import Run, RunData, RunWriter, SonarStore, create_store, open_or_create_store, open_store
 
 __all__ = [
     "__version__", "FORMAT_VERSION", "FormatError", "GridMismatchError", "InputValidationError",

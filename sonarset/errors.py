@@ -6,7 +6,17 @@ import errno
 
 
 class SonarSetError(Exception):
-    """An error caused by the user's input (a file, a store, an argument), not by a bug."""
+    """An error caused by the user's input (a file, a store, an argument), not by a bug.
+
+    ``parameter`` names the argument the error is about, by its name in the library's API
+    (``SonarSetError(f"minutes must be > 0, got {m}", parameter="minutes")``): the message speaks
+    of values and parameters, and the command line shows the flag that sets that parameter
+    (cli/common.py), so the library never needs to know its flags.
+    """
+
+    def __init__(self, *args: object, parameter: str | None = None):
+        super().__init__(*args)
+        self.parameter = parameter
 
 
 class FormatError(SonarSetError):
@@ -18,14 +28,16 @@ class GridMismatchError(SonarSetError):
 
 
 class InputValidationError(SonarSetError):
-    """Several problems were found in an input; ``problems`` holds one line each."""
+    """Several problems were found in an input; ``problems`` holds one line each (the lines of
+    ``sonarset.format.problems.Problem`` findings, or lines)."""
 
-    def __init__(self, source: str, problems: list[str]):
+    def __init__(self, source: str, problems: list, *, parameter: str | None = None):
         self.source = source
-        self.problems = list(problems)
+        self.problems = [str(p) for p in problems]
+        problems = self.problems
         head = f"{source}: {problems[0]}" if problems else source
         more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
-        super().__init__(head + more)
+        super().__init__(head + more, parameter=parameter)
 
 
 def one_line(exc: BaseException) -> str:

@@ -8,7 +8,7 @@ One batcher, :class:`WindowBatcher`, turns windows into batches for every consum
 for evaluation (:func:`gather`, :func:`iter_batches`), and torch tensors, on the training device or
 behind a DataLoader (``sonarset.torchdata``), from the same row arithmetic.
 
-Alignment (DESIGN.md §2): the window starting at frame i of a run uses frames i..i+n_in-1 and
+Alignment (docs/conventions.md, "Windows"): the window starting at frame i of a run uses frames i..i+n_in-1 and
 commands i..i+n_in-1+H, and targets frames i+n_in..i+n_in-1+H. ``velocity[k]`` moved the robot
 from frame k-1 to k, so command i+n_in is the one that leads to the first target. Windows never
 cross runs.
@@ -25,8 +25,9 @@ from sonarset.errors import SonarSetError
 from sonarset.format.attrs import SensorGrid
 from sonarset.store.store import SonarStore
 
-#: Input frames of a window: the paper's geometry (DESIGN.md §2), the one definition. A learned
-#: model's own count is in its config (EchoPT's defaults to this); the baselines are fed these windows.
+#: Input frames of a window: the paper's geometry (docs/conventions.md, "Windows"), the one
+#: definition. A learned model's own count is in its config (EchoPT's defaults to this); the
+#: baselines are fed these windows.
 N_IN = 3
 
 

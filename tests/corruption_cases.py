@@ -201,7 +201,7 @@ KINDS = [
          "velocity: linear speed up to 1e+30 m/s exceeds", ok=("info",)),
     Kind("NaN time", _values("time", _set(FRAME, np.nan)), "time: NaN or infinite values (first at frame 70)"),
     Kind("time not increasing", _values("time", _swap_times), "time", says={
-        "validate": "time is not strictly increasing (first at frame 71)"}),
+        "validate": "time: not strictly increasing (first at frame 71)"}),
     Kind("10 Hz time stamps in a 5 Hz store", _values("time", _scale(0.5)), "time stamps are 0.1 s apart (median)"),
     Kind("time in milliseconds declared as seconds", _values("time", _scale(1000.0)), "milliseconds declared as seconds"),
     Kind("NaN pose (optional array)", _values("pose", _set((FRAME, 0), np.nan)), "pose: NaN or infinite values",
@@ -241,7 +241,7 @@ KINDS = [
          "test_000: ", says={"validate": "missing run attribute 'sonarset'"}),
     Kind("run split upper-case", _run_attrs(split="TEST"), "split must be lower-case"),
     Kind("run incomplete", _run_attrs(complete=False), "test_000", ok=("info", "train"),
-         says={"validate": "incomplete run", "eval": "no complete runs in split 'test'", "show": "run is incomplete"}),
+         says={"validate": "run is incomplete", "eval": "no complete runs in split 'test'", "show": "run is incomplete"}),
     Kind("range coordinates off the grid", _values("range", _scale(1.1)), "range: coordinates do not match the store grid"),
     Kind("root zarr.json not JSON", lambda s: (s / "zarr.json").write_text("{"), "zarr.json",
          says={"validate": "unreadable JSON"}),

@@ -92,16 +92,16 @@ def test_demo_on_a_short_fresh_run(tmp_path):
 
 
 def test_closed_choices_are_the_librarys():
-    """typer checks these choices and lists them in --help; where the library's lists live in modules
-    that --help must not import (torch, the simulator), cli/choices.py repeats them, and this says
-    they agree."""
+    """typer checks these choices and lists them in --help; cli/choices.py makes them from the
+    library's light lists, and this says they are the lists the code that uses them checks against
+    (the network's presets and priors, the simulator's PSF tables, the beamformers)."""
     import pytest
 
     from sonarset.cli import choices
-    from sonarset.models.echopt.model import PRESETS, PRIORS
+    from sonarset.models.echopt.config import PRESETS, PRIORS
     from sonarset.models.echopt.precision import PRECISIONS
     from sonarset.format.attrs import Processing
-    from sonarset.sensor.energyscape import BEAMFORMERS
+    from sonarset.format.attrs import BEAMFORMERS
     from sonarset.sim.sonar import BEAMS
 
     values = lambda enum: {c.value for c in enum}  # noqa: E731
@@ -114,3 +114,39 @@ def test_closed_choices_are_the_librarys():
         Processing.named("nope")
     r = runner.invoke(app, ["train", "x", "--out", "y", "--preset", "huge"])
     assert r.exit_code == 2 and "small" in r.output and "tiny" in r.output
+
+
+def test_library_errors_name_the_commands_flags(store, tmp_path):
+    """The library names parameters; the command line names the flag that sets one, in place of the
+    parameter's name where the message opens with it, else after the message."""
+    r = runner.invoke(app, ["train", store.location, "--out", str(tmp_path / "t"), "--curriculum", "2:3"])
+    assert r.exit_code == 1 and "error: --curriculum '2:3': must start at step 0" in r.output, r.output
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "x").write_text("")
+    r = runner.invoke(app, ["train", store.location, "--out", str(busy)])
+    assert r.exit_code == 1 and "exists and is not empty" in r.output and r.output.rstrip().endswith("(--out)"), r.output
+    r = runner.invoke(app, ["eval", store.location, "--models", "magic", "--out", str(tmp_path / "e")])
+    assert r.exit_code == 1 and "unknown model 'magic'" in r.output and "(--models)" in r.output, r.output
+
+
+def test_a_parameter_no_option_sets_is_left_as_the_library_says_it():
+    """... and a parenthesis that opens with the parameter's name opens with its flag."""
+    import typer
+
+    from sonarset.cli.common import user_errors
+    from sonarset.errors import SonarSetError
+
+    probe = typer.Typer()
+
+    @probe.command()
+    @user_errors
+    def one(batch: int = typer.Option(1, "--batch"), allow_more: bool = typer.Option(False, "--allow-more")) -> None:
+        if batch > 2:
+            raise SonarSetError(f"batch_size {batch} is too large", parameter="batch_size")
+        raise SonarSetError(f"{batch} is too few (allow_more takes it)", parameter="allow_more")
+
+    r = CliRunner().invoke(probe, ["--batch", "3"])
+    assert r.exit_code == 1 and "error: batch_size 3 is too large" in r.output and "--" not in r.output, r.output
+    r = CliRunner().invoke(probe, ["--batch", "1"])
+    assert r.exit_code == 1 and "error: 1 is too few (--allow-more takes it)\n" == r.output, r.output

@@ -138,6 +138,45 @@ def test_corruption(kind: Kind, base_store, tmp_path):
     assert not bad, f"{kind.name}: {bad}"
 
 
+def read_everything(location: Path) -> str | None:
+    """The error a reader raises reading the whole store as the tools do (opened with the checks
+    ``eval`` and ``train`` make, every run group by name, every array of each run through the
+    checked read, the rig); None when everything reads."""
+    from sonarset.errors import SonarSetError
+    from sonarset.format.arrays import ARRAYS
+    from sonarset.store.store import open_store
+
+    try:
+        store = open_store(location, check=True)
+        store.rig
+        for name in store.runs(include_incomplete=True):
+            run = store.run(name)
+            for key, spec in ARRAYS.items():
+                if spec.required or run.has(key):
+                    run.read(key)
+            run.load()
+    except SonarSetError as exc:
+        return str(exc)
+    return None
+
+
+@pytest.mark.parametrize("kind", KINDS, ids=[k.name for k in KINDS])
+def test_validate_and_the_readers_agree(kind: Kind, base_store, tmp_path):
+    """One rule, one verdict: ``validate`` reports a problem that readers refuse exactly when a
+    reader refuses the store, and the reader's error names a node that ``validate`` names."""
+    from sonarset.store.validate import validate_store
+
+    store = tmp_path / "store.zarr"
+    shutil.copytree(base_store, store)
+    kind.apply(store)
+    problems = validate_store(store)
+    refusing = [p for p in problems if p.refused_by_readers]
+    refused = read_everything(store)
+    assert bool(refusing) == (refused is not None), (refused, [str(p) for p in problems])
+    if refused is not None:
+        assert any(refused.startswith(f"{p.where}:") for p in refusing), (refused, [str(p) for p in refusing])
+
+
 @pytest.mark.parametrize("name", ["run zarr.json is `true`", "images data_type float17"])
 def test_validate_consolidate_names_the_broken_node(name, base_store, tmp_path):
     """Re-consolidating parses every node: a broken one is named, in one line."""

@@ -11,9 +11,11 @@ from typer.testing import CliRunner
 from sonarset import GridMismatchError, SonarSetError, open_store
 from sonarset.cli.app import app
 from sonarset.models.echopt.checkpoint import load_checkpoint, save_checkpoint
-from sonarset.models.echopt.model import EchoPT, make_config
+from sonarset.models.echopt.config import make_config
+from sonarset.models.echopt.model import EchoPT
 from sonarset.models.eval.evaluate import evaluate
-from sonarset.models.echopt.train import TrainConfig, train
+from sonarset.models.echopt.train import train
+from sonarset.models.echopt.train_config import TrainConfig
 from sonarset.format.attrs import SensorGrid
 from sonarset.sim import generate
 
@@ -93,8 +95,9 @@ def test_resume_equals_uninterrupted(tiny_store, tmp_path):
         assert ka == kb and torch.equal(va, vb)
     with pytest.raises(SonarSetError, match="exists and is not empty"):
         train(tiny_store, tmp_path / "full", _cfg(max_steps=9))
-    with pytest.raises(SonarSetError, match="--resume with lr"):
+    with pytest.raises(SonarSetError, match="resume with lr") as refused:
         train(tiny_store, tmp_path / "full", _cfg(max_steps=9, lr=5e-4), resume=True)
+    assert refused.value.parameter == "lr"
 
 
 def test_checkpoint_is_safetensors_with_a_card(tmp_path):
@@ -216,7 +219,7 @@ def test_killed_at_any_write_phase_resumes_to_the_uninterrupted_result(tiny_stor
 
 def test_rollout_training_options_and_priors(tiny_store, tmp_path):
     from sonarset.models.baselines import AcousticFlow
-    from sonarset.models.echopt.model import grid_and_rig
+    from sonarset.models.echopt.config import grid_and_rig
 
     # an untrained flow-prior model is exactly the flow baseline, with the store's rig
     model = EchoPT(make_config("tiny", *TINY_GRID.shape, **grid_and_rig(TINY_GRID, tiny_store.rig))).eval()
@@ -237,9 +240,10 @@ def test_rollout_training_options_and_priors(tiny_store, tmp_path):
     assert card["training"]["config"]["loss"] == "mse=1,gdl=0.5,cc=0.1,w1=1,energy=0.5"
     assert all(np.isfinite(r["train_loss"]) for r in res.history)
     for bad, msg in ((dict(curriculum="2:3"), "start at step 0"), (dict(loss="mse,fancy"), "unknown term"),
-                     (dict(prior="magic"), "--prior")):
-        with pytest.raises(SonarSetError, match=msg):
+                     (dict(prior="magic"), "prior must be one of")):
+        with pytest.raises(SonarSetError, match=msg) as refused:
             train(tiny_store, tmp_path / "bad", _cfg(max_steps=2, **bad))
+        assert refused.value.parameter == next(iter(bad))
 
 
 def test_init_fine_tunes_from_a_checkpoint_and_refuses_another_network(tiny_store, tmp_path):

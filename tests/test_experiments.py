@@ -10,7 +10,8 @@ from typer.testing import CliRunner
 from sonarset.cli.app import app
 from sonarset.sim.control import BurstDetector, SubsumptionController
 from sonarset.models.echopt.checkpoint import save_checkpoint
-from sonarset.models.echopt.model import EchoPT, make_config
+from sonarset.models.echopt.config import make_config
+from sonarset.models.echopt.model import EchoPT
 from sonarset.models.experiments.common import predictor
 from sonarset.models.experiments.control import BurstSchedule, Episode, run_control_experiment, run_episode
 from sonarset.models.experiments.slip import SlipPeriod, SlipTrial, frame_labels, run_slip_experiment, slip_signals

@@ -10,7 +10,8 @@ import pytest
 
 from sonarset import open_store
 from sonarset.models.eval.report import write_report
-from sonarset.models.eval.evaluate import ECHO_FLOOR, FADE_TOLERANCE, EvalResult, evaluate, fade_summary, peak_and_energy
+from sonarset.models.eval.evaluate import evaluate
+from sonarset.models.eval.result import ECHO_FLOOR, FADE_TOLERANCE, EvalResult, fade_summary, peak_and_energy
 from sonarset.format.attrs import SensorGrid
 from sonarset.sim import generate
 from sonarset.windows import N_IN
@@ -117,7 +118,8 @@ def test_a_tiny_model_that_learned_a_moving_scene_does_not_fade(tmp_path):
     little margin to assert it across machines' floating point."""
     import torch
 
-    from sonarset.models.echopt.train import TrainConfig, train
+    from sonarset.models.echopt.train import train
+    from sonarset.models.echopt.train_config import TrainConfig
 
     path = tmp_path / "tiny.zarr"
     generate(path, runs=3, test_runs=1, minutes=1.0, seed=3, workers=1, grid=TINY_GRID)

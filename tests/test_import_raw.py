@@ -20,13 +20,14 @@ from typer.testing import CliRunner
 from sonarset import open_store
 from sonarset.cli.app import app
 from sonarset.errors import InputValidationError, SonarSetError
-from sonarset.ingest.raw_recording import load_raw
-from sonarset.ingest.raw import import_raw
+from sonarset.ingest.raw import import_raw, load_raw
 from sonarset.ingest.files import RawSource
 from sonarset.format.attrs import Processing, SensorGrid
-from sonarset.sensor.beamform import SignalBeamformer, read_layout_csv, steering_projection
+from sonarset.sensor.beamform import SignalBeamformer
+from sonarset.sensor.ertis import read_layout_csv, sweep
+from sonarset.sensor.exact import steering_projection
 from sonarset.sim.reference import microphone_signals, reference_amplitude, write_raw_recording
-from sonarset.sim.sonar import Echoes, SonarModel, sweep
+from sonarset.sim.sonar import Echoes, SonarModel
 from sonarset.store.validate import validate_store
 
 SMALL = SensorGrid(range_min_m=0.5, range_max_m=1.5, n_range=24, azimuth_min_rad=-1.2, azimuth_max_rad=1.2,
@@ -129,12 +130,11 @@ def test_isolated_point_target_column_stays_at_the_floor(fs, f_start, f_end):
     away from its range, for both beamformers. At a 450 kHz recording DMAS3's odd harmonics fold onto
     0 Hz at the 225 kHz output rate; |hilbert| of that baseband spreads it over all ranges (the
     streak of issue 24), which the rectifier (the toolbox's order, the default) and the square law keep at the echo's range."""
-    from sonarset.ingest.raw_recording import chirp
     from sonarset.sim.sonar import SonarModel
 
     grid = SensorGrid(range_min_m=0.5, range_max_m=3.5, n_range=120, azimuth_min_rad=-math.pi / 2,
                       azimuth_max_rad=math.pi / 2, n_azimuth=60)
-    emitted = chirp(f_start, f_end, 0.0025, fs)
+    emitted = sweep(fs, f_start, f_end, 0.0025)
     n = int((2 * grid.range_max_m / 343 + 0.004) * fs)
     sig = _point_target(grid, fs, emitted, 1.5, math.radians(30), n).astype(np.float32)
     column = np.argmin(np.abs(grid.azimuth_centres() - math.radians(30)))
@@ -153,6 +153,17 @@ def test_isolated_point_target_column_stays_at_the_floor(fs, f_start, f_end):
     assert column_away("dmas3-cf", "square") < 0.01  # the square law does the same
     if fs == 450e3:
         assert column_away("dmas3-cf", "analytic") > 0.05  # the streak this test is there to catch
+
+
+def test_the_sidecars_ertis_sweep_is_the_simulators_sample_for_sample(tmp_path, signals4):
+    """One sweep for the simulator and the importer: the eRTIS parameters in a sidecar give the very
+    samples the simulator emits; other parameters and an unwindowed chirp differ from it."""
+    rec, _ = load_raw(_write(tmp_path, signals=signals4), scan=False)
+    assert rec.sweep.tobytes() == sweep(FS).tobytes()
+    other = _sidecar(sweep={"f_start_hz": 25e3, "f_end_hz": 50e3, "duration_s": 0.0025, "window": "none"})
+    flat, _ = load_raw(_write(tmp_path, "flat", signals=signals4, meta=other), scan=False)
+    assert len(flat.sweep) == len(rec.sweep) and flat.sweep[0] != 0 and rec.sweep[0] == 0
+    assert np.abs(sweep(FS, 25e3, 50e3, 0.0025, "none") * np.hanning(len(rec.sweep)) - rec.sweep).max() < 1e-12
 
 
 def test_detector_choices_are_checked():
@@ -407,10 +418,10 @@ def test_missing_sidecar_and_existing_store_left_untouched(tmp_path, signals4):
     with pytest.raises(InputValidationError):
         import_raw(bad, tmp_path / "s.zarr", processing="raw")
     assert open_store(tmp_path / "s.zarr").runs(include_incomplete=True) == ["good"]
-    # --overwrite swaps the new run in only once it is complete
+    # overwrite swaps the new run in only once it is complete
     again = import_raw(good, tmp_path / "s.zarr", processing="raw", overwrite=True)
     assert again.n_frames == 4 and open_store(tmp_path / "s.zarr").runs() == ["good"]
-    with pytest.raises(SonarSetError, match="--name 'a b'"):
+    with pytest.raises(SonarSetError, match="invalid run name 'a b': a run name is 1-128 letters"):
         import_raw(good, tmp_path / "s.zarr", name="a b")
 
 

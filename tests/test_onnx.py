@@ -14,7 +14,8 @@ pytest.importorskip("onnxscript")
 from sonarset import GridMismatchError, SonarSetError, open_store  # noqa: E402
 from sonarset.cli.app import app  # noqa: E402
 from sonarset.models.echopt.checkpoint import save_checkpoint  # noqa: E402
-from sonarset.models.echopt.model import EchoPT, grid_and_rig, make_config  # noqa: E402
+from sonarset.models.echopt.config import grid_and_rig, make_config  # noqa: E402
+from sonarset.models.echopt.model import EchoPT  # noqa: E402
 from sonarset.models.eval.evaluate import evaluate  # noqa: E402
 from sonarset.models.echopt.onnx_export import PARITY_TOLERANCE, export_onnx, random_windows  # noqa: E402
 from sonarset.models.echopt.onnx_runtime import CARD_KEY, OnnxEchoPTPredictor, open_session, read_onnx_card  # noqa: E402

@@ -73,18 +73,14 @@ def _sonarset_modules() -> dict[str, Path]:
 
 
 def _imports(module: str, path: Path, modules: set[str]) -> set[str]:
-    """The modules of ``modules`` that ``module`` (its source at ``path``) imports, lazily or not;
-    imports under ``if TYPE_CHECKING:`` (annotations only) do not count."""
+    """The modules of ``modules`` that ``module`` (its source at ``path``) imports, lazily or not,
+    including imports under ``if TYPE_CHECKING:``: an annotation that names a module is a
+    dependency on it all the same."""
     import ast
 
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
-    found, stack = set(), [ast.parse(path.read_text())]
-    while stack:
-        node = stack.pop()
-        if isinstance(node, ast.If) and getattr(node.test, "id", getattr(node.test, "attr", None)) == "TYPE_CHECKING":
-            stack.extend(node.orelse)
-            continue
-        stack.extend(ast.iter_child_nodes(node))
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.Import):
             found |= {a.name for a in node.names}
         elif isinstance(node, ast.ImportFrom):
@@ -94,15 +90,37 @@ def _imports(module: str, path: Path, modules: set[str]) -> set[str]:
     return (found & modules) - {module}
 
 
-def test_no_import_cycle_in_sonarset():
-    """No module of ``sonarset/`` imports, even lazily, one that imports it back (nor the package
-    itself, whose ``__init__`` imports the store)."""
+def _import_graph() -> dict[str, set[str]]:
     paths = _sonarset_modules()
-    graph = {m: _imports(m, p, set(paths)) for m, p in paths.items()}
+    return {m: _imports(m, p, set(paths)) for m, p in paths.items()}
+
+
+def test_import_scan_sees_type_checking_imports(tmp_path):
+    """The scan counts what only annotations need: the circle run <-> store went through them once."""
+    src = tmp_path / "mod.py"
+    src.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from sonarset.store.store import SonarStore\n")
+    assert _imports("sonarset.x", src, {"sonarset.store.store"}) == {"sonarset.store.store"}
+
+
+def test_no_import_cycle_in_sonarset():
+    """No module of ``sonarset/`` imports, even lazily or for annotations only, one that imports it
+    back (nor the package itself, whose ``__init__`` imports the store)."""
+    graph = _import_graph()
     try:
         graphlib.TopologicalSorter(graph).prepare()
     except graphlib.CycleError as e:  # e.args[1]: the cycle, against the import direction
         pytest.fail("import cycle: " + " -> ".join(reversed(e.args[1])))
+
+
+@pytest.mark.parametrize("layer", ["sonarset.format", "sonarset.store", "sonarset.sensor"])
+def test_lower_layers_never_import_the_simulator_or_the_importers(layer):
+    """The format, the store and the imaging chain sit below the simulator and the importers, which
+    both build on them: none of their modules imports ``sonarset.sim`` or ``sonarset.ingest``."""
+    graph = _import_graph()
+    above = ("sonarset.sim", "sonarset.ingest")
+    bad = {m: sorted(d for d in deps if d in above or d.startswith(tuple(f"{a}." for a in above)))
+           for m, deps in graph.items() if m == layer or m.startswith(f"{layer}.")}
+    assert not {m: d for m, d in bad.items() if d}, bad
 
 
 def test_no_package_attribute_shadows_one_of_its_modules():

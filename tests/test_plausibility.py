@@ -13,6 +13,7 @@ from sonarset.cli.app import app
 from sonarset.errors import InputValidationError
 from sonarset.ingest.images import import_recording, load_recording
 from sonarset.format.plausibility import Implausible, command_problems, grid_problems, time_problems
+from sonarset.format.problems import Problem
 from sonarset.format.attrs import RobotRig, SensorGrid
 from sonarset.store.store import create_store
 from sonarset.store.validate import validate_store
@@ -154,11 +155,11 @@ def test_validate_reports_implausible_values_and_allows_them_on_request(tmp_path
     store = create_store(tmp_path / "s.zarr", TINY, rig=RobotRig())
     store.write_run("ok", **make_run(20, 1))
     bad = make_run(20, 2)
-    bad["velocity"][7, 0] = 1e30
+    bad["velocity"][7, 0] = 3.0  # 10x the rig's limit, within what a ground robot could do: readable
     store.write_run("bad", **bad)
     problems = validate_store(tmp_path / "s.zarr")
     assert [type(p) for p in problems] == [Implausible]
-    assert problems[0].where.endswith("s.zarr/bad/velocity") and "1e+30 m/s" in problems[0].message
+    assert problems[0].where.endswith("s.zarr/bad/velocity") and "3 m/s" in problems[0].message
     res = cli("validate", tmp_path / "s.zarr")
     assert res.exit_code == 1 and "implausible:" in res.output and "bad/velocity" in res.output
     res = cli("validate", tmp_path / "s.zarr", "--allow-implausible")
@@ -178,8 +179,11 @@ def test_commands_beyond_the_rig_are_flagged_but_readable_those_beyond_any_robot
     absurd = make_run(20, 2)
     absurd["velocity"][3, 0] = 50.0  # 180 km/h
     store.write_run("absurd", **absurd)
-    flagged = {p.where.split("/")[-2] for p in validate_store(tmp_path / "s.zarr")}
+    problems = validate_store(tmp_path / "s.zarr")
+    flagged = {p.where.split("/")[-2] for p in problems}
     assert flagged == {"fast", "absurd"}
+    # what readers refuse, validate reports as invalid, not as implausible (--allow-implausible keeps it out)
+    assert {p.where.split("/")[-2]: type(p) for p in problems} == {"fast": Implausible, "absurd": Problem}
     store = open_store(tmp_path / "s.zarr")
     np.testing.assert_array_equal(store.run("fast").read("velocity"), fast["velocity"])
     with pytest.raises(FormatError, match="absurd.*50 m/s exceeds 10 m/s, beyond any ground robot"):
@@ -204,5 +208,6 @@ def test_rules_accept_what_a_real_robot_records():
     assert command_problems(v, RobotRig()) == [] and command_problems(v, None) == []
     assert time_problems(np.arange(50) * 0.2, 0.2, 5.0) == [] and time_problems(np.arange(50) * 0.2, None, 5.0) == []
     # Frames faster than an echo returns from the grid's end: seconds declared as milliseconds.
-    [line] = time_problems(np.arange(50) * 0.2e-3, None, 5.0)
+    [problem] = time_problems(np.arange(50) * 0.2e-3, None, 5.0)
+    line = str(problem)
     assert "less than an echo from 5 m takes to return" in line and "seconds converted as milliseconds?" in line

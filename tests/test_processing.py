@@ -138,7 +138,8 @@ def ertis_model(tmp_path):
     """A tiny EchoPT whose card says it was trained on 'ertis' images with the simulator's rig."""
     pytest.importorskip("torch")
     from sonarset.models.echopt.checkpoint import save_checkpoint
-    from sonarset.models.echopt.model import EchoPT, make_config
+    from sonarset.models.echopt.config import make_config
+    from sonarset.models.echopt.model import EchoPT
 
     model = EchoPT(make_config("tiny", *TINY.shape, patch=(4, 3)))
     return save_checkpoint(tmp_path / "m" / "echopt-tiny", model, {

@@ -3,7 +3,9 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from sonarset.format.attrs import SCHEMAS, RecordingMeta, SensorGrid, StoreAttrs, json_schema_text, parse_version
+from sonarset.format.attrs import SensorGrid, StoreAttrs, parse_version
+from sonarset.format.schemas import SCHEMAS, json_schema_text
+from sonarset.format.sidecars import RecordingMeta
 
 SCHEMA_DIR = Path(__file__).resolve().parents[1] / "spec" / "schema"
 

@@ -80,9 +80,9 @@ def test_blocks_rendered_two_at_a_time_are_the_same_blocks():
     so the arrays do not change."""
     import threading
 
-    from sonarset.sim import plan_runs, simulate_blocks
+    from sonarset.sim import GenerationSpec, plan_runs, simulate_blocks
 
-    plan = plan_runs(1, 0, 0.9, seed=5)[0]  # 270 frames: 5 blocks, an odd count
+    plan = plan_runs(GenerationSpec(runs=1, test_runs=0, minutes=0.9, seed=5))[0]  # 270 frames: 5 blocks, an odd count
     one = list(simulate_blocks(plan, SMALL))
     spare = threading.Event()
     spare.set()
@@ -187,7 +187,7 @@ def test_beam_patterns_match_the_toolbox_side_lobe_levels():
     """One point target: the level across azimuth (181 directions) at the echo's range, median and
     max re the peak, away from the main lobe (|az| > 10 deg). The Cosys-Lab toolbox's own code on
     the eRTIS layout gives DAS -19 / -14 dB, DAS + CF -47 / -37, DMAS3 -50 / -39 and DMAS3 + CF
-    -79 / -60 (DESIGN.md §3). For one echo the coherence factor is the delay-and-sum pattern squared."""
+    -79 / -60 (docs/physics.md, "Point-spread functions"). For one echo the coherence factor is the delay-and-sum pattern squared."""
     from sonarset.sensor.energyscape import dmas3_beam_table
     from sonarset.sim.sonar import beam_table
 
@@ -269,7 +269,7 @@ def test_default_processing_is_ertis_and_the_store_records_it(tmp_path):
     with pytest.raises(SonarSetError, match="e.zarr"):  # resuming with other images is refused
         generate(tmp_path / "e.zarr", runs=0, test_runs=1, minutes=0.3, seed=11, workers=1, grid=grid,
                  processing="raw")
-    with pytest.raises(SonarSetError, match="--processing"):
+    with pytest.raises(SonarSetError, match="unknown processing profile 'fancy'; choose from ertis, raw"):
         generate(tmp_path / "x.zarr", processing="fancy")
     with pytest.raises(SonarSetError, match="mainlobe"):
         generate(tmp_path / "y.zarr", psf="mainlobe")

@@ -1,4 +1,4 @@
-"""Physics of the simulator against DESIGN.md §3 and the acoustic-flow geometry."""
+"""Physics of the simulator against docs/physics.md and the acoustic-flow geometry."""
 
 import math
 

@@ -93,7 +93,7 @@ def test_write_run_validates_before_writing(store):
     with pytest.raises(InputValidationError) as e:
         store.write_run("run_bad", **bad)
     text = "\n".join(e.value.problems)
-    assert "images: contains NaN" in text and "velocity: 9 frames but images has 10" in text
+    assert "images: NaN or infinite values" in text and "velocity: 9 frames but images has 10" in text
     assert "not strictly increasing" in text
     assert "run_bad" not in store.runs(include_incomplete=True)
 

@@ -9,7 +9,9 @@ from typer.testing import CliRunner
 from sonarset import SonarSetError, open_store
 from sonarset.cli.app import app
 from sonarset.format.attrs import SensorGrid
-from sonarset.sim import FAMILIES, ExplorationPolicy, SonarModel, generate, integrate, load_world, plan_runs
+from sonarset.sim import (
+    FAMILIES, ExplorationPolicy, GenerationSpec, SonarModel, generate, integrate, load_world, plan_runs,
+)
 from sonarset.sim.families import corridor_world
 from sonarset.sim.runs import world_mix
 from sonarset.sim.world import FenceSpec, World, WorldSpec
@@ -82,21 +84,24 @@ def test_world_mix_syntax():
     assert world_mix("worlds/a.json:2") == [("worlds/a.json", 2)]
     for bad, runs, why in [("lab:4,orchard", None, "give every world a run count"),
                            ("lab,orchard", None, "several worlds need a run count"),
-                           ("lab:4", 3, "drop --runs"), ("lab:1,lab:2", None, "named twice"), (" , ", None, "empty")]:
+                           ("lab:4", 3, "gives the run counts; leave runs unset"), ("lab:1,lab:2", None, "named twice"), (" , ", None, "empty")]:
         with pytest.raises(SonarSetError, match=why):
             world_mix(bad, runs)
 
 
 def test_mixed_plans_keep_single_world_plans_and_give_each_world_test_runs():
-    assert plan_runs(3, 1, 1.0, 7, "lab") == plan_runs(None, 1, 1.0, 7, "lab:3")
-    plans = plan_runs(None, 1, 1.0, 7, "lab:2,orchard:1,rooms:1")
+    def plans_of(runs, test_runs, world):
+        return plan_runs(GenerationSpec(runs=runs, test_runs=test_runs, minutes=1.0, seed=7, world=world))
+
+    assert plans_of(3, 1, "lab") == plans_of(None, 1, "lab:3")
+    plans = plans_of(None, 1, "lab:2,orchard:1,rooms:1")
     assert [(p.name, p.split, p.world) for p in plans] == [
         ("run_000", "train", "lab"), ("run_001", "train", "lab"), ("run_002", "train", "orchard"),
         ("run_003", "train", "rooms"), ("test_000", "test", "lab"), ("test_001", "test", "orchard"),
         ("test_002", "test", "rooms")]
     assert len({p.seed for p in plans}) == len(plans) and len({p.world_seed for p in plans}) == len(plans)
     # the first runs of a mix are those of the first world's own store
-    assert plans[:2] == plan_runs(None, 0, 1.0, 7, "lab:2,orchard:1,rooms:1")[:2]
+    assert plans[:2] == plans_of(None, 0, "lab:2,orchard:1,rooms:1")[:2]
 
 
 @pytest.fixture(scope="module")

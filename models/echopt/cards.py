@@ -1,17 +1,26 @@
-"""What a model card says about the data a model was trained on (no torch needed).
+"""What a model card says about the data a model was trained on (no torch needed), and its test
+section.
 
-A card (``NAME.json`` beside the weights, models/checkpoint.py) records the training store's grid,
-``processing`` and ``rig``. Cards written before format 1.1 have no ``processing``: their models
-were trained on 'raw' images.
+A card (``NAME.json`` beside the weights, models/echopt/checkpoint.py) records the training store's
+grid, ``processing`` and ``rig``. Cards written before format 1.1 have no ``processing``: their
+models were trained on 'raw' images.
 """
 
 from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 from sonarset.errors import SonarSetError
 from sonarset.format.attrs import Processing, RobotRig
+from sonarset.store.atomic import atomic_text
+
+if TYPE_CHECKING:
+    from sonarset.store.store import SonarStore
+
+    from sonarset.models.echopt.train_config import TrainConfig
 
 
 def read_card(spec: str | os.PathLike) -> dict:
@@ -77,3 +86,23 @@ def training_notices(label: str, card: dict, processing: Processing, rig: RobotR
         notes.append(f"note: {label} was trained on a robot with {trained_rig.describe()}; this store's robot has "
                      f"{rig.describe()}: scores are not comparable to its training")
     return notes
+
+
+def add_test_metrics(out_dir: str | os.PathLike, store: SonarStore, cfg: TrainConfig, seed: int = 0) -> dict:
+    """Evaluate a training run's best model against the baselines on ``cfg.test_samples`` windows of
+    the store's test split (drawn with ``seed``, not the training's), on ``cfg``'s device and
+    precision; record the results in its card."""
+    from sonarset.models.eval.evaluate import evaluate
+    from sonarset.models.registry import BASELINES
+
+    path = Path(out_dir) / "model.safetensors"
+    res = evaluate(store, [*BASELINES, f"echopt:{path}"], samples=cfg.test_samples, seed=seed, device=cfg.device,
+                   precision=cfg.precision)
+    card_path = path.with_suffix(".json")
+    card = json.loads(card_path.read_text())
+    card["test"] = {"store": store.location, "split": "test", "windows": len(res.window_ids), "seed": seed,
+                    "precision": res.precision.get("echopt"),
+                    "results": res.summary(),
+                    "echopt_vs_flow": [c.to_dict() for c in res.comparisons if {c.a, c.b} == {"echopt", "flow"}]}
+    atomic_text(card_path, json.dumps(card, indent=2) + "\n")
+    return card["test"]

@@ -1,7 +1,7 @@
 """EchoPT weights as safetensors with a JSON model card; no pickle is ever loaded.
 
 A checkpoint is two files: ``NAME.safetensors`` (the weights) and ``NAME.json`` (the card: preset,
-config, grid, the training store's image processing and robot rig (models/cards.py), training
+config, grid, the training store's image processing and robot rig (models/echopt/cards.py), training
 store and command, epochs, validation loss, test metrics).
 """
 
@@ -11,14 +11,14 @@ import json
 import os
 from pathlib import Path
 
-import torch
 from safetensors.torch import load_file, save_file
 
 from sonarset.store.atomic import atomic_text, atomic_write
 from sonarset.errors import GridMismatchError, SonarSetError
 from sonarset.format.attrs import SensorGrid
 
-from sonarset.models.echopt.model import EchoPT, EchoPTConfig
+from sonarset.models.echopt.config import EchoPTConfig
+from sonarset.models.echopt.model import EchoPT
 
 PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained" / "echopt-small.safetensors"
 
@@ -70,11 +70,3 @@ def load_checkpoint(spec: str | os.PathLike, grid: SensorGrid | None = None, dev
     except Exception as exc:  # safetensors raises its own error types
         raise SonarSetError(f"{path}: cannot load weights ({type(exc).__name__}: {exc})") from None
     return model.to(device).eval(), card
-
-
-def resolve_device(device: str) -> str:
-    if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if device == "cuda" and not torch.cuda.is_available():
-        raise SonarSetError("--device cuda: no CUDA device is available")
-    return device

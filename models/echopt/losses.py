@@ -1,13 +1,19 @@
-"""The image losses of training: per-pixel terms and their weighted sums (``--loss``)."""
+"""The losses of training: per-pixel image terms, their weighted sums (the ``loss`` setting), and the
+unrolled loss over a rollout that training minimises and validation reports."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
 from sonarset.errors import SonarSetError
+from sonarset.windows import WindowBatcher, WindowIndex
 
-from sonarset.models.eval.evaluate import ECHO_FLOOR
+from sonarset.models.echopt.distributed import Dist
+from sonarset.models.echopt.model import EchoPT
+from sonarset.models.echopt.precision import autocast
+from sonarset.models.eval.result import ECHO_FLOOR
 
 LOSSES = ("mse", "l1", "gdl", "cc", "w1", "energy")
 
@@ -18,11 +24,12 @@ def parse_loss(spec: str) -> dict[str, float]:
     for part in spec.split(","):
         name, _, w = part.strip().partition("=")
         if name not in LOSSES:
-            raise SonarSetError(f"--loss {spec!r}: unknown term {name!r}; choose from {', '.join(LOSSES)}")
+            raise SonarSetError(f"loss {spec!r}: unknown term {name!r}; choose from {', '.join(LOSSES)}",
+                                parameter="loss")
         try:
             terms[name] = float(w) if w else 1.0
         except ValueError:
-            raise SonarSetError(f"--loss {spec!r}: weight of {name!r} is not a number") from None
+            raise SonarSetError(f"loss {spec!r}: weight of {name!r} is not a number", parameter="loss") from None
     return terms
 
 
@@ -41,7 +48,7 @@ def value_distribution_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.T
 def echo_energy_loss(pred: torch.Tensor, target: torch.Tensor, floor: float = ECHO_FLOOR) -> torch.Tensor:
     """The batch's relative echo-energy deficit or excess: |sum E(pred) - sum E(target)| / sum E(target),
     with E an image's echo energy, the sum of its pixels above ``floor`` (the quantity of the "no
-    fade" check, ``models.evaluate.peak_and_energy``).
+    fade" check, ``models.eval.result.peak_and_energy``).
 
     A forecast cannot know which echoes will enter the field of view during a rollout; any loss
     that scores each pixel draws such an echo as faint as its probability, so a deterministic model
@@ -74,3 +81,43 @@ def image_loss(pred: torch.Tensor, target: torch.Tensor, terms: dict[str, float]
             v = 1 - ((p * t).sum(1) / (p.norm(dim=1) * t.norm(dim=1) + 1e-8)).mean()
         total = total + w * v
     return total
+
+
+def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch.Tensor, terms: dict[str, float],
+                   pushforward: bool = False, precision: str = "fp32") -> list[torch.Tensor]:
+    """One loss per rollout step: step h predicts target h from the last n_in frames, measured or
+    the model's own (clamped to [0, 1], as in evaluation) predictions. With ``pushforward`` all
+    steps but the last run without gradient, and only the last step's loss is returned."""
+    n_in, k = frames.shape[1], targets.shape[1]
+    buf = list(frames.unbind(1))
+    losses = []
+    for h in range(k):
+        grad = torch.is_grad_enabled() and (not pushforward or h == k - 1)
+        ctx = torch.stack(buf[h:h + n_in], 1).contiguous(memory_format=torch.channels_last)
+        with torch.set_grad_enabled(grad), autocast(ctx.device, precision):
+            pred = fwd(ctx, cmds[:, h:h + n_in + 1]).float()  # the losses in fp32
+        if grad or not pushforward:
+            losses.append(image_loss(pred, targets[:, h], terms))
+        buf.append(pred.clamp(0, 1))
+    return losses
+
+
+@torch.no_grad()
+def validation_loss(model: EchoPT, batcher: WindowBatcher, index: WindowIndex, horizon: int = 1,
+                    batch_size: int = 128, dist: Dist = Dist(), terms: dict[str, float] | None = None,
+                    precision: str = "fp32") -> float:
+    """The training loss (``terms``, default MSE) per pixel over ``index``, averaged over a rollout
+    of ``horizon`` steps; each process takes every world-th batch. The kept model is the best by
+    the objective it was trained for: with a sharpness term, the MSE alone would prefer the
+    blurrier weights."""
+    model.eval()
+    total, n = 0.0, 0
+    starts = range(0, len(index), batch_size)
+    for lo in list(starts)[dist.rank::dist.world]:
+        b = batcher.gather(index, np.arange(lo, min(len(index), lo + batch_size)), horizon)
+        losses = rollout_losses(model, b.frames, b.commands, b.targets, terms or {"mse": 1.0}, precision=precision)
+        total += float(sum(losses)) / horizon * len(b)
+        n += len(b)
+    model.train()
+    total, n = dist.all_sum(total, n)
+    return total / n

@@ -3,7 +3,7 @@
 The graph is the predictor a robot runs: ``frames`` (batch, n_in, R, A) in [0, 1] and
 ``commands`` (batch, n_in + 1, 2) in m/s and rad/s give ``next_frame`` (batch, R, A), clamped to
 [0, 1] as in evaluation, with the acoustic-flow prior computed inside the graph. The batch axis is
-dynamic. The checkpoint's card goes into the ONNX metadata (models/onnx_runtime.py reads it), and
+dynamic. The checkpoint's card goes into the ONNX metadata (models/echopt/onnx_runtime.py reads it), and
 the export is checked against torch on random sparse windows before it is written.
 """
 

@@ -1,4 +1,5 @@
-"""The numeric precision EchoPT runs in: fp32, or bf16 autocast where the hardware has bf16 units.
+"""Where and in what precision EchoPT runs: the device (``DEVICES``), and fp32 or bf16 autocast where
+the hardware has bf16 units (``PRECISIONS``).
 
 ``auto`` (the default everywhere) picks bf16 on a GPU that supports it and on a CPU whose
 instruction set has bf16 matrix or dot-product units (x86 ``amx_bf16`` or ``avx512_bf16``, Arm
@@ -8,6 +9,9 @@ still runs (oneDNN emulates it), only slower than fp32, so ``auto`` never picks 
 Under bf16 autocast, matrix products and convolutions run in bf16 and everything numerically
 delicate (layer norms, softmax statistics, the flow prior's geometry, the losses) stays in fp32;
 BENCHMARKS.md measures what that changes in the scores (<= 0.002 CC or NRMSD on the shipped model).
+
+torch is imported where it is used: the command line lists the devices and precisions from here
+without loading it.
 """
 
 from __future__ import annotations
@@ -17,11 +21,15 @@ import functools
 import platform
 import subprocess
 from pathlib import Path
-
-import torch
+from typing import TYPE_CHECKING
 
 from sonarset.errors import SonarSetError
 
+if TYPE_CHECKING:
+    import torch
+
+#: ``auto``: CUDA where there is a device, else the CPU; ``cuda:N`` is taken as well (one of several GPUs).
+DEVICES = ("auto", "cpu", "cuda")
 PRECISIONS = ("auto", "fp32", "bf16")
 #: CPU flags that mean native bf16 arithmetic: Intel AMX tiles, AVX-512 BF16 dot products (Intel
 #: Cooper Lake and later, AMD Zen 4 and later), the Armv8.6 BF16 extension (Linux names it ``bf16``).
@@ -61,8 +69,10 @@ def cpu_bf16_flags() -> tuple[str, ...]:
 
 def resolve_precision(precision: str, device: str) -> str:
     """``fp32`` or ``bf16`` for ``precision`` (auto, fp32, bf16) on ``device`` (cpu, cuda, cuda:N)."""
+    import torch
+
     if precision not in PRECISIONS:
-        raise SonarSetError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+        raise SonarSetError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}", parameter="precision")
     if precision != "auto":
         return precision
     if str(device).startswith("cuda"):
@@ -74,6 +84,8 @@ def autocast(device: str | torch.device, precision: str) -> contextlib.AbstractC
     """The context EchoPT runs in at a resolved ``precision``: bf16 autocast, or nothing for fp32."""
     if precision == "fp32":
         return contextlib.nullcontext()
+    import torch
+
     return torch.autocast(torch.device(device).type, dtype=torch.bfloat16)
 
 
@@ -86,3 +98,14 @@ def describe_precision(precision: str, device: str) -> str:
         return f"{chosen} (GPU)"
     flags = cpu_bf16_flags()
     return f"{chosen} (CPU flags {', '.join(flags)})" if flags else f"{chosen} (no bf16 units in this CPU)"
+
+
+def resolve_device(device: str) -> str:
+    """The device ``device`` (one of DEVICES, or cuda:N) stands for on this machine."""
+    import torch
+
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        raise SonarSetError("device cuda: no CUDA device is available", parameter="device")
+    return device

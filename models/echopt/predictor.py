@@ -1,6 +1,6 @@
 """EchoPT behind the evaluation engine's predictor interface (NumPy in, NumPy out): a torch
 checkpoint (``echopt:PATH``, ``echopt:pretrained``) or an ONNX export (``echopt:PATH.onnx``,
-run by onnxruntime, models/onnx_runtime.py)."""
+run by onnxruntime, models/echopt/onnx_runtime.py)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import torch
 
 from sonarset.format.attrs import SensorGrid
 
-from sonarset.models.echopt.checkpoint import load_checkpoint, resolve, resolve_device
-from sonarset.models.echopt.precision import autocast, resolve_precision
+from sonarset.models.echopt.checkpoint import load_checkpoint, resolve
+from sonarset.models.echopt.precision import autocast, resolve_device, resolve_precision
 
 #: Windows per forward pass, by device. Measured (bench/bench_infer.py, BENCHMARKS.md): on a CPU
 #: samples/s peak at 8-32 windows in fp32 and bf16 and fall for larger batches, whose activations

@@ -13,18 +13,18 @@ loss choice (``mse``, ``l1``, ``gdl`` image-gradient difference, ``cc`` = 1 - co
 weighted sum such as ``mse=1,gdl=0.5``). Validation is the mean MSE over a rollout of
 ``val_horizon`` steps (1: the paper's one-step loss).
 
-Precision (models/precision.py): ``auto`` trains under bf16 autocast where the hardware has bf16
+Precision (models/echopt/precision.py): ``auto`` trains under bf16 autocast where the hardware has bf16
 units (a GPU, or a CPU with AMX or AVX-512 BF16) and in fp32 elsewhere; the losses, the optimizer
 and the weights stay fp32. The card records the precision a model was trained in.
 
 Crash-safe and resumable: the whole training state (weights, Adam moments, step, best loss,
-metrics history) is one file, ``state.safetensors`` (models/train_state.py), replaced
+metrics history) is one file, ``state.safetensors`` (models/echopt/train_state.py), replaced
 atomically every ``eval_every`` steps; a kill at any point leaves either the previous state or the
 new one. ``metrics.jsonl`` and the best model are derived from it and rewritten on resume. The
 batch order and the augmentation noise are pure functions of (seed, epoch, step), so a resumed
 run replays exactly the steps an uninterrupted one would have taken.
 
-Distributed (models/distributed.py): started by ``torchrun`` (WORLD_SIZE > 1), every process
+Distributed (models/echopt/distributed.py): started by ``torchrun`` (WORLD_SIZE > 1), every process
 draws the same global batch order and trains on its own contiguous slice of each global batch of
 ``batch_size`` windows, under DistributedDataParallel (NCCL on GPUs, gloo on CPUs). DDP averages
 the gradients of the slices, which is the gradient of the global batch's mean loss: the same
@@ -34,11 +34,7 @@ is sharded and all-reduced; only rank 0 writes checkpoints, logs and reports pro
 
 from __future__ import annotations
 
-import json
-import math
 import os
-import shlex
-import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -48,17 +44,18 @@ import numpy as np
 import torch
 
 from sonarset import __version__
-from sonarset.store.atomic import atomic_text
 from sonarset.errors import SonarSetError
 from sonarset.store.store import SonarStore
 from sonarset.torchdata import torch_batcher
 from sonarset.windows import FrameBank, WindowBatcher, WindowIndex
 
-from sonarset.models.echopt.checkpoint import load_checkpoint, resolve_device, save_checkpoint
+from sonarset.models.echopt.checkpoint import load_checkpoint, save_checkpoint
+from sonarset.models.echopt.config import grid_and_rig, make_config
 from sonarset.models.echopt.distributed import Dist, destroy_process_group, init_distributed
-from sonarset.models.echopt.model import PRIORS, EchoPT, grid_and_rig, make_config
-from sonarset.models.echopt.losses import image_loss, parse_loss
-from sonarset.models.echopt.precision import autocast, resolve_precision
+from sonarset.models.echopt.losses import parse_loss, rollout_losses, validation_loss
+from sonarset.models.echopt.model import EchoPT
+from sonarset.models.echopt.precision import resolve_device, resolve_precision
+from sonarset.models.echopt.train_config import RESUME_KEYS, TrainConfig
 from sonarset.models.echopt.train_state import STATE, load_state, save_state, write_metrics
 
 #: Called with a phase name after each write of a checkpoint (tests kill training there).
@@ -71,71 +68,6 @@ def _written(phase: str) -> None:
 
 
 @dataclass
-class TrainConfig:
-    preset: str = "small"
-    epochs: int = 1000
-    batch_size: int = 64
-    lr: float = 5e-5
-    weight_decay: float = 1e-4  # L2, as Adam's weight_decay (MATLAB's L2Regularization)
-    # adam: the paper's, L2 added to the gradient; adamw: decoupled decay (Loshchilov & Hutter).
-    # With a prior the last convolution starts at zero, so the layers behind it see almost no
-    # gradient at first, and Adam's normalised L2 alone shrinks them by ~lr a step: in short runs
-    # they never learn (measured on the tiny preset). AdamW's decay does not go through Adam's scaling.
-    optimizer: str = "adam"
-    schedule: str = "none"  # none (paper) | cosine (decays to 1% of lr over the run, 2% warm-up)
-    seed: int = 0
-    device: str = "auto"
-    n_val: int = 1600
-    eval_every: int = 0  # steps between validations and checkpoints; 0 = once per epoch
-    max_steps: int = 0  # stop after this many optimizer steps in total (0 = no limit)
-    max_minutes: float = 0.0  # stop after this much wall time in this process (0 = no limit)
-    compile: bool = False  # torch.compile (GPU)
-    precision: str = "auto"  # auto | fp32 | bf16 autocast (models/precision.py); auto: bf16 where the hardware has it
-    test_samples: int = 1000  # one-shot + AR test metrics in the card (0 = skip)
-    prior: str = ""  # none | last | flow; "" = the preset's (paper: none, small and tiny: flow)
-    loss: str = "mse"  # a term of losses.LOSSES (mse, l1, gdl, cc, w1, energy), or a weighted sum "mse=1,w1=2"
-    curriculum: str = "1"  # rollout length k: "k", or "step:k,step:k,..." from those steps on
-    pushforward: bool = False  # only the last of the k steps carries gradient
-    context_noise: float = 0.0  # std of Gaussian noise added to the measured context frames
-    val_horizon: int = 0  # rollout steps of the validation loss (0 = the curriculum's longest)
-    init: str = ""  # fine-tune: start from this checkpoint's weights (same preset, prior, grid, images)
-    worlds: str = ""  # comma-separated world families to train on ("" = every training run)
-    n_in: int = 0  # input frames per window (0 = the preset's: the paper's 3)
-    command: str = field(default_factory=lambda: " ".join(shlex.quote(a) for a in sys.argv))
-
-    def stages(self) -> list[tuple[int, int]]:
-        """The curriculum as (first step, k) pairs, sorted."""
-        try:
-            if ":" not in self.curriculum:
-                out = [(0, int(self.curriculum))]
-            else:
-                out = sorted((int(a), int(b)) for a, b in (p.split(":") for p in self.curriculum.split(",")))
-        except ValueError:
-            raise SonarSetError(f"--curriculum {self.curriculum!r}: expected k or step:k,step:k (e.g. 0:1,400:2)") from None
-        if not out or out[0][0] != 0 or any(k < 1 for _, k in out):
-            raise SonarSetError(f"--curriculum {self.curriculum!r}: must start at step 0 with k >= 1")
-        return out
-
-    def world_list(self) -> list[str] | None:
-        """The world families to train on, or None for every training run."""
-        names = [w.strip() for w in self.worlds.split(",") if w.strip()]
-        return names or None
-
-    def k_at(self, step: int) -> int:
-        return [k for s, k in self.stages() if s <= step][-1]
-
-    @property
-    def k_max(self) -> int:
-        return max(k for _, k in self.stages())
-
-
-#: Settings that must not change when a run is resumed.
-_RESUME_KEYS = ("preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps", "prior", "loss",
-                "curriculum", "pushforward", "context_noise", "val_horizon", "optimizer", "weight_decay", "init",
-                "worlds", "n_in")
-
-
-@dataclass
 class TrainResult:
     out_dir: Path
     steps: int
@@ -144,70 +76,20 @@ class TrainResult:
     history: list[dict]
 
 
-def _lr_at(cfg: TrainConfig, step: int, total: int) -> float:
-    if cfg.schedule == "none" or total <= 0:
-        return cfg.lr
-    warm = max(1, int(0.02 * total))
-    if step < warm:
-        return cfg.lr * (step + 1) / warm
-    t = min(1.0, (step - warm) / max(1, total - warm))
-    return cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * t)))
-
-
-def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch.Tensor, terms: dict[str, float],
-                   pushforward: bool = False, precision: str = "fp32") -> list[torch.Tensor]:
-    """One loss per rollout step: step h predicts target h from the last n_in frames, measured or
-    the model's own (clamped to [0, 1], as in evaluation) predictions. With ``pushforward`` all
-    steps but the last run without gradient, and only the last step's loss is returned."""
-    n_in, k = frames.shape[1], targets.shape[1]
-    buf = list(frames.unbind(1))
-    losses = []
-    for h in range(k):
-        grad = torch.is_grad_enabled() and (not pushforward or h == k - 1)
-        ctx = torch.stack(buf[h:h + n_in], 1).contiguous(memory_format=torch.channels_last)
-        with torch.set_grad_enabled(grad), autocast(ctx.device, precision):
-            pred = fwd(ctx, cmds[:, h:h + n_in + 1]).float()  # the losses in fp32
-        if grad or not pushforward:
-            losses.append(image_loss(pred, targets[:, h], terms))
-        buf.append(pred.clamp(0, 1))
-    return losses
-
-
-@torch.no_grad()
-def validation_loss(model: EchoPT, batcher: WindowBatcher, index: WindowIndex, horizon: int = 1,
-                    batch_size: int = 128, dist: Dist = Dist(), terms: dict[str, float] | None = None,
-                    precision: str = "fp32") -> float:
-    """The training loss (``terms``, default MSE) per pixel over ``index``, averaged over a rollout
-    of ``horizon`` steps; each process takes every world-th batch. The kept model is the best by
-    the objective it was trained for: with a sharpness term, the MSE alone would prefer the
-    blurrier weights."""
-    model.eval()
-    total, n = 0.0, 0
-    starts = range(0, len(index), batch_size)
-    for lo in list(starts)[dist.rank::dist.world]:
-        b = batcher.gather(index, np.arange(lo, min(len(index), lo + batch_size)), horizon)
-        losses = rollout_losses(model, b.frames, b.commands, b.targets, terms or {"mse": 1.0}, precision=precision)
-        total += float(sum(losses)) / horizon * len(b)
-        n += len(b)
-    model.train()
-    total, n = dist.all_sum(total, n)
-    return total / n
-
-
 def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, resume: bool = False,
           progress: Callable[[dict], None] | None = None) -> TrainResult:
     out = Path(out_dir)
     if out.exists() and any(out.iterdir()) and not resume:
-        raise SonarSetError(f"{out}: exists and is not empty (use --resume to continue, or another --out)")
-    # --resume on a run killed before its first checkpoint (no state yet) starts it from step 0
-    cfg.stages()
+        raise SonarSetError(f"{out}: exists and is not empty (resume the run in it, or train into another directory)",
+                            parameter="out_dir")
+    # resuming a run killed before its first checkpoint (no state yet) starts it from step 0
+    cfg.check()
     parse_loss(cfg.loss)
-    if cfg.prior and cfg.prior not in PRIORS:
-        raise SonarSetError(f"--prior must be one of {', '.join(PRIORS)}, got {cfg.prior!r}")
     dist, device, started = init_distributed(resolve_device(cfg.device))
     try:
         if cfg.batch_size % dist.world:
-            raise SonarSetError(f"--batch-size {cfg.batch_size} is not a multiple of the {dist.world} processes")
+            raise SonarSetError(f"batch_size {cfg.batch_size} is not a multiple of the {dist.world} processes",
+                                parameter="batch_size")
         dist.barrier()  # every rank has checked the run directory before rank 0 writes to it
         return _train(store, out, cfg, resume, progress, dist, device)
     finally:
@@ -224,15 +106,16 @@ def _init_from(model: EchoPT, spec: str, store: SonarStore) -> None:
     if trained.cfg != model.cfg:
         diff = ", ".join(f"{k}: {getattr(trained.cfg, k)!r} vs {getattr(model.cfg, k)!r}"
                          for k in model.cfg.__dataclass_fields__ if getattr(trained.cfg, k) != getattr(model.cfg, k))
-        raise SonarSetError(f"--init {spec}: another network than --preset/--prior make here ({diff})")
+        raise SonarSetError(f"init {spec}: another network than this preset and prior make here ({diff})",
+                            parameter="init")
     if not card_processing(card).same_images(store.processing):
-        raise SonarSetError(f"--init {spec}: trained on {card_processing(card).profile} images, "
-                            f"{store.location} has {store.processing.profile}")
+        raise SonarSetError(f"init {spec}: trained on {card_processing(card).profile} images, "
+                            f"{store.location} has {store.processing.profile}", parameter="init")
     model.load_state_dict(trained.state_dict())
 
 
 def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[EchoPT, torch.optim.Optimizer]:
-    """The network for the store's grid and robot (seeded, or --init's weights) on ``device``, and
+    """The network for the store's grid and robot (seeded, or ``init``'s weights) on ``device``, and
     its optimizer."""
     torch.manual_seed(cfg.seed)
     overrides = grid_and_rig(store.grid, store.rig)
@@ -242,14 +125,12 @@ def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[Echo
         overrides["n_in"] = cfg.n_in
     try:
         model = EchoPT(make_config(cfg.preset, *store.grid.shape, **overrides))
-    except ValueError as exc:  # e.g. an --n-in whose command values leave d_model indivisible by the heads
-        what = f"--n-in {cfg.n_in}" if cfg.n_in else f"--preset {cfg.preset}"
-        raise SonarSetError(f"{what}: {exc}") from None
+    except ValueError as exc:  # e.g. an n_in whose command values leave d_model indivisible by the heads
+        what = "n_in" if cfg.n_in else "preset"
+        raise SonarSetError(f"{what} {getattr(cfg, what)}: {exc}", parameter=what) from None
     if cfg.init:
         _init_from(model, cfg.init, store)
     model = model.to(device).to(memory_format=torch.channels_last)
-    if cfg.optimizer not in ("adam", "adamw"):
-        raise SonarSetError(f"--optimizer must be adam or adamw, got {cfg.optimizer!r}")
     opt_cls = torch.optim.AdamW if cfg.optimizer == "adamw" else torch.optim.Adam
     opt = opt_cls(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=cfg.weight_decay)
     return model, opt
@@ -267,7 +148,7 @@ class _Plan:
     def of(cls, cfg: TrainConfig, n_train: int, location: str) -> "_Plan":
         steps_per_epoch = n_train // cfg.batch_size  # drop the last partial batch
         if steps_per_epoch == 0:
-            raise SonarSetError(f"{location}: {n_train} training windows, fewer than one batch")
+            raise SonarSetError(f"{location}: {n_train} training windows, fewer than one batch", parameter="batch_size")
         total_steps = cfg.epochs * steps_per_epoch
         if cfg.max_steps:
             total_steps = min(total_steps, cfg.max_steps)
@@ -280,9 +161,10 @@ def _resumed(out: Path, model: EchoPT, opt: torch.optim.Optimizer, cfg: TrainCon
     after checking that the settings that shape the run are the saved ones."""
     meta = load_state(out, model, opt)
     saved = meta["train_config"]
-    for key in _RESUME_KEYS:
+    for key in RESUME_KEYS:
         if saved.get(key, getattr(TrainConfig, key, None)) != getattr(cfg, key):
-            raise SonarSetError(f"{out}: --resume with {key}={getattr(cfg, key)!r}, but the run used {saved.get(key)!r}")
+            raise SonarSetError(f"{out}: resume with {key}={getattr(cfg, key)!r}, but the run used {saved.get(key)!r}",
+                                parameter=key)
     if dist.main:  # derived from the state: whatever a kill left behind, rewrite it
         write_metrics(out, list(meta["history"]))
     return int(meta["step"]), float(meta["best_val_loss"]), list(meta["history"])
@@ -306,7 +188,7 @@ def _card_base(store: SonarStore, cfg: TrainConfig, bank: FrameBank, n_train: in
     """What every checkpoint's card says about the model's data and training."""
     return {
         "format": "echopt-card/1", "preset": cfg.preset, "grid": store.grid.model_dump(),
-        # what the model knows: the images' processing and the robot (models/cards.py reads them)
+        # what the model knows: the images' processing and the robot (models/echopt/cards.py reads them)
         "processing": store.processing.model_dump(mode="json"),
         "rig": store.rig.model_dump(mode="json") if store.rig is not None else None,
         "training": {"store": store.location, "runs": bank.run_names, "worlds": _run_worlds(store, bank.run_names),
@@ -372,7 +254,7 @@ class _Run:
         """One step on the windows ``which`` with a ``k``-step rollout; returns its loss."""
         frames, cmds, targets = self.batch(step, which, k)
         for g in self.opt.param_groups:
-            g["lr"] = _lr_at(self.cfg, step, self.plan.total_steps)
+            g["lr"] = self.cfg.lr_at(step, self.plan.total_steps)
         losses = rollout_losses(self.fwd, frames, cmds, targets, self.terms, self.cfg.pushforward, self.precision)
         loss = sum(losses) / len(losses)
         self.opt.zero_grad(set_to_none=True)
@@ -381,7 +263,7 @@ class _Run:
         return loss
 
     def out_of_time(self) -> bool:
-        """Whether --max-minutes is spent; every rank agrees, so that all stop at the same step."""
+        """Whether ``max_minutes`` is spent; every rank agrees, so that all stop at the same step."""
         late = bool(self.cfg.max_minutes) and (time.perf_counter() - self.t_start) > 60 * self.cfg.max_minutes
         if self.dist.world > 1 and self.cfg.max_minutes:
             late = bool(self.dist.all_sum(float(late))[0])
@@ -446,7 +328,7 @@ def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progres
 
 
 def _steps(run: _Run, step: int, best: float, history: list[dict]) -> tuple[int, float]:
-    """Train from ``step`` to the plan's end or --max-minutes; returns (step reached, best loss).
+    """Train from ``step`` to the plan's end or ``max_minutes``; returns (step reached, best loss).
 
     Each epoch's window order is drawn from (seed, epoch), and each process takes its slice of
     every global batch: a resumed run replays the steps an uninterrupted one would have taken.
@@ -475,21 +357,3 @@ def _steps(run: _Run, step: int, best: float, history: list[dict]) -> tuple[int,
             if step >= plan.total_steps or out_of_time:
                 return step, best
     return step, best
-
-
-def add_test_metrics(out_dir: str | os.PathLike, store: SonarStore, samples: int = 1000, seed: int = 0,
-                     device: str = "cpu", precision: str = "auto") -> dict:
-    """Evaluate the best model against the baselines on the store's test split; record in the card."""
-    from sonarset.models.eval.evaluate import evaluate
-    from sonarset.models.registry import BASELINES
-
-    path = Path(out_dir) / "model.safetensors"
-    res = evaluate(store, [*BASELINES, f"echopt:{path}"], samples=samples, seed=seed, device=device, precision=precision)
-    card_path = path.with_suffix(".json")
-    card = json.loads(card_path.read_text())
-    card["test"] = {"store": store.location, "split": "test", "windows": len(res.window_ids), "seed": seed,
-                    "precision": res.precision.get("echopt"),
-                    "results": res.summary(),
-                    "echopt_vs_flow": [c.to_dict() for c in res.comparisons if {c.a, c.b} == {"echopt", "flow"}]}
-    atomic_text(card_path, json.dumps(card, indent=2) + "\n")
-    return card["test"]

@@ -1,156 +1,31 @@
 """The evaluation engine: every method on the same seeded windows, the paper's metrics, statistics.
 
-``evaluate`` is the library API behind ``sonarset eval``; it returns an :class:`EvalResult`, which
-``models.eval_report`` renders (metrics.json, per_window.csv, report.md and the figures).
-``fade_summary`` is the "no fade" check: whether the rollouts keep the targets' peak pixel and echo
-energy at every step.
+``evaluate`` is the library API behind ``sonarset eval``; it returns an :class:`EvalResult`
+(models/eval/result.py), which models/eval/report.py renders (metrics.json, per_window.csv,
+report.md and the figures). The rollouts and their scores are models/eval/scores.py's.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
 import os
-import time
-from dataclasses import dataclass, field
 from itertools import combinations
 from typing import Callable
 
 import numpy as np
 
-from sonarset.format.arrays import FRAME_INTERVAL_TOLERANCE
-from sonarset.scoring.ceiling import CEILING, CEILINGS, OBSERVABLE
-from sonarset.scoring.echoes import ECHO_METRICS, EchoMatching, echo_scores, find_echoes
 from sonarset.errors import FormatError, SonarSetError
-from sonarset.scoring.metrics import cc_and_nrmsd
-from sonarset.report.numbers import horizon_name
+from sonarset.format.arrays import FRAME_INTERVAL_TOLERANCE
 from sonarset.format.attrs import RobotRig
+from sonarset.scoring.echoes import EchoMatching
 from sonarset.scoring.stats import Comparison, compare, holm
 from sonarset.store.store import SonarStore
 from sonarset.windows import N_IN, FrameBank, WindowBatcher, WindowIndex
 
-from sonarset.models.baselines import Predictor, rollout
-
-IMAGE_METRICS = ("cc", "nrmsd")  # the paper's
-#: Every per-window metric: the paper's, then the echo metrics (sonarset/echoes.py).
-METRICS = IMAGE_METRICS + ECHO_METRICS
-#: Echo energy counts the pixels above this value (images are in [0, 1]): what is left of an
-#: echo, not the faint interpolation haze or residual noise a rollout can smear over the image.
-ECHO_FLOOR = 0.05
-#: "No fade": the mean prediction / target ratios of peak pixel and echo energy stay within this
-#: fraction of 1 at every rollout step.
-FADE_TOLERANCE = 0.15
-
-
-@dataclass
-class EvalResult:
-    store: str
-    split: str
-    runs: list[str]
-    horizons: list[int]
-    methods: list[str]
-    window_starts: np.ndarray  # (N,) global start frames in the bank
-    window_ids: list[tuple[str, int]]  # (run, frame index) of each window
-    per_window: dict[str, dict[int, dict[str, np.ndarray]]]  # method -> H -> metric -> (N,)
-    comparisons: list[Comparison] = field(default_factory=list)
-    seconds: dict[str, float] = field(default_factory=dict)
-    examples: dict = field(default_factory=dict)  # data for the figures
-    notes: list[str] = field(default_factory=list)  # one line each: what makes scores less comparable
-    # ceiling=True: run -> one-line reason, for each run of the split it could not re-render
-    ceiling_skipped: dict[str, str] = field(default_factory=dict)
-    # the "no fade" data, at every rollout step 1..max(horizons), per window: (N, max horizon)
-    # arrays of the peak pixel and the echo energy, per predicting method and for the targets
-    step_peak: dict[str, np.ndarray] = field(default_factory=dict)
-    step_energy: dict[str, np.ndarray] = field(default_factory=dict)
-    target_peak: np.ndarray | None = None
-    target_energy: np.ndarray | None = None
-    n_in: int = N_IN  # input frames per window
-    precision: dict[str, str] = field(default_factory=dict)  # learned method -> fp32 | bf16, as it ran
-    echo_matching: EchoMatching = field(default_factory=EchoMatching)
-    worlds: list[str] | None = None  # the world families the runs were restricted to
-
-    @property
-    def predictors(self) -> list[str]:
-        """The methods that predict: every method but the noise ceiling."""
-        return [m for m in self.methods if m not in CEILINGS]
-
-    def gap_closed(self, reference: str = "flow", metrics: tuple[str, ...] = ("cc", "nrmsd", "echo_f1")) -> dict:
-        """{method: {horizon: {metric: share}}}: the share of the gap between ``reference`` and the
-        observable ceiling that each other predictor closes, (m - ref) / (observable - ref) on the
-        means over the windows where all three are defined (1: as good as the context allows;
-        0: no better than the reference). Empty without the observable ceiling or the reference."""
-        if OBSERVABLE not in self.methods or reference not in self.methods:
-            return {}
-        out: dict = {}
-        for m in self.predictors:
-            if m == reference:
-                continue
-            for h in self.horizons:
-                for k in metrics:
-                    a, r, o = (self.per_window[x][h][k] for x in (m, reference, OBSERVABLE))
-                    ok = np.isfinite(a) & np.isfinite(r) & np.isfinite(o)
-                    gap = float(o[ok].mean() - r[ok].mean()) if ok.any() else float("nan")
-                    share = float(a[ok].mean() - r[ok].mean()) / gap if ok.any() and abs(gap) > 1e-12 else None
-                    out.setdefault(m, {}).setdefault(str(h), {})[k] = share
-        return out
-
-    def summary(self) -> dict:
-        out: dict = {}
-        for m in self.methods:
-            out[m] = {}
-            for h in self.horizons:
-                entry = {}
-                for k in METRICS:
-                    x = self.per_window[m][h][k]
-                    x = x[np.isfinite(x)]  # undefined windows: counted in the notes, never silently
-                    entry[k] = ({"mean": float(x.mean()), "std": float(x.std(ddof=1)) if len(x) > 1 else 0.0}
-                                if len(x) else {"mean": None, "std": None})
-                    if k in ECHO_METRICS:  # defined for only some windows (module sonarset.scoring.echoes)
-                        entry[k]["n"] = int(len(x))
-                entry["n"] = int(np.isfinite(self.per_window[m][h]["cc"]).sum())
-                out[m][str(h)] = entry
-        return out
-
-
-def peak_and_energy(images: np.ndarray, floor: float = ECHO_FLOOR) -> tuple[np.ndarray, np.ndarray]:
-    """The peak pixel and the echo energy (the sum of the pixels above ``floor``) of each image of
-    ``images`` (..., R, A); two arrays of shape (...)."""
-    x = np.asarray(images, dtype=np.float32)
-    peak = x.max(axis=(-2, -1)).astype(np.float64)
-    energy = x.sum(axis=(-2, -1), where=x > floor, dtype=np.float64)  # a byte mask, no float copy
-    return peak, energy
-
-
-def _ratio_of_means(pred: np.ndarray, target: np.ndarray, keep: np.ndarray) -> float:
-    if not keep.any():
-        return float("nan")
-    return float(pred[keep].mean() / target[keep].mean())
-
-
-def fade_summary(res: EvalResult, tolerance: float = FADE_TOLERANCE) -> dict:
-    """The "no fade" check of every predicting method (the noise ceiling is none).
-
-    Returns {method: {"peak_ratio": [...], "energy_ratio": [...], "n_windows": [...],
-    "within_15pct": bool, "first_out": step or None}}, lists over rollout steps 1..max horizon.
-    Each ratio is a ratio of means over the windows whose target has echo energy at that step
-    (``FADE_MEANING``); ``within_15pct`` is True when both ratios are within ``tolerance`` of 1
-    at every step (a step with no usable window fails it); ``first_out`` is the first step where
-    one is not. Empty when the result carries no step data.
-    """
-    if res.target_peak is None or res.target_energy is None:
-        return {}
-    keep = res.target_energy > 0  # (N, H)
-    out = {}
-    for m in res.predictors:
-        if m not in res.step_peak:
-            continue
-        H = keep.shape[1]
-        peak = [_ratio_of_means(res.step_peak[m][:, h], res.target_peak[:, h], keep[:, h]) for h in range(H)]
-        energy = [_ratio_of_means(res.step_energy[m][:, h], res.target_energy[:, h], keep[:, h]) for h in range(H)]
-        ok = [bool(np.isfinite(p) and np.isfinite(e) and abs(p - 1) <= tolerance and abs(e - 1) <= tolerance)
-              for p, e in zip(peak, energy)]
-        out[m] = {"peak_ratio": peak, "energy_ratio": energy, "n_windows": [int(k) for k in keep.sum(axis=0)],
-                  "within_15pct": all(ok), "first_out": next((h + 1 for h, g in enumerate(ok) if not g), None)}
-    return out
+from sonarset.models.baselines import Predictor
+from sonarset.models.registry import HORIZONS
+from sonarset.models.eval.result import METRICS, EvalResult, undefined_notes
+from sonarset.models.eval.scores import Scores, score_ceilings
 
 
 def baseline_rig(store: SonarStore, bank: FrameBank) -> tuple[RobotRig, str | None]:
@@ -177,51 +52,11 @@ def baseline_rig(store: SonarStore, bank: FrameBank) -> tuple[RobotRig, str | No
         "frames and assume the sensor on the wheel axle")
 
 
-def undefined_counts(res: "EvalResult") -> dict[str, dict[int, dict[str, int]]]:
-    """Per method, horizon and metric: how many windows have no value (NaN), e.g. CC of a
-    constant target or prediction, NRMSD of an all-zero target. Only non-zero entries."""
-    out: dict = {}
-    for m in res.methods:
-        for h in res.horizons:
-            for k in METRICS:
-                x = res.per_window[m][h][k]
-                skipped = np.zeros(len(x), bool)
-                if m in CEILINGS and res.ceiling_skipped:  # runs not re-rendered are not "undefined"
-                    skipped = np.isin([r for r, _ in res.window_ids], list(res.ceiling_skipped))
-                n = int(np.sum(~np.isfinite(x) & ~skipped))
-                if n:
-                    out.setdefault(m, {}).setdefault(h, {})[k] = n
-    return out
-
-
-def _undefined_notes(res: "EvalResult") -> list[str]:
-    """One line per metric saying for how many windows it is undefined, and why."""
-    counts = undefined_counts(res)
-    n = len(res.window_ids)
-    notes = []
-    why = {"cc": "CC is undefined where the target frame or the prediction is constant",
-           "nrmsd": "NRMSD is undefined where the target frame is all zero"}
-    for k in IMAGE_METRICS:  # the echo metrics' defined windows are the n of the echo table
-        parts = []
-        for h in res.horizons:
-            per = {m: counts.get(m, {}).get(h, {}).get(k, 0) for m in res.methods}
-            if not any(per.values()):
-                continue
-            if len(set(per.values())) == 1:
-                parts.append(f"{next(iter(per.values()))} of {n} windows at {horizon_name(h)}")
-            else:
-                parts.append(f"at {horizon_name(h)} " + ", ".join(f"{m} {c}" for m, c in per.items() if c) + f" of {n} windows")
-        if parts:
-            notes.append(f"note: {why[k]}: {'; '.join(parts)}; those windows are left out of its means, "
-                         "stds and tests")
-    return notes
-
-
 def evaluate(
     store: SonarStore,
     model_specs: list[str],
     *,
-    horizons: tuple[int, ...] = (1, 3, 5, 10),
+    horizons: tuple[int, ...] = HORIZONS,
     samples: int = 1000,
     split: str = "test",
     seed: int = 0,
@@ -253,7 +88,7 @@ def evaluate(
     """
     horizons = tuple(sorted(set(int(h) for h in horizons)))
     if not horizons or horizons[0] < 1:
-        raise SonarSetError("horizons must be positive integers")
+        raise SonarSetError("horizons must be positive integers", parameter="horizons")
     echo_matching = echo_matching or EchoMatching()
     bank = FrameBank.from_store(store, split=split, image_dtype=np.float32, worlds=worlds)
     rig, note = baseline_rig(store, bank)
@@ -262,12 +97,12 @@ def evaluate(
     notes += model_notes
     index = _windows(store, bank, split, window_frames(preds), horizons[-1], samples, seed)
     ids = [(bank.run_names[j], k) for j, k in (index.locate(i) for i in range(len(index)))]
-    scores = _Scores.of(preds, len(index), horizons, store.grid, echo_matching)
+    scores = Scores.of(preds, len(index), horizons, store.grid, echo_matching)
     skipped: dict[str, str] = {}
     with cf.ThreadPoolExecutor(1) as helper:
         # The ceiling renders (compiled, GIL released) beside the rollouts: it shares nothing with
         # them, and it fills the cycles a learned model's threads leave idle.
-        ceiling_job = helper.submit(_ceiling_scores, store, bank, index, ids, horizons, seed, batch_size,
+        ceiling_job = helper.submit(score_ceilings, store, bank, index, ids, horizons, seed, batch_size,
                                     echo_matching, progress) if ceiling else None
         examples = scores.roll_out(WindowBatcher.of(bank), index, preds, batch_size, progress)
         examples["window"] = ids[0]
@@ -286,7 +121,7 @@ def evaluate(
                         target_peak=scores.target_peak, target_energy=scores.target_energy, n_in=index.n_in,
                         precision={m: p.precision for m, p in preds.items() if isinstance(getattr(p, "precision", None), str)},
                         echo_matching=echo_matching, worlds=list(worlds) if worlds else None)
-    result.notes += _undefined_notes(result)
+    result.notes += undefined_notes(result)
     result.comparisons = _compare_all(result, seed)
     return result
 
@@ -335,135 +170,6 @@ def _windows(store: SonarStore, bank: FrameBank, split: str, n_in: int, horizon:
         raise SonarSetError(f"{store.location}: split {split!r} has no run long enough for horizon {horizon} "
                             f"(needs {index.span} frames)")
     return index.sample(samples, seed)
-
-
-@dataclass
-class _Scores:
-    """Per-window scores of the predicting methods, filled batch by batch (N windows, H steps)."""
-
-    per_window: dict[str, dict[int, dict[str, np.ndarray]]]  # method -> horizon -> metric -> (N,)
-    seconds: dict[str, float]
-    step_peak: dict[str, np.ndarray]  # method -> (N, H)
-    step_energy: dict[str, np.ndarray]
-    target_peak: np.ndarray  # (N, H)
-    target_energy: np.ndarray
-    grid: object  # SensorGrid: echo positions in metres and degrees
-    matching: EchoMatching
-
-    @classmethod
-    def of(cls, preds: dict[str, Predictor], n: int, horizons: tuple[int, ...], grid,
-           matching: EchoMatching) -> "_Scores":
-        H = horizons[-1]
-        return cls({m: {h: {k: np.empty(n) for k in METRICS} for h in horizons} for m in preds},
-                   dict.fromkeys(preds, 0.0), {m: np.empty((n, H)) for m in preds}, {m: np.empty((n, H)) for m in preds},
-                   np.empty((n, H)), np.empty((n, H)), grid, matching)
-
-    def roll_out(self, batcher: WindowBatcher, index: WindowIndex, preds: dict[str, Predictor], batch_size: int,
-                 progress: Callable[[str, int, int], None] | None) -> dict:
-        """Roll every method out over every window, batch by batch, and score it; returns the first
-        window's frames, targets and predictions (the figures' example)."""
-        H = index.horizon
-        examples: dict = {"methods": {}}
-        for lo in range(0, len(index), batch_size):
-            sl = slice(lo, min(len(index), lo + batch_size))
-            batch = batcher.gather(index, np.arange(sl.start, sl.stop))  # once for every method
-            if lo == 0:
-                examples["frames"], examples["targets"] = batch.frames[0], batch.targets[0]
-            self.target_peak[sl], self.target_energy[sl] = peak_and_energy(batch.targets[:, :H])
-            horizons = list(next(iter(self.per_window.values())))
-            target_echoes = {h: find_echoes(batch.targets[:, h - 1], self.grid, self.matching) for h in horizons}
-            for name, predictor in preds.items():
-                t0 = time.perf_counter()
-                pred = rollout(predictor, batch.frames, batch.commands, H)
-                self.seconds[name] += time.perf_counter() - t0  # the prediction's time, not the scoring's
-                for h, metrics in self.per_window[name].items():
-                    for k, v in score_images(pred[:, h - 1], batch.targets[:, h - 1], self.grid, self.matching,
-                                             target_echoes[h]).items():
-                        metrics[k][sl] = v
-                self.step_peak[name][sl], self.step_energy[name][sl] = peak_and_energy(pred)
-                if lo == 0:
-                    examples["methods"][name] = pred[0]
-                if progress:
-                    progress(name, sl.stop, len(index))
-        return examples
-
-
-def score_images(pred: np.ndarray, target: np.ndarray, grid, matching: EchoMatching,
-                 target_echoes=None) -> dict[str, np.ndarray]:
-    """{metric in METRICS: (N,) per-image values} of predictions against targets, both (N, R, A)."""
-    cc, nrmsd = cc_and_nrmsd(pred, target)
-    return {"cc": cc, "nrmsd": nrmsd, **echo_scores(pred, target, grid, matching, target_echoes)}
-
-
-def _ceiling_scores(store: SonarStore, bank: FrameBank, index: WindowIndex, ids: list[tuple[str, int]],
-                    horizons: tuple[int, ...], seed: int, batch_size: int, matching: EchoMatching, progress=None):
-    """({"ceiling": scores, "observable": scores}, {name: seconds}) of the two ceilings (per-window
-    scores, NaN for windows of runs they cannot re-render), or (None, None) when no run can be
-    re-rendered; the third item is {run: reason} for the runs skipped.
-
-    At horizon h, window w's target is frame k_w + n_in + h - 1 of its run. The noise ceiling
-    renders each such frame once, in batches; the observable ceiling renders each window's targets
-    from the reflectors its own context frames k_w .. k_w + n_in - 1 heard.
-    """
-    from sonarset.scoring.ceiling import OBSERVABLE_STREAM, CeilingUnavailable, RunRenderer
-
-    n_in = index.n_in
-    run_of = np.array([r for r, _ in ids])
-    first = np.array([k for _, k in ids], np.int64)
-    hs = np.asarray(horizons, np.int64)
-    skipped: dict[str, str] = {}
-    todo = []
-    for name in bank.run_names:
-        try:
-            r = RunRenderer(store, name, seed)
-            todo.append((r, r.with_stream(OBSERVABLE_STREAM)))
-        except CeilingUnavailable as exc:
-            skipped[name] = str(exc)
-    if not todo:
-        return None, None, skipped
-    scores = {m: {h: {k: np.full(len(ids), np.nan) for k in METRICS} for h in horizons} for m in CEILINGS}
-    seconds = dict.fromkeys(CEILINGS, 0.0)
-
-    def put(method: str, w: np.ndarray, h: np.ndarray, pred: np.ndarray) -> None:
-        target = bank.images[index.starts[w] + n_in + h - 1]
-        for k, vals in score_images(pred, target, store.grid, matching).items():
-            for hz in horizons:
-                scores[method][hz][k][w[h == hz]] = vals[h == hz]
-
-    windows = sum(int((run_of == r.name).sum()) for r, _ in todo)
-    total, done = 0, 0
-    plans = []
-    for r, obs in todo:
-        w = np.flatnonzero(run_of == r.name)
-        # (window, horizon) pairs of this run and their target frames, each frame rendered once
-        ww, hh = np.repeat(w, len(hs)), np.tile(hs, len(w))
-        frames, which = np.unique(first[ww] + n_in + hh - 1, return_inverse=True)
-        plans.append((r, obs, w, ww, hh, frames, which))
-        total += len(frames)
-    total += windows
-    step = max(1, batch_size)
-    for r, obs, w_run, ww, hh, frames, which in plans:
-        t0 = time.perf_counter()
-        for lo in range(0, len(frames), step):
-            hi = min(len(frames), lo + step)
-            images = r.render(frames[lo:hi])
-            sel = np.flatnonzero((which >= lo) & (which < hi))
-            put(CEILING, ww[sel], hh[sel], images[which[sel] - lo])
-            done += hi - lo
-            if progress:
-                progress(CEILING, done, total)
-        t1 = time.perf_counter()
-        seconds[CEILING] += t1 - t0
-        for lo in range(0, len(w_run), step):
-            chunk = w_run[lo:lo + step]
-            pred = np.concatenate([obs.render_observed(first[w] + np.arange(n_in), first[w] + n_in + hs - 1)
-                                   for w in chunk])
-            put(OBSERVABLE, np.repeat(chunk, len(hs)), np.tile(hs, len(chunk)), pred)
-            done += len(chunk)
-            if progress:
-                progress(CEILING, done, total)
-        seconds[OBSERVABLE] += time.perf_counter() - t1
-    return scores, seconds, skipped
 
 
 def _compare_all(res: EvalResult, seed: int) -> list[Comparison]:

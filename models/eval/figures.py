@@ -11,7 +11,7 @@ from scipy import signal
 from sonarset.store.atomic import save_figure
 from sonarset.report.plots import draw_energyscape, pyplot
 
-from sonarset.models.eval.evaluate import ECHO_FLOOR, FADE_TOLERANCE, fade_summary
+from sonarset.models.eval.result import ECHO_FLOOR, FADE_TOLERANCE, fade_summary
 
 
 def correlogram(pred: np.ndarray, target: np.ndarray, max_lag: tuple[int, int] = (20, 15)) -> np.ndarray:

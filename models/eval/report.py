@@ -16,7 +16,8 @@ from sonarset.scoring.ceiling import CEILING, CEILINGS, OBSERVABLE
 from sonarset.scoring.echoes import ECHO_METRICS
 from sonarset.report.numbers import finite_or_none, format_p, horizon_name
 
-from sonarset.models.eval.evaluate import ECHO_FLOOR, FADE_TOLERANCE, IMAGE_METRICS, METRICS, EvalResult, fade_summary, undefined_counts
+from sonarset.models.eval.result import (ECHO_FLOOR, FADE_TOLERANCE, IMAGE_METRICS, METRICS, EvalResult, fade_summary,
+                                         undefined_counts)
 
 #: The paper's Table 1: mean CC and NRMSD on 1000 test windows (one-shot, AR-3, AR-5, AR-10).
 PAPER = {
@@ -195,7 +196,7 @@ def render_report(res: EvalResult, figures: list[str]) -> str:
         *gap_section(res),
         "", "## Echoes", "",
         f"Are the echoes where the target's are? Per image, {res.echo_matching.describe()} (one-to-one, "
-        "least summed distance; sonarset/echoes.py). F1 = 2 matched / (predicted + target echoes); precision and "
+        "least summed distance; sonarset/scoring/echoes.py). F1 = 2 matched / (predicted + target echoes); precision and "
         "recall as usual; errors are the mean absolute offsets of matched echoes. Means over the windows "
         "where each is defined (F1: either image has an echo); paired tests in the statistics below.",
         "", echo_table(res),

@@ -54,7 +54,7 @@ def experiment_processing(models, requested: Processing | str | None = None) -> 
         try:
             requested = Processing.named(requested)
         except ValueError as e:
-            raise SonarSetError(f"--processing: {e}") from None
+            raise SonarSetError(f"processing: {e}", parameter="processing") from None
     found: dict[str, Processing] = {}
     for spec in models:
         kind, _, path = spec.partition(":")
@@ -68,7 +68,8 @@ def experiment_processing(models, requested: Processing | str | None = None) -> 
         return requested or Processing.ertis()
     if requested is not None and not requested.same_images(trained):
         raise SonarSetError(f"{', '.join(found)} was trained on {trained.profile} images, not {requested.profile}; "
-                            f"drop --processing or pass a model trained on {requested.profile} images")
+                            f"leave processing to the model, or pass a model trained on {requested.profile} images",
+                            parameter="processing")
     return trained
 
 

@@ -72,7 +72,7 @@ class Episode:
     gains: ControllerGains = ControllerGains()
     device: str = "cpu"
     processing: Processing = field(default_factory=Processing.ertis)  # the simulator's default images
-    precision: str = "auto"  # EchoPT's arithmetic (models/precision.py)
+    precision: str = "auto"  # EchoPT's arithmetic (models/echopt/precision.py)
 
 
 def run_episode(ep: Episode, world: World | None = None) -> dict:

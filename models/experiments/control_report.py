@@ -16,7 +16,7 @@ from sonarset.sim.families import corridor_world
 from sonarset.sim.world import World
 
 from sonarset.models.experiments.common import write_outputs
-from sonarset.models.experiments.control import GOAL_RADIUS, ControlResult
+from sonarset.models.experiments.control import GOAL_RADIUS, BurstSchedule, ControlResult
 
 FIGURE = "fig6_control.png"
 #: What metrics.json keeps of each run (the trajectories and per-frame flags stay out).
@@ -42,9 +42,11 @@ def control_metrics(res: ControlResult) -> dict:
 
 def outcome_table(res: ControlResult) -> list[str]:
     """The title, the setup, and per condition: outcomes, travel time and midline deviation."""
+    bursts = BurstSchedule()  # every episode's
     lines = ["# Corridor control through noise bursts (EchoPT paper, Fig. 6)", "",
-             f"{res.runs} runs per condition from the same random spawn poses; bursts: SNR -80 dB for 1.2 s, "
-             f"about 30% of the time; predictors bridging the bursts: `{res.model}`. Images: "
+             f"{res.runs} runs per condition from the same random spawn poses; bursts: SNR {bursts.snr_db:g} dB for "
+             f"{bursts.burst_s:g} s, about {bursts.duty:.0%} of the time; predictors bridging the bursts: "
+             f"`{res.model}`. Images: "
              f"{res.processing.describe()} (the bridging models' training images).", "",
              "| condition | success | collision | timeout | success rate 95% CI | travel time [s] mean [CI] (median) | "
              "midline deviation [m] mean [CI] |", "| --- | ---: | ---: | ---: | --- | --- | --- |"]

@@ -32,7 +32,7 @@ import numpy as np
 
 from sonarset.scoring.metrics import slip_error
 from sonarset.format.attrs import Processing, RobotRig, SensorGrid
-from sonarset.sim.runs import spawn_seeds
+from sonarset.sim.runs import spawn_seeds, world_seed
 from sonarset.sim.robot import ExplorationPolicy, apply_slip, integrate
 from sonarset.sim.sonar import SonarModel
 from sonarset.sim.families import lab_world
@@ -67,7 +67,7 @@ class SlipTrial:
 
 def paper_trial(seed: int = 0) -> SlipTrial:
     """The paper's trajectory: both wheels slip from 10 s to 16 s, one wheel from 30 s to 36 s."""
-    return SlipTrial(seed, seed % 1_000_003, 45.0, (SlipPeriod(10.0, 16.0, (0.25, 0.25)), SlipPeriod(30.0, 36.0, (0.25, 1.0))))
+    return SlipTrial(seed, world_seed(seed), 45.0, (SlipPeriod(10.0, 16.0, (0.25, 0.25)), SlipPeriod(30.0, 36.0, (0.25, 1.0))))
 
 
 def random_trial(seed: int) -> SlipTrial:
@@ -80,12 +80,12 @@ def random_trial(seed: int) -> SlipTrial:
     both = tuple(float(f) for f in rng.uniform(0, 0.5, size=2))
     wheel, f = int(rng.integers(2)), float(rng.uniform(0, 0.5))
     one = (f, 1.0) if wheel == 0 else (1.0, f)
-    return SlipTrial(seed, seed % 1_000_003, 60.0, (SlipPeriod(s1, s1 + d1, both), SlipPeriod(s2, s2 + d2, one)))
+    return SlipTrial(seed, world_seed(seed), 60.0, (SlipPeriod(s1, s1 + d1, both), SlipPeriod(s2, s2 + d2, one)))
 
 
 def simulate_trial(trial: SlipTrial, grid: SensorGrid, snr_db: float = 5.0, processing: Processing | None = None) -> dict:
     """Images (T, R, A), logged commands (T, 2), true slip factors (T, 2) and poses (T, 3);
-    ``commands[k]`` and ``slip[k]`` belong to the motion into frame k (DESIGN.md §2)."""
+    ``commands[k]`` and ``slip[k]`` belong to the motion into frame k (docs/conventions.md, "Commands")."""
     world = lab_world(trial.world_seed)
     motion_ss, noise_ss = np.random.SeedSequence(trial.seed).spawn(2)
     rng = np.random.default_rng(motion_ss)

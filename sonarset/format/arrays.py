@@ -1,4 +1,6 @@
-"""The arrays of a run group (spec/FORMAT.md §2) and the checks every writer applies to them."""
+"""The arrays of a run group (spec/FORMAT.md §2) and the rules on them: their metadata, their
+values, and the checks every writer applies before it writes. Each rule returns Problems located
+at the array's key (``images``), which the caller places in its run (``Problem.at``)."""
 
 from __future__ import annotations
 
@@ -9,6 +11,7 @@ from typing import Mapping
 import numpy as np
 
 from sonarset.format.attrs import SensorGrid
+from sonarset.format.problems import Problem
 
 
 @dataclass(frozen=True)
@@ -60,10 +63,16 @@ def expected_shape(key: str, n_frames: int, grid_shape: tuple[int, int]) -> tupl
     return tuple(sizes.get(d, spec.last) for d in spec.dims)
 
 
-def coordinates_match(values: np.ndarray, centres: np.ndarray) -> bool:
-    """Whether a run's coordinate array holds the grid's bin ``centres`` (to 1e-6 of their scale)."""
+def coordinate_problems(key: str, values: np.ndarray, grid: SensorGrid) -> list[Problem]:
+    """A run's coordinate array (``range`` or ``azimuth``) against the grid's bin centres, to 1e-6
+    of their scale (spec/FORMAT.md §2, Values)."""
+    centres = grid.range_centres() if key == "range" else grid.azimuth_centres()
     tol = 1e-6 * max(1.0, float(np.max(np.abs(centres))))
-    return bool(np.allclose(values, centres, rtol=0, atol=tol))
+    if values.shape == centres.shape and np.allclose(values, centres, rtol=0, atol=tol):
+        return []
+    unit = ARRAYS[key].units
+    return [Problem(key, f"coordinates do not match the store grid (got {values[0]:.6g}..{values[-1]:.6g} {unit}, "
+                         f"grid {centres[0]:.6g}..{centres[-1]:.6g} {unit})")]
 
 
 _ONE_BITS = {np.dtype(np.float16): (np.uint16, 0x3C00, 0x8000), np.dtype(np.float32): (np.uint32, 0x3F800000, 0x80000000)}
@@ -98,14 +107,14 @@ def median_interval(time: np.ndarray) -> float | None:
     return float(np.median(np.diff(t))) if t.size > 1 else None
 
 
-def frame_interval_problem(time: np.ndarray, frame_rate_hz: float) -> str | None:
-    """A line when the time stamps' median spacing disagrees with ``frame_rate_hz``, else None."""
+def frame_interval_problems(time: np.ndarray, frame_rate_hz: float) -> list[Problem]:
+    """The time stamps' median spacing against the declared ``frame_rate_hz`` (spec/FORMAT.md §7)."""
     dt = median_interval(time)
     if dt is None or not math.isfinite(dt) or frame_rate_hz <= 0:
-        return None
+        return []
     nominal = 1.0 / frame_rate_hz
     if abs(dt - nominal) <= FRAME_INTERVAL_TOLERANCE * nominal:
-        return None
+        return []
     ratio = dt / nominal
     hint = ""
     if 500 <= ratio <= 2000:
@@ -114,113 +123,109 @@ def frame_interval_problem(time: np.ndarray, frame_rate_hz: float) -> str | None
         hint = "; seconds declared as milliseconds?"
     else:
         hint = f"; is the recording at {1 / dt:.3g} Hz?" if dt > 0 else ""
-    return (f"time stamps are {dt:.6g} s apart (median), but the store declares frame_rate_hz "
-            f"{frame_rate_hz:g} ({nominal:g} s frames, tolerance {FRAME_INTERVAL_TOLERANCE:.0%}){hint}")
+    return [Problem("time", f"time stamps are {dt:.6g} s apart (median), but the store declares frame_rate_hz "
+                            f"{frame_rate_hz:g} ({nominal:g} s frames, tolerance {FRAME_INTERVAL_TOLERANCE:.0%}){hint}")]
 
 
 def array_meta_problems(key: str, dtype: str, dims: tuple[str, ...] | None, shape: tuple[int, ...],
-                        expected: tuple[int, ...]) -> list[str]:
-    """Every problem of array ``key``'s metadata against the spec (FORMAT.md §2), one line each."""
+                        n_frames: int, grid_shape: tuple[int, int]) -> list[Problem]:
+    """Array ``key``'s metadata in a run of ``n_frames`` frames on a grid (R, A) against the spec
+    (FORMAT.md §2): dtype, dimension names, shape."""
     spec = ARRAYS[key]
+    expected = expected_shape(key, n_frames, grid_shape)
     out = []
     if dtype not in spec.dtypes:
-        out.append(f"dtype {dtype} not allowed (expected {' or '.join(spec.dtypes)})")
+        out.append(Problem(key, f"dtype {dtype} not allowed (expected {' or '.join(spec.dtypes)})"))
     if tuple(dims or ()) != spec.dims:
-        out.append(f"dimension_names {list(dims) if dims else None} must be {list(spec.dims)}")
+        out.append(Problem(key, f"dimension_names {list(dims) if dims else None} must be {list(spec.dims)}"))
     if tuple(shape) != tuple(expected):
-        out.append(f"shape {tuple(shape)} does not match {tuple(expected)}")
+        out.append(Problem(key, f"shape {tuple(shape)} does not match {tuple(expected)} "
+                                f"(n_frames={n_frames}, grid {grid_shape[0]}x{grid_shape[1]})"))
     return out
 
 
-def value_problem(key: str, block: np.ndarray, first_frame: int = 0) -> tuple[int, str] | None:
-    """(frame, line) of the first value of ``block`` (array ``key``, frames from ``first_frame``)
-    that the spec forbids, else None: images must be finite and in [0, 1], every other array
-    finite (FORMAT.md §2, Values)."""
+def value_problems(key: str, block: np.ndarray, first_frame: int = 0) -> list[Problem]:
+    """The first value of ``block`` (array ``key``, frames from ``first_frame``) that the spec
+    forbids: images must be finite and in [0, 1], every other array finite (FORMAT.md §2, Values)."""
     if block.size == 0:
-        return None
+        return []
     if key == "images":
         if in_unit_interval(block):
-            return None
+            return []
     elif np.isfinite(block).all():
-        return None
-    k = nonfinite_frame(block, first_frame)
-    if k is not None:
-        return k, f"NaN or infinite values (first at frame {k})"
-    return _outside_unit_interval(block, first_frame)
+        return []
+    return nonfinite_problems(key, block, first_frame) or unit_interval_problems(key, block, first_frame)
 
 
-def nonfinite_frame(block: np.ndarray, first_frame: int = 0) -> int | None:
-    """The first frame of ``block`` (frames from ``first_frame``) holding NaN or an infinity, else None."""
+def nonfinite_problems(key: str, block: np.ndarray, first_frame: int = 0, unit: str = "frame") -> list[Problem]:
+    """The first frame of ``block`` (frames from ``first_frame``) holding NaN or an infinity."""
+    if block.size == 0:
+        return []
     frames = block.reshape(block.shape[0], -1) if block.ndim > 1 else block[:, None]
     finite = np.isfinite(frames)
     if finite.all():
-        return None
-    return first_frame + int(np.flatnonzero(~finite.all(axis=1))[0])
+        return []
+    k = first_frame + int(np.flatnonzero(~finite.all(axis=1))[0])
+    return [Problem(key, f"NaN or infinite values (first at {unit} {k})", frame=k)]
 
 
-def unit_interval_problem(block: np.ndarray, first_frame: int = 0) -> str | None:
-    """A line when finite values of ``block`` (frames from ``first_frame``) lie outside [0, 1], else None."""
+def unit_interval_problems(key: str, block: np.ndarray, first_frame: int = 0) -> list[Problem]:
+    """The first frame of ``block`` (frames from ``first_frame``) whose finite values lie outside [0, 1]."""
     if block.size == 0 or in_unit_interval(block):
-        return None
-    found = _outside_unit_interval(block, first_frame)
-    return found[1] if found is not None else None
-
-
-def _outside_unit_interval(block: np.ndarray, first_frame: int) -> tuple[int, str] | None:
+        return []
     frames = block.reshape(block.shape[0], -1) if block.ndim > 1 else block[:, None]
     finite = np.isfinite(frames)
     outside = finite & ((frames < 0) | (frames > 1))
     if not outside.any():
-        return None  # only NaN or infinities, which nonfinite_frame reports
+        return []  # only NaN or infinities, which nonfinite_problems reports
     k = first_frame + int(np.flatnonzero(outside.any(axis=1))[0])
     values = frames[finite]
-    return k, f"values outside [0, 1] ({float(values.min()):g}..{float(values.max()):g}; first at frame {k})"
+    return [Problem(key, f"values outside [0, 1] ({float(values.min()):g}..{float(values.max()):g}; first at frame {k})",
+                    frame=k)]
 
 
-def dtype_problem(arr) -> str | None:
-    """A line when ``arr`` does not hold real numbers (integers or floats), else None."""
-    dtype = getattr(arr, "dtype", None)  # an array, or an array's header
+def dtype_problems(key: str, arr) -> list[Problem]:
+    """``arr`` (an array, or an array's header) must hold real numbers (integers or floats)."""
+    dtype = getattr(arr, "dtype", None)
     if isinstance(dtype, np.dtype) and dtype.kind in "fiu":
-        return None
-    return f"dtype {dtype if dtype is not None else type(arr).__name__} is not a real number type"
+        return []
+    return [Problem(key, f"dtype {dtype if dtype is not None else type(arr).__name__} is not a real number type")]
 
 
-def layout_problem(key: str, shape: tuple[int, ...]) -> str | None:
-    """A line when an array ``key`` of ``shape`` has the wrong number of axes or last axis, else None."""
+def layout_problems(key: str, shape: tuple[int, ...]) -> list[Problem]:
+    """An array ``key`` of ``shape`` must have the spec's number of axes and last axis."""
     spec = ARRAYS[key]
     if len(shape) == len(spec.dims) and (spec.last is None or shape[-1] == spec.last):
-        return None
-    return f"expected {spec.layout()}, got shape {tuple(shape)}"
+        return []
+    return [Problem(key, f"expected {spec.layout()}, got shape {tuple(shape)}")]
 
 
-def frame_count_problem(n: int, n_frames: int) -> str | None:
-    """A line when a per-frame array has ``n`` frames where the images have ``n_frames``."""
-    return None if n == n_frames else f"{n} frames but images has {n_frames}"
+def frame_count_problems(key: str, n: int, n_frames: int) -> list[Problem]:
+    """A per-frame array of ``n`` frames where the images have ``n_frames``."""
+    return [] if n == n_frames else [Problem(key, f"{n} frames but images has {n_frames}")]
 
 
-def nonfinite_problem(arr: np.ndarray) -> str | None:
-    return "contains NaN or infinite values" if arr.size and not np.all(np.isfinite(arr)) else None
-
-
-def time_order_problem(time: np.ndarray, previous: float = -np.inf, first: int = 0,
-                       unit: str = "frame") -> str | None:
-    """A line when a time stamp does not come after the one before it (``previous`` before the
-    first, whose index is ``first``: a block of a longer array), else None."""
+def time_order_problems(time: np.ndarray, previous: float = -np.inf, first: int = 0,
+                        unit: str = "frame") -> list[Problem]:
+    """A time stamp that does not come after the one before it (``previous`` before the first,
+    whose index is ``first``: a block of a longer array)."""
     t = np.asarray(time, dtype=np.float64)
     if t.size == 0:
-        return None
+        return []
     bad = np.flatnonzero(np.diff(t, prepend=previous) <= 0)
-    return f"not strictly increasing (first at {unit} {first + int(bad[0])})" if bad.size else None
+    if not bad.size:
+        return []
+    return [Problem("time", f"not strictly increasing (first at {unit} {first + int(bad[0])})", frame=first + int(bad[0]))]
 
 
-def check_run_arrays(grid: SensorGrid, arrays: Mapping[str, np.ndarray]) -> list[str]:
-    """Every problem with a run's arrays, one line each; empty when they can be written.
+def run_array_problems(grid: SensorGrid, arrays: Mapping[str, np.ndarray]) -> list[Problem]:
+    """Every problem with a run's arrays; empty when they can be written.
 
     The one check of arrays before they are written: the run writer applies it to every block,
-    the importer to what it converted, and the validator's data pass applies its pieces chunk by
-    chunk (dtype, layout, frame count, finite values, images in [0, 1], time order).
+    the importer to what it converted, and the readers and the validator apply its pieces chunk
+    by chunk (dtype, layout, frame count, finite values, images in [0, 1], time order).
     """
-    problems = [f"{key}: missing" for key in REQUIRED_FRAME_ARRAYS if key not in arrays]
+    problems = [Problem(key, "missing") for key in REQUIRED_FRAME_ARRAYS if key not in arrays]
     if problems:
         return problems
     images = arrays["images"]
@@ -229,24 +234,21 @@ def check_run_arrays(grid: SensorGrid, arrays: Mapping[str, np.ndarray]) -> list
     for key, arr in arrays.items():
         if key not in FRAME_ARRAYS:
             continue
-        line = dtype_problem(arr) or layout_problem(key, arr.shape) or frame_count_problem(arr.shape[0], T)
-        if line is None and key == "images" and arr.size:
+        found = dtype_problems(key, arr) or layout_problems(key, arr.shape) or frame_count_problems(key, arr.shape[0], T)
+        if not found and key == "images" and arr.size:
             images_ok = in_unit_interval(arr)
-        if line is None and not (key == "images" and images_ok):
-            line = nonfinite_problem(arr)
-        if line is not None:
-            problems.append(f"{key}: {line}")
+        if not found and not (key == "images" and images_ok):
+            found = nonfinite_problems(key, arr)
+        problems += found
     if images.ndim == 3:
-        problems += [f"images: {line}" for line in _image_problems(grid, images, images_ok)]
+        problems += _image_problems(grid, images, images_ok)
     t = arrays["time"]
-    if dtype_problem(t) is None and t.ndim == 1 and np.all(np.isfinite(t)):
-        line = time_order_problem(t)
-        if line is not None:
-            problems.append(f"time: {line}")
+    if not dtype_problems("time", t) and t.ndim == 1 and np.all(np.isfinite(t)):
+        problems += time_order_problems(t)
     return problems
 
 
-def _image_problems(grid: SensorGrid, images: np.ndarray, in_unit: bool) -> list[str]:
+def _image_problems(grid: SensorGrid, images: np.ndarray, in_unit: bool) -> list[Problem]:
     """What the spec asks of images beyond their layout: the grid's frame shape, at least one
     frame, a float dtype and values in [0, 1] (``in_unit``: known to be)."""
     out = []
@@ -258,4 +260,4 @@ def _image_problems(grid: SensorGrid, images: np.ndarray, in_unit: bool) -> list
         out.append(f"dtype {images.dtype} must be float16 or float32")
     elif images.size and not in_unit and np.all(np.isfinite(images)):
         out.append(f"values must lie in [0, 1] (energyscape), found {float(images.min()):g}..{float(images.max()):g}")
-    return out
+    return [Problem("images", line) for line in out]

@@ -1,19 +1,22 @@
-"""Pydantic models of every JSON document in the SonarSet format.
+"""Pydantic models of the store's own JSON documents: the root's and each run's attributes, with
+the sensor grid, the image processing and the robot rig they hold, and the rules on names and
+versions. Each default lives here, on its model, once.
 
-The JSON Schemas in ``spec/schema/`` are generated from these models (``sonarset schema``), and a
-test fails when they are stale. Readers accept unknown keys (a minor version may add fields);
+The JSON Schemas in ``spec/schema/`` are generated from these models (``sonarset.format.schemas``),
+and a test fails when they are stale. Readers accept unknown keys (a minor version may add fields);
 writers emit exactly these fields.
 """
 
 from __future__ import annotations
 
-import json
 import math
 import re
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from sonarset.format.problems import Problem
 
 #: Format version written by this library. Readers accept any 1.x (see spec/FORMAT.md §8).
 #: 1.1 added the typed ``processing`` and ``rig`` store attributes.
@@ -35,11 +38,40 @@ def parse_version(value: Any) -> tuple[int, int]:
     return int(major), int(minor)
 
 
+def version_problems(value: Any) -> list[Problem]:
+    """A store's ``format_version`` against what this library reads (any 1.x, spec/FORMAT.md §8)."""
+    from sonarset.version import __version__
+
+    try:
+        major, _ = parse_version(value)
+    except ValueError as exc:
+        return [Problem("", f"attributes.{NAMESPACE}.{exc}")]
+    if major != SUPPORTED_MAJOR:
+        return [Problem("", f"format version {value} is not supported (this sonarset {__version__} reads "
+                            f"{SUPPORTED_MAJOR}.x); upgrade sonarset")]
+    return []
+
+
+def run_name_problems(name: str) -> list[Problem]:
+    """A run name against the spec's pattern (spec/FORMAT.md §2)."""
+    if isinstance(name, str) and RUN_NAME_RE.match(name):
+        return []
+    return [Problem("", f"invalid run name {name!r}: a run name is 1-128 letters, digits, '_', '.' or '-', "
+                        "starting with a letter or digit")]
+
+
+def split_problems(split: str) -> list[Problem]:
+    """A split name against the spec's pattern (spec/FORMAT.md §4)."""
+    if isinstance(split, str) and SPLIT_RE.match(split):
+        return []
+    return [Problem("", "split must be lower-case letters, digits, '_' or '-' (e.g. 'train')")]
+
+
 class SensorGrid(BaseModel):
     """The range x azimuth sampling grid of an energyscape.
 
     Bins are uniform; the bounds are bin *edges*, so the default grid (0.5-5 m in 200 bins,
-    -90..+90 deg in 90 bins) has azimuth centres at +-89 deg, 2 deg apart (DESIGN.md §2).
+    -90..+90 deg in 90 bins) has azimuth centres at +-89 deg, 2 deg apart (spec/FORMAT.md §3, grid).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -133,15 +165,11 @@ def _uniform_edges(centres: np.ndarray, name: str) -> tuple[float, float]:
     return float(centres[0] - mean / 2), float(centres[-1] + mean / 2)
 
 
-class ImageEncoding(BaseModel):
-    """How pixel values map to echo energy (DESIGN.md §2)."""
-
-    model_config = ConfigDict(extra="allow")
-
-    scale: Literal["log"] = Field(
-        "log", description="Pixels are log-compressed energy: 1 = full scale, 0 = dynamic_range_db below."
-    )
-    dynamic_range_db: float = Field(60.0, gt=0, le=300)
+#: The named processing settings: each is the ``Processing`` classmethod of that name.
+PROCESSING_PROFILES = ("ertis", "raw")
+#: The beamformers an energyscape can be made with (the simulator and import-raw implement each).
+Beamformer = Literal["das", "dmas3-cf"]
+BEAMFORMERS: tuple[str, ...] = get_args(Beamformer)
 
 
 class Processing(BaseModel):
@@ -163,7 +191,7 @@ class Processing(BaseModel):
 
     profile: str = Field("custom", pattern=r"^[a-z][a-z0-9_-]{0,31}$",
                          description="Name of the settings: 'ertis', 'raw', or 'custom'/'unknown'.")
-    beamformer: Literal["das", "dmas3-cf"] = Field(
+    beamformer: Beamformer = Field(
         "das", description="das: delay-and-sum; dmas3-cf: third-order delay-multiply-and-sum times the "
                            "coherence factor |sum of analytic signals|^2 / (N sum of |analytic|^2).")
     smoothing_range_m: float = Field(0.0, ge=0, le=10, description="Gaussian smoothing sigma along range, metres (0: none).")
@@ -179,19 +207,18 @@ class Processing(BaseModel):
     def ertis(cls) -> "Processing":
         """The eRTIS toolchain's energyscapes, calibrated on the default grid (BENCHMARKS.md)."""
         return cls(profile="ertis", beamformer="dmas3-cf", smoothing_range_m=0.0675, smoothing_azimuth_deg=2.0,
-                   azimuth_mean_factor=1.5, clip_at_zero=True, floor_db=-60.0, span_db=60.0, floor_offset=True)
+                   azimuth_mean_factor=1.5, clip_at_zero=True, floor_offset=True)
 
     @classmethod
     def raw(cls) -> "Processing":
-        """Delay-and-sum energy on a 60 dB log scale, no post-processing (format 1.0's images)."""
+        """Delay-and-sum energy on the default log scale, no post-processing (format 1.0's images)."""
         return cls(profile="raw")
 
     @classmethod
     def named(cls, name: str) -> "Processing":
-        profiles = {"ertis": cls.ertis, "raw": cls.raw}
-        if name not in profiles:
-            raise ValueError(f"unknown processing profile {name!r}; choose from {', '.join(profiles)}")
-        return profiles[name]()
+        if name not in PROCESSING_PROFILES:
+            raise ValueError(f"unknown processing profile {name!r}; choose from {', '.join(PROCESSING_PROFILES)}")
+        return getattr(cls, name)()
 
     @property
     def post_processed(self) -> bool:
@@ -208,6 +235,17 @@ class Processing(BaseModel):
         return (f"{self.profile} ({self.beamformer}, smoothing {self.smoothing_range_m:g} m x "
                 f"{self.smoothing_azimuth_deg:g} deg, {self.azimuth_mean_factor:g} x azimuth mean removed, "
                 f"{self.floor_db:g} dB floor over {self.span_db:g} dB)")
+
+
+class ImageEncoding(BaseModel):
+    """How pixel values map to echo energy (spec/FORMAT.md §1, Energyscapes)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    scale: Literal["log"] = Field(
+        "log", description="Pixels are log-compressed energy: 1 = full scale, 0 = dynamic_range_db below."
+    )
+    dynamic_range_db: float = Field(Processing.model_fields["span_db"].default, gt=0, le=300)
 
 
 class RobotRig(BaseModel):
@@ -288,188 +326,6 @@ class RunAttrs(_Attrs):
     @field_validator("split")
     @classmethod
     def _split(cls, v: str) -> str:
-        if not SPLIT_RE.match(v):
-            raise ValueError("split must be lower-case letters, digits, '_' or '-' (e.g. 'train')")
+        for problem in split_problems(v):
+            raise ValueError(problem.message)
         return v
-
-
-class RecordingUnits(BaseModel):
-    """Units of an external recording; the importer converts everything to SI."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    range: Literal["m", "cm", "mm"] = Field("m", description="Unit of range values and pose x, y.")
-    azimuth: Literal["rad", "deg"] = Field("rad", description="Unit of azimuth values and pose heading.")
-    linear_velocity: Literal["m/s", "cm/s", "mm/s"] = "m/s"
-    angular_velocity: Literal["rad/s", "deg/s"] = "rad/s"
-    time: Literal["s", "ms", "us", "ns"] = "s"
-
-
-class RecordingGrid(BaseModel):
-    """A sensor grid given in the recording's own units (bin edges, as SensorGrid)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    range_min: float
-    range_max: float
-    n_range: int = Field(ge=1)
-    azimuth_min: float
-    azimuth_max: float
-    n_azimuth: int = Field(ge=1)
-
-
-class RecordingMeta(BaseModel):
-    """The JSON sidecar of an external recording imported with ``sonarset import``.
-
-    Arrays come from the ``.npz`` (or ``.npy`` files): ``images`` (T, R, A), ``velocity`` (T, 2)
-    as (v, omega), ``time`` (T,), optionally ``range`` (R,), ``azimuth`` (A,) bin centres, ``pose``
-    (T, 3) as (x, y, heading), ``snr_db`` (T,), ``slip`` (T, 2) as (left, right) wheel factors.
-    """
-
-    model_config = ConfigDict(extra="forbid")
-
-    recording_version: Literal["1.0"] = "1.0"
-    name: str | None = Field(None, description="Run name in the store; default: the file's stem.")
-    split: str = "train"
-    grid: RecordingGrid | None = Field(
-        None, description="Required unless `range` and `azimuth` arrays are supplied."
-    )
-    units: RecordingUnits = Field(default_factory=RecordingUnits)
-    image_encoding: Literal["energyscape", "db", "linear"] = Field(
-        "energyscape",
-        description=(
-            "energyscape: already in [0, 1] over dynamic_range_db; db: decibels re full scale "
-            "(<= 0); linear: non-negative energy, normalised to the recording's maximum."
-        ),
-    )
-    dynamic_range_db: float = Field(60.0, gt=0, le=300)
-    velocity_alignment: Literal["previous", "next"] = Field(
-        "previous",
-        description=(
-            "previous: velocity[k] moved the robot from frame k-1 to k (the SonarSet convention); "
-            "next: velocity[k] is executed after frame k (shifted on import, dropping frame 0)."
-        ),
-    )
-    processing: Processing | None = Field(
-        None, description="How the images were made, as stored after the importer's conversion "
-                          "(default: profile 'unknown').")
-    rig: RobotRig | None = Field(None, description="Robot geometry (default: unknown).")
-    source: dict[str, Any] = Field(default_factory=dict, description="Free-form provenance.")
-
-    @field_validator("name")
-    @classmethod
-    def _name(cls, v: str | None) -> str | None:
-        if v is not None and not RUN_NAME_RE.match(v):
-            raise ValueError("name must be 1-128 of letters, digits, '_', '.', '-' and start alphanumeric")
-        return v
-
-    @field_validator("split")
-    @classmethod
-    def _split(cls, v: str) -> str:
-        return RunAttrs._split(v)
-
-    @field_validator("processing", "rig")
-    @classmethod
-    def _closed(cls, v: BaseModel | None) -> BaseModel | None:
-        # Stores keep unknown keys of a later minor version; a hand-written sidecar has no such excuse.
-        if v is not None and v.model_extra:
-            raise ValueError(f"unknown key(s) {', '.join(sorted(v.model_extra))}")
-        return v
-
-
-class RawSweep(BaseModel):
-    """The emitted sweep: a linear FM chirp by its parameters, or its samples at the recording's rate."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    f_start_hz: float | None = Field(None, gt=0, description="Chirp start frequency, Hz (eRTIS: 25000).")
-    f_end_hz: float | None = Field(None, gt=0, description="Chirp end frequency, Hz (eRTIS: 50000).")
-    duration_s: float | None = Field(None, gt=0, le=0.1, description="Chirp duration, s (eRTIS: 0.0025).")
-    window: Literal["hann", "none"] = Field("hann", description="Amplitude window of the chirp.")
-    samples: list[float] | None = Field(
-        None, min_length=8, description="The sweep's samples at sample_rate_hz (instead of the parameters).")
-
-    @model_validator(mode="after")
-    def _one_form(self) -> "RawSweep":
-        params = [self.f_start_hz, self.f_end_hz, self.duration_s]
-        if self.samples is not None and any(p is not None for p in params):
-            raise ValueError("give either samples or f_start_hz/f_end_hz/duration_s, not both")
-        if self.samples is None and any(p is None for p in params):
-            raise ValueError("give f_start_hz, f_end_hz and duration_s (or samples)")
-        return self
-
-
-class RawRecordingMeta(BaseModel):
-    """The JSON sidecar of a raw microphone recording imported with ``sonarset import-raw``.
-
-    Arrays come from the ``.npz`` (or ``.npy`` files): ``signals`` (T, M, n) per measurement and
-    microphone, ``velocity`` (T, 2) as (v, omega), ``time`` (T,), optionally ``pose`` (T, 3) and
-    ``sweep`` (n_sweep,) (the emitted sweep's samples, when the sidecar gives none).
-    An import format, not a store format: the importer beamforms the signals into energyscapes.
-    """
-
-    model_config = ConfigDict(extra="forbid")
-
-    raw_version: Literal["1.0"] = "1.0"
-    name: str | None = Field(None, description="Run name in the store; default: the file's stem.")
-    split: str = "train"
-    sample_rate_hz: float = Field(gt=0, le=100e6, description="Sampling rate of the microphone signals, Hz.")
-    speed_of_sound_m_s: float = Field(ge=300, le=400, description="Speed of sound in air during the recording, m/s.")
-    sweep: RawSweep | None = Field(
-        None, description="The emitted sweep; required unless the input holds a `sweep` array.")
-    microphones: str | list[list[float]] = Field(
-        description="Microphone layout: 'ertis32' (the shipped eRTIS layout), a CSV path relative to the "
-                    "sidecar with columns x,y,z in metres, or a list of [x, y, z] (or [x, y]) positions in "
-                    "metres; one per channel, in channel order. Sensor frame: x forward, y left, the "
-                    "emitter at the origin.")
-    start_time_s: float = Field(0.0, ge=-1, le=1, description="Time of the first sample after the start of the emission, s.")
-    amplitude_scale: float = Field(
-        1.0, gt=0, description="Recording units per simulator amplitude unit: an echo the simulator gives amplitude "
-                               "a at a microphone reads amplitude_scale x a x the sweep. Sets the energyscapes' 0 dB.")
-    grid: RecordingGrid | None = Field(
-        None, description="Sensor grid of a new store, in units.range / units.azimuth (default: the 200 x 90 "
-                          "eRTIS-like grid); an existing store keeps its own and must agree.")
-    units: RecordingUnits = Field(default_factory=RecordingUnits)
-    velocity_alignment: Literal["previous", "next"] = Field(
-        "previous", description="As in the image recording sidecar: next drops measurement 0.")
-    rig: RobotRig | None = Field(None, description="Robot geometry (default: unknown).")
-    source: dict[str, Any] = Field(default_factory=dict, description="Free-form provenance.")
-
-    _name = field_validator("name")(RecordingMeta._name.__func__)
-    _split = field_validator("split")(RecordingMeta._split.__func__)
-    _closed = field_validator("rig")(RecordingMeta._closed.__func__)
-
-
-SCHEMAS: dict[str, type[BaseModel]] = {
-    "store": StoreAttrs,
-    "run": RunAttrs,
-    "recording": RecordingMeta,
-    "raw-recording": RawRecordingMeta,
-}
-
-
-def json_schema(kind: str) -> dict[str, Any]:
-    """The JSON Schema of one document kind: 'store', 'run' or 'recording'."""
-    if kind not in SCHEMAS:
-        raise ValueError(f"unknown schema kind {kind!r}; choose from {', '.join(SCHEMAS)}")
-    schema = SCHEMAS[kind].model_json_schema()
-    schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
-    schema["$id"] = f"https://sonarset.dev/schema/{FORMAT_VERSION}/{kind}.schema.json"
-    return schema
-
-
-def json_schema_text(kind: str) -> str:
-    return json.dumps(json_schema(kind), indent=2, sort_keys=True) + "\n"
-
-
-def pydantic_problems(exc: Exception, prefix: str = "") -> list[str]:
-    """One line per pydantic error: 'grid.n_range: Input should be greater than or equal to 1'."""
-    errors = getattr(exc, "errors", None)
-    if not callable(errors):
-        return [f"{prefix}{exc}"]
-    lines = []
-    for err in errors():
-        loc = ".".join(str(p) for p in err.get("loc", ()))
-        where = f"{prefix}{loc}" if loc else prefix.rstrip(".")
-        lines.append(f"{where}: {err.get('msg', 'invalid')}" if where else err.get("msg", "invalid"))
-    return lines

@@ -1,25 +1,27 @@
 """Plausibility: values that no in-air sonar on a ground robot records, read as unit mistakes.
 
 The format checks (``sonarset.store.validate``, ``sonarset.format.arrays``) say whether a store is well formed;
-these rules say whether its numbers could be true. Each finding is one line naming the array, the
-values and, where one explains them, the likely unit mistake (``cm/s declared as m/s?``).
-``validate`` applies them to a store against its own rig, ``import`` to a recording against the
-store it goes to (else its sidecar's rig); ``--allow-implausible`` lets a user who means it go on. spec/FORMAT.md §9 lists the rules and their thresholds.
+these rules say whether its numbers could be true. Each finding is a Problem at the array (or
+``grid``, ``metadata``) naming the values and, where one explains them, the likely unit mistake
+(``cm/s declared as m/s?``). ``validate`` applies them to a store against its own rig, ``import``
+to a recording against the store it goes to (else its sidecar's rig); ``allow_implausible`` lets a
+user who means it go on. spec/FORMAT.md §10 lists the rules and their thresholds.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, ClassVar
 
 import numpy as np
 
 from sonarset.format.arrays import FRAME_INTERVAL_TOLERANCE
-from sonarset.format.attrs import RecordingUnits, RobotRig, SensorGrid
+from sonarset.format.attrs import RobotRig, SensorGrid
+from sonarset.format.sidecars import RecordingUnits
 from sonarset.format.problems import Problem
+from sonarset.sensor.ertis import C_SOUND
 
-SPEED_OF_SOUND_M_S = 343.0  # dry air at 20 degC
 #: Commands may exceed the rig's declared limits by this fraction (controller overshoot, rounding).
 COMMAND_TOLERANCE = 0.25
 #: Without a rig: faster than any indoor ground robot drives or turns.
@@ -51,7 +53,11 @@ _SI = {"range": "m", "azimuth": "rad", "linear_velocity": "m/s", "angular_veloci
 
 @dataclass(frozen=True)
 class Implausible(Problem):
-    """A validation problem from these rules: ``--allow-implausible`` lets it pass."""
+    """A validation problem from these rules: ``allow_implausible`` lets it pass, and readers
+    accept such values (only commands no ground robot could follow are unreadable:
+    ``sonarset.format.rules.command_limit_problems``)."""
+
+    refused_by_readers: ClassVar[bool] = False
 
 
 _NAMES = {"m": "metres", "cm": "centimetres", "mm": "millimetres", "rad": "radians", "deg": "degrees",
@@ -92,7 +98,7 @@ def unit_hint(kind: str, value_si: float, ok: Callable[[float], bool], typical: 
     return f"{_NAMES[true]} converted as {_NAMES[claimed]}?"
 
 
-def command_problems(velocity: np.ndarray, rig: RobotRig | None, declared: RecordingUnits | None = None) -> list[str]:
+def command_problems(velocity: np.ndarray, rig: RobotRig | None, declared: RecordingUnits | None = None) -> list[Problem]:
     """Commands ``(v, omega)`` in SI beyond the rig's limits (+ tolerance), else beyond any robot's."""
     v = np.asarray(velocity, dtype=np.float64)
     if v.ndim != 2 or v.shape[-1] != 2 or v.shape[0] == 0:
@@ -113,7 +119,7 @@ def command_problems(velocity: np.ndarray, rig: RobotRig | None, declared: Recor
             continue
         what = (f"the rig's limit {declared_limit:g} {unit} (+{COMMAND_TOLERANCE:.0%})" if declared_limit is not None
                 else f"{absolute:g} {unit}, beyond any ground robot")
-        msg = f"velocity: {name} up to {peak:.3g} {unit} exceeds {what}"
+        msg = f"{name} up to {peak:.3g} {unit} exceeds {what}"
         typical = declared_limit if declared_limit is not None else getattr(default, field)
         hint = unit_hint(kind, peak, lambda x: x <= limit, typical, declared)
         if hint:
@@ -122,12 +128,12 @@ def command_problems(velocity: np.ndarray, rig: RobotRig | None, declared: Recor
             msg += ": no unit mistake explains it (corrupt values?)"
         elif declared_limit is not None:
             msg += f": check the units, or the rig's {field}"
-        out.append(msg)
+        out.append(Problem("velocity", msg))
     return out
 
 
 def time_problems(time: np.ndarray, frame_interval_s: float | None, range_max_m: float,
-                  declared: RecordingUnits | None = None, declared_by: str = "store") -> list[str]:
+                  declared: RecordingUnits | None = None, declared_by: str = "store") -> list[Problem]:
     """Median frame spacing (SI seconds) against the declared frame interval, else against physics."""
     t = np.asarray(time, dtype=np.float64)
     if t.ndim != 1 or t.size < 2 or not np.all(np.isfinite(t)):
@@ -141,11 +147,12 @@ def time_problems(time: np.ndarray, frame_interval_s: float | None, range_max_m:
 
         if ok(med):
             return []
-        msg = (f"time: frames are {med:.4g} s apart (median) but the {declared_by} declares "
+        msg = (f"frames are {med:.4g} s apart (median) but the {declared_by} declares "
                f"{frame_interval_s:g} s ({1 / frame_interval_s:g} Hz)")
         hint = unit_hint("time", med, ok, frame_interval_s, declared)
-        return [msg + (f": {hint}" if hint else f": the times say {1 / med:.3g} Hz; fix the times or the declared rate")]
-    round_trip = 2 * range_max_m / SPEED_OF_SOUND_M_S
+        return [Problem("time", msg + (f": {hint}" if hint else
+                                       f": the times say {1 / med:.3g} Hz; fix the times or the declared rate"))]
+    round_trip = 2 * range_max_m / C_SOUND
 
     def ok(x: float) -> bool:
         return round_trip <= x <= MAX_FRAME_INTERVAL_S
@@ -153,15 +160,15 @@ def time_problems(time: np.ndarray, frame_interval_s: float | None, range_max_m:
     if ok(med):
         return []
     if med > MAX_FRAME_INTERVAL_S:
-        msg = f"time: frames are {med:.4g} s apart (median), not a sonar stream"
+        msg = f"frames are {med:.4g} s apart (median), not a sonar stream"
     else:
-        msg = (f"time: frames are {med:.3g} s apart (median), less than an echo from {range_max_m:g} m takes "
+        msg = (f"frames are {med:.3g} s apart (median), less than an echo from {range_max_m:g} m takes "
                f"to return ({round_trip:.3g} s)")
     hint = unit_hint("time", med, ok, RobotRig().frame_interval_s, declared)
-    return [msg + (f": {hint}" if hint else "")]
+    return [Problem("time", msg + (f": {hint}" if hint else ""))]
 
 
-def grid_problems(grid: SensorGrid, declared: RecordingUnits | None = None) -> list[str]:
+def grid_problems(grid: SensorGrid, declared: RecordingUnits | None = None) -> list[Problem]:
     """A sensor grid no in-air sonar images: millimetre ranges, a degree-wide field of view."""
     out = []
     rmax = grid.range_max_m
@@ -171,8 +178,9 @@ def grid_problems(grid: SensorGrid, declared: RecordingUnits | None = None) -> l
 
     if not range_ok(rmax):
         hint = unit_hint("range", rmax, range_ok, 5.0, declared)
-        out.append(f"grid: range {grid.range_min_m:.3g}-{rmax:.3g} m is implausible for an in-air sonar "
-                   f"(its images end between {MIN_RANGE_MAX_M:g} and {MAX_RANGE_M:g} m)" + (f": {hint}" if hint else ""))
+        out.append(Problem("grid", f"range {grid.range_min_m:.3g}-{rmax:.3g} m is implausible for an in-air sonar "
+                                   f"(its images end between {MIN_RANGE_MAX_M:g} and {MAX_RANGE_M:g} m)"
+                                   + (f": {hint}" if hint else "")))
     span = grid.azimuth_max_rad - grid.azimuth_min_rad
 
     def span_ok(x: float) -> bool:
@@ -180,9 +188,9 @@ def grid_problems(grid: SensorGrid, declared: RecordingUnits | None = None) -> l
 
     if not span_ok(span):
         hint = unit_hint("azimuth", span, span_ok, math.pi, declared)
-        out.append(f"grid: azimuth spans only {math.degrees(grid.azimuth_min_rad):.3g}.."
-                   f"{math.degrees(grid.azimuth_max_rad):.3g} deg; an imaging sonar sees tens of degrees"
-                   + (f": {hint}" if hint else ""))
+        out.append(Problem("grid", f"azimuth spans only {math.degrees(grid.azimuth_min_rad):.3g}.."
+                                   f"{math.degrees(grid.azimuth_max_rad):.3g} deg; an imaging sonar sees tens of degrees"
+                                   + (f": {hint}" if hint else "")))
     return out
 
 
@@ -203,11 +211,11 @@ def merge_metadata(embedded: dict, sidecar: dict) -> dict:
     return out
 
 
-def metadata_conflicts(sidecar: dict, embedded: dict, sidecar_name: str, file_name: str) -> list[str]:
+def metadata_conflicts(sidecar: dict, embedded: dict, sidecar_name: str, file_name: str) -> list[Problem]:
     """Keys that the sidecar and the metadata embedded in the data file both set, differently."""
     side, emb = _leaves(sidecar), _leaves(embedded)
-    return [f"metadata: {key} is {side[key]!r} in {sidecar_name} but {emb[key]!r} in the metadata embedded in "
-            f"{file_name} (the sidecar's would be used)"
+    return [Problem("metadata", f"{key} is {side[key]!r} in {sidecar_name} but {emb[key]!r} in the metadata "
+                                f"embedded in {file_name} (the sidecar's would be used)")
             for key in sorted(side.keys() & emb.keys()) if side[key] != emb[key]]
 
 
@@ -218,7 +226,7 @@ def store_problems(store, check_data: bool = True) -> list[Implausible]:
     Never raises: what cannot be read is the format checks' to report.
     """
     loc = store.location
-    out = [Implausible(loc, msg) for msg in grid_problems(store.grid)]
+    out = [Implausible(loc, str(p)) for p in grid_problems(store.grid)]
     if not check_data:
         return out
     try:
@@ -231,5 +239,5 @@ def store_problems(store, check_data: bool = True) -> list[Implausible]:
             velocity = np.asarray(store.group[name]["velocity"][:])
         except Exception:
             continue
-        out += [Implausible(f"{loc}/{name}/velocity", msg.split(": ", 1)[1]) for msg in command_problems(velocity, rig)]
+        out += [Implausible(p.where, p.message).at(f"{loc}/{name}") for p in command_problems(velocity, rig)]
     return out

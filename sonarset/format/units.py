@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from sonarset.format.plausibility import UNIT_SCALES
-from sonarset.format.attrs import RecordingGrid, RecordingUnits, SensorGrid
+from sonarset.format.attrs import SensorGrid
+from sonarset.format.sidecars import RecordingGrid, RecordingUnits
 
 
 def range_scale(units: RecordingUnits) -> float:

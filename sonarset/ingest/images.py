@@ -1,9 +1,9 @@
 """Import external recordings (``.npz``, or a directory of ``.npy`` files) into a SonarSet store.
 
 Everything is read and checked before anything is written; every problem found is reported,
-one line each. Only regular files are opened (``recording_files``), the sidecar is read strictly
-(``sidecar``), the arrays pass the spec's checks (``arrays``) and the plausibility rules
-(``plausibility``), and the run is written as ``import_target`` writes it: built aside and moved
+one line each. Only regular files are opened (``files``), the sidecar is read strictly
+(``metadata``), the arrays pass the format's checks (``format.arrays``) and the plausibility rules
+(``format.plausibility``), and the run is written as ``target`` writes it: built aside and moved
 in whole, so an import that fails or is killed never leaves a partial run, nor loses the run it
 replaces.
 """
@@ -20,18 +20,20 @@ from pydantic import ValidationError
 
 from sonarset.format import plausibility as plaus
 from sonarset.format.arrays import (
-    ARRAYS, FRAME_ARRAYS, OPTIONAL_ARRAYS, REQUIRED_FRAME_ARRAYS, dtype_problem, frame_count_problem, layout_problem,
-    nonfinite_problem, time_order_problem,
+    ARRAYS, FRAME_ARRAYS, OPTIONAL_ARRAYS, REQUIRED_FRAME_ARRAYS, dtype_problems, frame_count_problems,
+    layout_problems, nonfinite_problems, time_order_problems,
 )
 from sonarset.errors import InputValidationError
 from sonarset.ingest.target import ImportTarget, check_run_options, nominal_frame_rate, run_name_for
 from sonarset.ingest.files import read_arrays, regular_file_problem, short_reason
 from sonarset.format.units import angle_scale, grid_to_si, pose_to_si, range_scale, time_to_si, velocity_to_si
 from sonarset.store.run import Run
-from sonarset.format.attrs import Processing, RecordingMeta, RobotRig, SensorGrid, pydantic_problems
-from sonarset.ingest.metadata import MAX_METADATA_DEPTH, parse_metadata, read_sidecar, sidecar_for
+from sonarset.format.attrs import Processing, RobotRig, SensorGrid
+from sonarset.format.problems import pydantic_problems
+from sonarset.format.sidecars import RecordingMeta
+from sonarset.ingest.metadata import parse_metadata, recording_meta
 
-IMPLAUSIBLE_NOTE = " (--allow-implausible to import it as is)"
+IMPLAUSIBLE_NOTE = " (allow_implausible imports it as is)"
 
 
 @dataclass
@@ -64,16 +66,22 @@ def load_recording(src: str | os.PathLike, meta_path: str | os.PathLike | None =
     where = str(src)
     arrays, embedded, problems = _read_input(src)
     implausible: list[str] = []
-    meta = _recording_meta(src, meta_path, embedded, problems, implausible)
+    meta = recording_meta(src, meta_path, embedded, problems, implausible)
     conv = _numeric_arrays(arrays, problems)
+
+    def allow() -> str | None:
+        """The parameter that would let the implausible lines through (the CLI names its flag)."""
+        return "allow_implausible" if implausible and not allow_implausible else None
+
     if meta is None:
-        raise InputValidationError(where, problems + [line + IMPLAUSIBLE_NOTE for line in implausible])
+        raise InputValidationError(where, problems + [line + IMPLAUSIBLE_NOTE for line in implausible],
+                                   parameter=allow())
     shapes_ok = _check_shapes(conv, problems)
     out = _to_si(conv, meta, rig, problems, implausible)
     images = conv.get("images")
     grid = _resolve_grid(meta, conv, images, problems)
     if grid is not None:
-        implausible += plaus.grid_problems(grid, meta.units)
+        implausible += map(str, plaus.grid_problems(grid, meta.units))
         if "time" in out:
             _check_times(out["time"], meta, grid, frame_interval_s, problems, implausible)
     if images is not None and images.ndim == 3:
@@ -85,7 +93,7 @@ def load_recording(src: str | os.PathLike, meta_path: str | os.PathLike | None =
     if not allow_implausible:
         problems += [line + IMPLAUSIBLE_NOTE for line in implausible]
     if problems or grid is None:
-        raise InputValidationError(where, problems or ["no sensor grid"])
+        raise InputValidationError(where, problems or ["no sensor grid"], parameter=allow())
     return Recording(where, meta, grid, out, warnings=implausible)
 
 
@@ -111,31 +119,6 @@ def _read_input(src: Path) -> tuple[dict[str, Any], dict | None, list[str]]:
     return arrays, embedded, problems
 
 
-def _recording_meta(src: Path, meta_path: str | os.PathLike | None, embedded: dict | None,
-                    problems: list[str], implausible: list[str]) -> RecordingMeta | None:
-    """The recording's metadata: the sidecar completing and overriding the file's own; None when
-    it is invalid (``problems`` says why)."""
-    meta_doc: dict | None = None
-    sidecar = Path(meta_path) if meta_path is not None else sidecar_for(src)
-    if sidecar.exists() or sidecar.is_symlink():
-        meta_doc = read_sidecar(sidecar, problems)
-    elif meta_path is not None:
-        problems.append(f"{sidecar}: metadata file not found")
-    if meta_doc is not None and embedded:
-        # A key both set differently is reported, naming both, rather than silently decided.
-        implausible += plaus.metadata_conflicts(meta_doc, embedded, sidecar.name, src.name)
-        meta_doc = plaus.merge_metadata(embedded, meta_doc)
-    if meta_doc is None:
-        meta_doc = embedded or {}
-    try:
-        return RecordingMeta.model_validate(meta_doc)
-    except ValidationError as exc:
-        problems += pydantic_problems(exc, "metadata.")
-    except RecursionError:
-        problems.append(f"metadata: nested too deeply (at most {MAX_METADATA_DEPTH} levels)")
-    return None
-
-
 def _numeric_arrays(arrays: dict[str, Any], problems: list[str]) -> dict[str, np.ndarray]:
     """The known arrays that hold finite real numbers; a line in ``problems`` for every other one."""
     problems += [f"unknown array {key!r} (expected {', '.join(ARRAYS)})" for key in arrays if key not in ARRAYS]
@@ -145,12 +128,12 @@ def _numeric_arrays(arrays: dict[str, Any], problems: list[str]) -> dict[str, np
         if key not in arrays:
             continue
         arr = arrays[key]
-        line = dtype_problem(arr)
-        if line is None:
+        found = dtype_problems(key, arr)
+        if not found:
             arr = np.asarray(arr)
-            line = nonfinite_problem(arr)
-        if line is not None:
-            problems.append(f"{key}: {line}")
+            found = nonfinite_problems(key, np.atleast_1d(arr))
+        if found:
+            problems += map(str, found)
             continue
         conv[key] = arr
     return conv
@@ -161,9 +144,9 @@ def _check_shapes(conv: dict[str, np.ndarray], problems: list[str]) -> bool:
     their bins; True when all agree."""
     before = len(problems)
     images = conv.get("images")
-    line = layout_problem("images", images.shape) if images is not None else None
-    if line is not None:
-        problems.append(f"images: {line}")
+    found = layout_problems("images", images.shape) if images is not None else []
+    if found:
+        problems += map(str, found)
         images = None
     if images is not None and images.shape[0] < 1:
         problems.append("images: no frames")
@@ -171,17 +154,16 @@ def _check_shapes(conv: dict[str, np.ndarray], problems: list[str]) -> bool:
     for key in FRAME_ARRAYS:
         if key == "images" or key not in conv:
             continue
-        line = layout_problem(key, conv[key].shape)
-        if line is None and T is not None:
-            line = frame_count_problem(conv[key].shape[0], T)
-        if line is not None:
-            problems.append(f"{key}: {line}")
+        found = layout_problems(key, conv[key].shape)
+        if not found and T is not None:
+            found = frame_count_problems(key, conv[key].shape[0], T)
+        problems += map(str, found)
     for key, axis in (("range", 1), ("azimuth", 2)):
         if key in conv:
             arr = conv[key]
-            line = layout_problem(key, arr.shape)
-            if line is not None:
-                problems.append(f"{key}: {line}")
+            found = layout_problems(key, arr.shape)
+            if found:
+                problems += map(str, found)
             elif images is not None and arr.shape[0] != images.shape[axis]:
                 problems.append(f"{key}: {arr.shape[0]} values but images has {images.shape[axis]} {key} bins")
     return len(problems) == before
@@ -192,15 +174,13 @@ def _to_si(conv: dict[str, np.ndarray], meta: RecordingMeta, rig: RobotRig | Non
     """The per-frame vectors in SI units and the store's dtypes, with the command and time checks."""
     u = meta.units
     out: dict[str, np.ndarray] = {}
-    if "velocity" in conv and layout_problem("velocity", conv["velocity"].shape) is None:
+    if "velocity" in conv and not layout_problems("velocity", conv["velocity"].shape):
         out["velocity"] = velocity_to_si(conv["velocity"].astype(np.float64), u)
-        implausible += plaus.command_problems(out["velocity"], rig or meta.rig, u)
+        implausible += map(str, plaus.command_problems(out["velocity"], rig or meta.rig, u))
     if "time" in conv and conv["time"].ndim == 1:
         out["time"] = time_to_si(conv["time"].astype(np.float64), u)
-        line = time_order_problem(out["time"])
-        if line is not None:
-            problems.append(f"time: {line}")
-    if "pose" in conv and layout_problem("pose", conv["pose"].shape) is None:
+        problems += map(str, time_order_problems(out["time"]))
+    if "pose" in conv and not layout_problems("pose", conv["pose"].shape):
         out["pose"] = pose_to_si(conv["pose"].astype(np.float64), u)
     for key in ("snr_db", "slip"):
         if key in conv:
@@ -223,7 +203,7 @@ def _check_times(time: np.ndarray, meta: RecordingMeta, grid: SensorGrid, frame_
     found = plaus.time_problems(time, interval, grid.range_max_m, meta.units, declared_by=by)
     # Against a declared rate it is a format error (readers refuse the run); without one, the new
     # store takes its rate from the times, and only physics can object.
-    (problems if interval else implausible).extend(found)
+    (problems if interval else implausible).extend(map(str, found))
 
 
 def _align_commands_after(out: dict[str, np.ndarray], n_frames: int, problems: list[str]) -> None:
@@ -244,14 +224,14 @@ def _resolve_grid(meta: RecordingMeta, conv: dict[str, np.ndarray], images, prob
         try:
             from_meta = grid_to_si(meta.grid, meta.units)
         except ValidationError as exc:
-            problems += [_unit_hint(line, meta) for line in pydantic_problems(exc, "metadata.grid.")]
+            problems += [_unit_hint(str(p), meta) for p in pydantic_problems(exc, "metadata.grid.")]
     if "range" in conv and "azimuth" in conv and conv["range"].ndim == 1 and conv["azimuth"].ndim == 1:
         try:
             from_arrays = SensorGrid.from_centres(conv["range"] * range_scale(meta.units),
                                                   conv["azimuth"] * angle_scale(meta.units))
         except (ValidationError, ValueError) as exc:
-            lines = pydantic_problems(exc, "range/azimuth: ") if isinstance(exc, ValidationError) else [str(exc)]
-            problems += [_unit_hint(line, meta) for line in lines]
+            found = pydantic_problems(exc, "range/azimuth: ") if isinstance(exc, ValidationError) else [exc]
+            problems += [_unit_hint(str(p), meta) for p in found]
     elif ("range" in conv) != ("azimuth" in conv):
         problems.append("range and azimuth arrays must be given together")
     grid = from_meta or from_arrays

@@ -22,7 +22,7 @@ from sonarset.format.arrays import median_interval
 from sonarset.store.atomic import aside_dir, exchange, settle_zarr_writes
 from sonarset.errors import SonarSetError, first_os_error, os_error_reason
 from sonarset.store.run import Run
-from sonarset.format.attrs import RUN_NAME_RE, SPLIT_RE, Processing, RobotRig, SensorGrid
+from sonarset.format.attrs import Processing, RobotRig, SensorGrid, run_name_problems, split_problems
 from sonarset.store.store import SonarStore, create_store, open_or_create_store, open_store
 from sonarset.store.zarrio import is_url
 
@@ -32,20 +32,18 @@ WriteRun = Callable[[SonarStore, bool], None]
 
 
 def check_run_options(name: str | None, split: str | None) -> None:
-    """One-line errors for a bad ``--name`` or ``--split``, before any file is read."""
-    if name is not None and not RUN_NAME_RE.match(name):
-        raise SonarSetError(f"--name {name!r}: a run name is 1-128 letters, digits, '_', '.' or '-', "
-                            "starting with a letter or digit")
-    if split is not None and not SPLIT_RE.match(split):
-        raise SonarSetError(f"--split {split!r}: a split is 1-32 lower-case letters, digits, '_' or '-', "
-                            "starting with a letter (e.g. 'train', 'val', 'test')")
+    """One-line errors for a bad run ``name`` or ``split`` (the format's rules), before any file is read."""
+    for problem in [] if name is None else run_name_problems(name):
+        raise SonarSetError(f"name: {problem.message}", parameter="name")
+    for problem in [] if split is None else split_problems(split):
+        raise SonarSetError(f"split {split!r}: {problem.message}", parameter="split")
 
 
 def run_name_for(src: str | os.PathLike, name: str | None, declared: str | None) -> str:
     """The run's name: ``name``, else the metadata's, else the file's stem; it must be valid."""
     run_name = name or declared or Path(src).stem
-    if not RUN_NAME_RE.match(run_name):
-        raise SonarSetError(f"{src}: {run_name!r} is not a valid run name; pass --name")
+    for problem in run_name_problems(run_name):
+        raise SonarSetError(f"{src}: {problem.message}; give the run a name", parameter="name")
     return run_name
 
 
@@ -86,7 +84,8 @@ class ImportTarget:
             return open_store(dest).run(run_name)
         store = open_or_create_store(loc, grid, processing=processing, rig=rig)
         if run_name in store.runs() and not overwrite:
-            raise SonarSetError(f"{loc}: run {run_name!r} already exists (use --overwrite or --name)")
+            raise SonarSetError(f"{loc}: run {run_name!r} already exists (overwrite it, or give another name)",
+                                parameter="overwrite")
         if is_url(loc):  # object stores have no rename: the run writer keeps it invisible until complete
             replaced = overwrite and run_name in store.group.group_keys()
             with write_failure(loc, run_name, "the run it replaced is gone" if replaced else "nothing was changed"):

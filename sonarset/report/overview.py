@@ -1,4 +1,4 @@
-"""What ``sonarset info`` and ``sonarset show`` tell about a store: its summary (the ``--json``
+"""What ``sonarset info`` and ``sonarset show`` tell about a store: its summary (the JSON
 document), and the picture of one run's frame in the world it was driven through."""
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 
-from sonarset.format.attrs import SensorGrid
+from sonarset.format.attrs import Processing, SensorGrid
 
 
 def pyplot():
@@ -91,7 +91,8 @@ def show_run(store, run_name: str, frame: int, out: str | os.PathLike, world=Non
     im = draw_energyscape(axes[0], image, store.grid, f"frame {frame}, t = {t:.1f} s, v = {v[0]:+.2f} m/s, ω = {v[1]:+.2f} rad/s")
     draw_fan(axes[1], image, store.grid)
     axes[1].set_title("polar fan (sensor frame)")
-    fig.colorbar(im, ax=axes[1], label="energy (0 = -60 dB, 1 = full scale)")
+    span = Processing.model_fields["span_db"].default
+    fig.colorbar(im, ax=axes[1], label=f"energy (0 = -{span:g} dB, 1 = full scale)")
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return os.fspath(out)

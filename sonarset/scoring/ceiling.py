@@ -3,7 +3,7 @@
 A simulated run records its world (``source``) and the robot's true poses (``pose``), so any of
 its frames can be rendered again from the same scene with fresh sensor noise. Scoring a target
 frame against such a re-render measures how much of the image is predictable at all: no predictor,
-however good, knows the target's noise draw. ``sonarset eval --ceiling`` reports it as the method
+however good, knows the target's noise draw. Evaluation with the ceiling reports it as the method
 ``ceiling`` (the same at every horizon: the re-render of the target itself).
 
 The observable ceiling (``OBSERVABLE``) asks what a predictor could know from a window's

@@ -1,4 +1,4 @@
-"""Image metrics of the EchoPT paper (DESIGN.md §5), vectorised over any leading batch axes.
+"""Image metrics of the EchoPT paper (docs/metrics.md), vectorised over any leading batch axes.
 
 All functions take predicted and measured images with the image in the last two axes and return
 one value per image.

@@ -22,11 +22,8 @@ import math
 import numpy as np
 from scipy import ndimage, special
 
-from sonarset.format.attrs import Processing, SensorGrid
+from sonarset.format.attrs import BEAMFORMERS, Processing, SensorGrid
 from sonarset.sensor.ertis import C_SOUND, F_HI, F_LO, microphone_y
-
-#: Beamformers that the simulator implements.
-BEAMFORMERS = ("das", "dmas3-cf")
 
 
 def dmas3(x: np.ndarray, axis: int = -1) -> np.ndarray:

@@ -23,7 +23,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from sonarset.format.attrs import SensorGrid
+from sonarset.format.attrs import Processing, SensorGrid
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,7 @@ class SubsumptionController:
     """Image + odometry pose -> (v, ω) command; see the module docstring."""
 
     def __init__(self, grid: SensorGrid, waypoint: tuple[float, float], gains: ControllerGains | None = None,
-                 dynamic_range_db: float = 60.0):
+                 dynamic_range_db: float = Processing.model_fields["span_db"].default):
         self.gains = gains or ControllerGains()
         self.regions = FlowRegions(grid, self.gains)
         self.waypoint = np.asarray(waypoint, float)

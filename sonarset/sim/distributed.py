@@ -1,4 +1,4 @@
-"""Run generation tasks on a Dask distributed cluster (``sonarset generate --scheduler``).
+"""Run generation tasks on a Dask distributed cluster (``generate`` given a ``scheduler``).
 
 One task per run, exactly the function the local process pool runs (``runs.write_run``): the task
 simulates its run from the run's own seed and writes the run group to the target store, so the
@@ -12,8 +12,7 @@ import time
 import uuid
 
 from sonarset.errors import SonarSetError
-from sonarset.format.attrs import SensorGrid
-from sonarset.sim.runs import write_run
+from sonarset.sim.runs import RunPlan, RunTarget, write_run
 
 CONNECT_TIMEOUT = "15s"  # how long to wait for a scheduler address to answer
 
@@ -23,7 +22,8 @@ def connect(scheduler, workers: int | None):
     try:
         from distributed import Client, LocalCluster
     except ImportError:
-        raise SonarSetError("--scheduler needs Dask distributed: pip install 'sonarset[dask]'") from None
+        raise SonarSetError("a Dask scheduler needs Dask distributed: pip install 'sonarset[dask]'",
+                           parameter="scheduler") from None
     if isinstance(scheduler, Client):
         return scheduler, None
     if scheduler == "local":
@@ -37,15 +37,14 @@ def connect(scheduler, workers: int | None):
         raise SonarSetError(f"cannot reach the Dask scheduler at {scheduler!r}: {exc}") from None
 
 
-def run_on_dask(scheduler, location: str, plans: list, grid: SensorGrid, workers: int | None,
-                storage_options: dict | None, progress, store) -> None:
+def run_on_dask(scheduler, target: RunTarget, plans: list[RunPlan], workers: int | None, progress, store) -> None:
     from distributed import Queue
 
     client, cluster = connect(scheduler, workers)
     try:
         tag = uuid.uuid4().hex[:8]
         queue = Queue(f"sonarset-progress-{tag}", client=client)
-        futures = [client.submit(write_run, location, p, grid, queue, storage_options,
+        futures = [client.submit(write_run, target, p, queue,
                                  key=f"sonarset-generate-{p.name}-{tag}", pure=False, retries=0) for p in plans]
         done = {p.name: 0 for p in plans}
         total = {p.name: p.n_frames for p in plans}

@@ -28,7 +28,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from sonarset.errors import SonarSetError
-from sonarset.format.attrs import pydantic_problems
+from sonarset.format.problems import pydantic_problems
 from sonarset.sim.world import CircleSpec, FenceSpec, SpawnBox, WallSpec, World, WorldSpec
 
 

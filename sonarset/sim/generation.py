@@ -19,9 +19,8 @@ from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.store.store import SonarStore, create_store, open_or_create_store
 from sonarset.version import __version__
 from sonarset.store.zarrio import is_url
-from sonarset.sim.runs import RunPlan, plan_runs, simulator_rig, world_mix
-from sonarset.sim.sonar import check_psf
 from sonarset.sim.families import load_world
+from sonarset.sim.runs import GenerationSpec, RunPlan, RunTarget, plan_runs, simulator_rig
 
 DESCRIPTION = f"simulated by sonarset {__version__}"
 
@@ -57,41 +56,28 @@ def generate(
     variant's seed in its ``source``.
 
     ``processing`` is a profile name (``ertis``, the default, or ``raw``) or ``Processing`` settings;
-    the store records it, with the robot's rig, in its attributes.
+    the store records it, with the robot's rig, in its attributes. The settings from ``runs`` to
+    ``grid`` make one ``GenerationSpec``, checked there.
     """
-    grid = grid or SensorGrid.default()
-    for name, _ in world_mix(world, runs):
+    spec = GenerationSpec(runs=runs, test_runs=test_runs, minutes=minutes, seed=seed, world=world, snr_db=snr_db,
+                          psf=psf, processing=processing, grid=grid or SensorGrid.default())
+    for name, _ in spec.world_mix():
         load_world(name, 0)  # fail fast on a bad world name or file, before any process starts
-    processing = _checked_processing(processing, psf)
-    plans = plan_runs(runs, test_runs, minutes, seed, world, snr_db, psf, processing)
+    plans = plan_runs(spec)
     loc = os.fspath(out).removeprefix("file://")  # a local path: the store is created aside and renamed
     if not is_url(loc):
-        _prepare_local(Path(loc), grid, processing, [p.name for p in plans])
-    store = open_or_create_store(loc, grid, description=DESCRIPTION, storage_options=storage_options,
-                                 processing=processing, rig=simulator_rig())
+        _prepare_local(Path(loc), spec, [p.name for p in plans])
+    store = open_or_create_store(loc, spec.grid, description=DESCRIPTION, storage_options=storage_options,
+                                 processing=spec.processing, rig=simulator_rig())
     todo = _runs_to_do(store, plans)
     try:
-        _simulate_into(store, loc, todo, grid, workers, progress, scheduler, storage_options)
+        _simulate_into(store, RunTarget(loc, spec.grid, storage_options), todo, workers, progress, scheduler)
     except OSError as exc:
         settle_zarr_writes()
         exc = first_os_error(exc)  # the run writer's clean-up failed too: report the cause
         raise SonarSetError(f"{loc}: cannot write {exc.filename or 'the store'}: {os_error_reason(exc)} (complete "
                             "runs are kept; re-run the same command to resume)") from None
     return [p.name for p in todo]
-
-
-def _checked_processing(processing: Processing | str, psf: str) -> Processing:
-    """The processing settings of a profile name, and a PSF that can make such images."""
-    if isinstance(processing, str):
-        try:
-            processing = Processing.named(processing)
-        except ValueError as exc:
-            raise SonarSetError(f"--processing: {exc}") from None
-    try:
-        check_psf(psf, processing)
-    except ValueError as exc:
-        raise SonarSetError(f"--psf: {exc}") from None
-    return processing
 
 
 def _runs_to_do(store: SonarStore, plans: list[RunPlan]) -> list[RunPlan]:
@@ -109,20 +95,20 @@ def _runs_to_do(store: SonarStore, plans: list[RunPlan]) -> list[RunPlan]:
     return todo
 
 
-def _simulate_into(store: SonarStore, loc: str, todo: list[RunPlan], grid: SensorGrid, workers: int | None,
-                   progress, scheduler, storage_options: dict | None) -> None:
+def _simulate_into(store: SonarStore, target: RunTarget, todo: list[RunPlan], workers: int | None, progress,
+                   scheduler) -> None:
     if todo and scheduler is not None:
         from sonarset.sim.distributed import run_on_dask  # Dask is an optional dependency
 
-        run_on_dask(scheduler, loc, todo, grid, workers, storage_options, progress, store)
+        run_on_dask(scheduler, target, todo, workers, progress, store)
     elif todo:
         from sonarset.sim.local_pool import run_locally
 
-        run_locally(loc, todo, grid, workers, storage_options, progress, store)
+        run_locally(target, todo, workers, progress, store)
     store.consolidate()
 
 
-def _prepare_local(dest: Path, grid: SensorGrid, processing: Processing, runs: list[str]) -> None:
+def _prepare_local(dest: Path, spec: GenerationSpec, runs: list[str]) -> None:
     """Clear what a killed generate left at ``dest``'s root, and create the store if it is missing.
 
     A folder of one of ``runs`` without ``zarr.json`` (its group's first write never landed) is not
@@ -147,7 +133,8 @@ def _prepare_local(dest: Path, grid: SensorGrid, processing: Processing, runs: l
         raise SonarSetError(f"{dest}: exists and is not a SonarSet store (no zarr.json); choose another output")
     tmp = aside_dir(dest)
     try:
-        create_store(tmp / "store.zarr", grid, description=DESCRIPTION, processing=processing, rig=simulator_rig())
+        create_store(tmp / "store.zarr", spec.grid, description=DESCRIPTION, processing=spec.processing,
+                     rig=simulator_rig())
         try:
             os.replace(tmp / "store.zarr", dest)  # onto nothing or an empty directory
         except OSError:

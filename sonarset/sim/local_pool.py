@@ -1,4 +1,4 @@
-"""Run generation tasks in a local process pool (``sonarset generate`` without ``--scheduler``).
+"""Run generation tasks in a local process pool (``generate`` without a ``scheduler``).
 
 One task per run, exactly the function a Dask cluster runs (``runs.write_run``); progress comes
 back through a managed queue, and only this process writes the root's consolidated metadata.
@@ -12,14 +12,12 @@ import os
 import threading
 
 from sonarset.perf import keep_freed_memory
-from sonarset.format.attrs import SensorGrid
-from sonarset.sim.runs import RunPlan, write_run
+from sonarset.sim.runs import RunPlan, RunTarget, write_run
 
 
-def run_locally(location: str, plans: list[RunPlan], grid: SensorGrid, workers: int | None,
-                storage_options: dict | None, progress, store) -> None:
-    """Simulate ``plans`` into the store at ``location`` with up to ``workers`` processes (default:
-    all cores); ``store`` (open for writing) is consolidated as runs complete."""
+def run_locally(target: RunTarget, plans: list[RunPlan], workers: int | None, progress, store) -> None:
+    """Simulate ``plans`` into the store ``target`` with up to ``workers`` processes (default: all
+    cores); ``store`` (open for writing) is consolidated as runs complete."""
     total = {p.name: p.n_frames for p in plans}
     cores = workers or os.cpu_count() or 1
     workers = max(1, min(cores, len(plans)))
@@ -29,7 +27,7 @@ def run_locally(location: str, plans: list[RunPlan], grid: SensorGrid, workers: 
         if cores > 1:
             spare.set()
         for plan in plans:
-            write_run(location, plan, grid, _Direct(progress, total), storage_options, spare)
+            write_run(target, plan, _Direct(progress, total), spare)
             store.consolidate()
         return
     ctx = mp.get_context("spawn")  # no fork: zarr's event loop thread must not be copied
@@ -37,7 +35,7 @@ def run_locally(location: str, plans: list[RunPlan], grid: SensorGrid, workers: 
     saved = {k: os.environ.get(k) for k in _THREAD_VARS}
     os.environ.update({k: "1" for k in _THREAD_VARS if k not in os.environ})
     try:
-        _run_pool(ctx, location, plans, grid, workers, total, progress, store, storage_options)
+        _run_pool(ctx, target, plans, workers, total, progress, store)
     finally:
         for k, v in saved.items():
             if v is None:
@@ -47,14 +45,13 @@ def run_locally(location: str, plans: list[RunPlan], grid: SensorGrid, workers: 
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
-def _run_pool(ctx, loc: str, todo: list[RunPlan], grid: SensorGrid, workers: int, total: dict,
-              progress, store, storage_options: dict | None = None) -> None:
+def _run_pool(ctx, target: RunTarget, todo: list[RunPlan], workers: int, total: dict, progress, store) -> None:
     """One task per run in a process pool; progress arrives through a managed queue."""
     with ctx.Manager() as manager:
         queue = manager.Queue()
         spare = manager.Event()  # set once fewer runs remain than workers: a core is free
         with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=keep_freed_memory) as pool:
-            pending = {pool.submit(write_run, loc, p, grid, queue, storage_options, spare) for p in todo}
+            pending = {pool.submit(write_run, target, p, queue, spare) for p in todo}
             done = {p.name: 0 for p in todo}
             while pending:
                 if len(pending) < workers:

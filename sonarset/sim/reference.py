@@ -8,7 +8,7 @@ Cosys-Lab toolbox's ``calculateDMASCF``: delay-and-sum (in the frequency domain,
 signal), and DMAS3 with a coherence factor (in the time domain, on the steered channel signals).
 Nothing here shares code with the fast model's PSF tables except the sweep definition and the
 microphone positions; the post-processing of the envelope image (``energyscape.postprocess``) is
-an image operation that both use. The beamforming is ``beamform``'s exact path, shared with
+an image operation that both use. The beamforming is the exact path (``sensor.exact``), shared with
 ``sonarset import-raw``; ``microphone_signals`` renders the same echoes as time-domain recordings.
 """
 
@@ -20,9 +20,9 @@ import numpy as np
 from scipy import fft as sfft
 
 from sonarset.format.attrs import SensorGrid
-from sonarset.sensor.beamform import band_bins, band_envelope, check_detector, range_samples, steering, sweep_norm
-from sonarset.sensor.ertis import C_SOUND, F_HI, F_LO, SWEEP_S, microphone_y
-from sonarset.sim.sonar import Echoes, sweep
+from sonarset.sensor.ertis import C_SOUND, F_HI, F_LO, SWEEP_S, microphone_y, sweep
+from sonarset.sensor.exact import band_bins, band_envelope, check_detector, range_samples, steering, sweep_norm
+from sonarset.sim.sonar import Echoes
 
 FS_REF = 200e3  # Hz: above Nyquist for the 50 kHz top of the sweep
 
@@ -44,7 +44,7 @@ def reference_amplitude(echoes: Echoes, grid: SensorGrid, beamformer: str = "das
     than half a wavelength apart, so their coherent sum would be an artefact of the sampling). By
     default the reference does the same in expectation: each echo gets an independent random phase
     and the energy is averaged over ``realizations``. ``coherent=True`` keeps all phases at zero.
-    The beamforming is ``beamform``'s exact path, which ``sonarset import-raw`` checks itself against.
+    The beamforming is the exact path (``sensor.exact``), which ``sonarset import-raw`` checks itself against.
     """
     detector = check_detector(beamformer, None)
     y = microphone_y()
@@ -65,12 +65,12 @@ def reference_amplitude(echoes: Echoes, grid: SensorGrid, beamformer: str = "das
 def microphone_signals(echoes: Echoes, grid: SensorGrid, *, fs: float = FS_REF, coherent: bool = False,
                        seed: int = 0, realizations: int = 1, snr_db: float | None = None) -> np.ndarray:
     """The 32 eRTIS microphone signals (K, 32, n) float32 of ``echoes``, one measurement per
-    realization: each echo is the emitted sweep (``sonar.sweep``) with amplitude ``echoes.amp``,
+    realization: each echo is the emitted sweep (``ertis.sweep``) with amplitude ``echoes.amp``,
     delayed by its two-way travel time (sample 0 is the start of the emission), long enough for the
     grid's farthest range. Echo phases as ``reference_amplitude`` draws them (``seed``).
 
     ``snr_db``: white Gaussian noise at each microphone, this many dB below the strongest echo's
-    amplitude (the simulator's SNR definition, DESIGN.md §3).
+    amplitude (the simulator's SNR definition, docs/physics.md, "Noise").
     """
     y = microphone_y()
     s = sweep(fs)

@@ -20,7 +20,7 @@ from sonarset.format.attrs import Processing, RobotRig, SensorGrid
 from sonarset.store.store import open_store
 from sonarset.version import __version__
 from sonarset.sim.robot import SENSOR_OFFSET, V_MAX, W_MAX, WHEEL_BASE, ExplorationPolicy, apply_slip, integrate
-from sonarset.sim.sonar import SonarModel
+from sonarset.sim.sonar import SonarModel, check_psf
 from sonarset.sim.families import load_world
 
 DT = 0.2  # s, 5 Hz frames
@@ -55,15 +55,21 @@ def spawn_seeds(seed: int, n: int) -> list[int]:
     return [int(ss.generate_state(1, np.uint64)[0] >> np.uint64(1)) for ss in np.random.SeedSequence(seed).spawn(n)]
 
 
+def world_seed(seed: int) -> int:
+    """The seed of the world-family variant a run (or trial) seeded ``seed`` drives in: one rule for
+    generated runs and the experiments, so a seed names the same world in both."""
+    return seed % 1_000_003
+
+
 def world_mix(world: str, runs: int | None = None) -> list[tuple[str, int]]:
-    """The (world, training runs) pairs of a ``--world`` value.
+    """The (world, training runs) pairs of a ``world`` value.
 
     ``lab`` takes ``runs`` (default 10); a mix names each world's count, ``lab:4,orchard:2``
     (built-in families or world files, in order), and then ``runs`` must not be given.
     """
     entries = [e.strip() for e in world.split(",") if e.strip()]
     if not entries:
-        raise SonarSetError("--world: empty; give a world family (lab) or a mix (lab:4,orchard:2)")
+        raise SonarSetError("world is empty; give a world family (lab) or a mix (lab:4,orchard:2)", parameter="world")
     mix = []
     for entry in entries:
         name, sep, count = entry.rpartition(":")
@@ -73,40 +79,93 @@ def world_mix(world: str, runs: int | None = None) -> list[tuple[str, int]]:
             mix.append((entry, None))
     counted = [n is not None for _, n in mix]
     if any(counted) and not all(counted):
-        raise SonarSetError(f"--world {world!r}: give every world a run count (lab:4,orchard:2) or none")
+        raise SonarSetError(f"world {world!r}: give every world a run count (lab:4,orchard:2) or none",
+                            parameter="world")
     if not any(counted):
         if len(mix) > 1:
-            raise SonarSetError(f"--world {world!r}: several worlds need a run count each (lab:4,orchard:2)")
+            raise SonarSetError(f"world {world!r}: several worlds need a run count each (lab:4,orchard:2)",
+                                parameter="world")
         return [(mix[0][0], 10 if runs is None else runs)]
     if runs is not None:
-        raise SonarSetError(f"--world {world!r} gives the run counts; drop --runs")
+        raise SonarSetError(f"world {world!r} gives the run counts; leave runs unset", parameter="world")
     names = [name for name, _ in mix]
     if len(set(names)) < len(names):
-        raise SonarSetError(f"--world {world!r}: a world is named twice")
+        raise SonarSetError(f"world {world!r}: a world is named twice", parameter="world")
     return [(name, int(n)) for name, n in mix]
 
 
-def plan_runs(runs: int | None = None, test_runs: int = 1, minutes: float = 25.0, seed: int = 0,
-              world: str = "lab", snr_db: float = 5.0, psf: str = "array",
-              processing: Processing | None = None) -> list[RunPlan]:
+@dataclass(frozen=True)
+class GenerationSpec:
+    """What a store of simulated runs holds: the settings that decide its arrays, checked once, here.
+
+    ``world`` is a world family or file with ``runs`` training runs (default 10), or a mix that
+    counts each world's runs (``runs`` then stays None); each world also gets ``test_runs`` test
+    runs of ``minutes`` each. ``processing`` is a profile name or ``Processing`` settings (held as
+    settings); ``psf`` the azimuth PSF, which must suit the processing's beamformer. Invalid
+    settings raise SonarSetError with a one-line reason.
+    """
+
+    runs: int | None = None
+    test_runs: int = 1
+    minutes: float = 25.0
+    seed: int = 0
+    world: str = "lab"
+    snr_db: float = 5.0
+    psf: str = "array"
+    processing: Processing = field(default_factory=Processing.ertis)
+    grid: SensorGrid = field(default_factory=SensorGrid.default)
+
+    def __post_init__(self) -> None:
+        mix = self.world_mix()
+        if isinstance(self.processing, str):
+            try:
+                object.__setattr__(self, "processing", Processing.named(self.processing))
+            except ValueError as exc:
+                raise SonarSetError(str(exc), parameter="processing") from None
+        try:
+            check_psf(self.psf, self.processing)
+        except ValueError as exc:
+            raise SonarSetError(str(exc), parameter="psf") from None
+        if self.n_frames < 1:
+            raise SonarSetError(f"minutes must give at least one frame at 5 Hz (got {self.minutes})",
+                                parameter="minutes")
+        if min(n for _, n in mix) < 0 or self.test_runs < 0 or sum(n for _, n in mix) + self.test_runs * len(mix) < 1:
+            raise SonarSetError("need at least one run", parameter="runs")
+
+    @property
+    def n_frames(self) -> int:
+        """Frames of every run."""
+        return int(round(self.minutes * 60 / DT))
+
+    def world_mix(self) -> list[tuple[str, int]]:
+        return world_mix(self.world, self.runs)
+
+
+def plan_runs(spec: GenerationSpec) -> list[RunPlan]:
     """The runs of a store: every world's training runs in the order given, then ``test_runs``
     test runs of each world. Run k's seed is the k-th spawned from ``seed``, so one world's plans
     do not depend on how the runs are scheduled."""
-    n_frames = int(round(minutes * 60 / DT))
-    if n_frames < 1:
-        raise SonarSetError(f"--minutes {minutes} gives no frames at 5 Hz")
-    mix = world_mix(world, runs)
+    mix = spec.world_mix()
     n_train = sum(n for _, n in mix)
-    if min(n for _, n in mix) < 0 or test_runs < 0 or n_train + test_runs * len(mix) < 1:
-        raise SonarSetError("need at least one run")
-    worlds = [w for w, n in mix for _ in range(n)] + [w for w, _ in mix for _ in range(test_runs)]
+    worlds = [w for w, n in mix for _ in range(n)] + [w for w, _ in mix for _ in range(spec.test_runs)]
     plans = []
-    for k, (s, w) in enumerate(zip(spawn_seeds(seed, len(worlds)), worlds)):
+    for k, (s, w) in enumerate(zip(spawn_seeds(spec.seed, len(worlds)), worlds)):
         name, split = (f"run_{k:03d}", "train") if k < n_train else (f"test_{k - n_train:03d}", "test")
         # Every run gets its own variant of a world family; a world file is the same for all.
-        plans.append(RunPlan(name, split, s, w, s % 1_000_003, n_frames, float(snr_db), psf,
-                             processing or Processing.ertis()))
+        plans.append(RunPlan(name, split, s, w, world_seed(s), spec.n_frames, float(spec.snr_db), spec.psf,
+                             spec.processing))
     return plans
+
+
+@dataclass(frozen=True)
+class RunTarget:
+    """Where a generation task writes its run: the store at ``location`` (a path or fsspec URL,
+    opened with ``storage_options``) and its grid. A process pool or a Dask cluster ships it to
+    every task."""
+
+    location: str
+    grid: SensorGrid
+    storage_options: dict | None = None
 
 
 def simulate_blocks(plan: RunPlan, grid: SensorGrid, block: int = DEFAULT_CHUNK_FRAMES,
@@ -162,11 +221,10 @@ def simulate_blocks(plan: RunPlan, grid: SensorGrid, block: int = DEFAULT_CHUNK_
             yield later.result()
 
 
-def write_run(location: str, plan: RunPlan, grid: SensorGrid, queue=None, storage_options: dict | None = None,
-              spare_core=None) -> str:
-    """Simulate ``plan`` into its run group of the store at ``location``: one task of a local pool
-    or of a Dask cluster. ``queue`` receives (run name, frames) as blocks are written."""
-    store = open_store(location, "r+", storage_options=storage_options)
+def write_run(target: RunTarget, plan: RunPlan, queue=None, spare_core=None) -> str:
+    """Simulate ``plan`` into its run group of the store ``target``: one task of a local pool or of
+    a Dask cluster. ``queue`` receives (run name, frames) as blocks are written."""
+    store = open_store(target.location, "r+", storage_options=target.storage_options)
     # Whatever a killed writer left of this run goes, including a group folder whose zarr.json was
     # never renamed into place (zarr does not see it as a node, so the writer would not replace it)
     # and the zarr.<id>.partial temp files of its last writes.
@@ -178,7 +236,7 @@ def write_run(location: str, plan: RunPlan, grid: SensorGrid, queue=None, storag
             cf.ThreadPoolExecutor(1) as writer:
         # Block k is compressed and written (GIL released) while block k+1 is simulated.
         pending = None
-        for start, arrays in simulate_blocks(plan, grid, spare_core=spare_core):
+        for start, arrays in simulate_blocks(plan, target.grid, spare_core=spare_core):
             if pending is not None:
                 pending.result()
             pending = writer.submit(w.write, start, **arrays)

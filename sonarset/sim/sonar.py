@@ -1,23 +1,10 @@
 """eRTIS-like 2D imaging sonar: visible reflectors -> log energyscape on the sensor grid.
 
-Physics (DESIGN.md §3), with sources:
-- Sound speed 343 m/s (dry air, 20 °C).
-- Air absorption 1.3 dB/m at 40 kHz (ISO 9613-1:1993, 20 °C, 50 % RH), applied over the two-way
-  path 2r.
-- Emitter: baffled circular piston, D(θ) = 2 J1(ka sinθ) / (ka sinθ) (Kinsler et al., Fundamentals
-  of Acoustics, §7.5), radius 4 mm at 40 kHz.
-- Specular lobe cos^n of the incidence angle, n = 6 (Kuc & Siegel 1987 use n in 5-8 for smooth walls).
-- Spreading: wall ~ 1/(2r) (image source), pole of radius a ~ sqrt(a)/(2 r^1.5), point ~ a/(2r^2)
-  (cylinder and sphere backscatter, Bowman et al., Electromagnetic and Acoustic Scattering by Simple
-  Shapes).
-- Range PSF: envelope of the matched-filtered, Hann-windowed 25->50 kHz FM sweep of 2.5 ms, low-passed
-  at 6 kHz: FWHM 2.06 cm (eRTIS processing, Kerstens et al. 2019; public RTIS Dev defaults). Each
-  range bin averages the energy over its width, so coarse grids do not alias the PSF.
-- Azimuth PSF: delay-and-sum beam pattern of the 32-microphone eRTIS array (sonarset/data/
-  ertis32_microphones.csv), energy-averaged over the sweep band: -3 dB width 5.6° broadside, growing
-  as 1/cos θ because a linear array's pattern is shift-invariant in u = sin θ.
-- Noise: SNR is peak echo amplitude over noise std at one microphone; matched filter and array add
-  ~33 dB processing gain (10 log10 of time-bandwidth 62.5 plus 32 microphones: 18 + 15 dB).
+The fast image-domain model: the echo of every visible reflector (reflectivity x specular lobe x
+spreading x emitter directivity x air absorption) is spread over the grid by separable PSFs, the
+range PSF (the low-passed envelope of the matched-filtered sweep) and the azimuth PSF (the array's
+beam pattern, shift-invariant in u = sin theta). docs/physics.md has every number with its
+source; each constant below names its own.
 
 Echoes add incoherently in energy. The image is then made as the sensor's toolchain makes it
 (``energyscape.py``, the ``processing`` settings): delay-and-sum, or DMAS3 with a coherence factor
@@ -39,33 +26,22 @@ from scipy import signal, special
 
 from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.sensor.energyscape import dmas3_beam_table, dmas3_noise_gain, postprocess, smooth
-from sonarset.sensor.ertis import C_SOUND, F_HI, F_LO, SWEEP_S, microphone_y
+from sonarset.sensor.ertis import AZIMUTH_PSFS, C_SOUND, F_HI, F_LO, envelope_lowpass, microphone_y, sweep
 from sonarset.sim.kernels import accumulate_psf_coherence, coherence_amplitude, reflector_echoes
 from sonarset.sim.robot import sensor_pose
 from sonarset.sim.world import World
 
-ABSORPTION_DB_PER_M = 1.3
-ENVELOPE_LP_HZ = 6e3
-EMITTER_RADIUS = 0.004
-SPECULAR_N = 6
+ABSORPTION_DB_PER_M = 1.3  # at 40 kHz (ISO 9613-1:1993, 20 degC, 50 % RH), over the two-way path 2r
+EMITTER_RADIUS = 0.004  # m, a baffled circular piston (Kinsler et al., Fundamentals of Acoustics, 7.5)
+SPECULAR_N = 6  # cos^n lobe of a wall (Kuc & Siegel 1987: n in 5-8 for smooth walls)
+# matched filter and array: 10 log10 of the time-bandwidth product 62.5 (18 dB) and of 32 microphones (15 dB)
 PROCESSING_GAIN_DB = 33.0
 # Electronic noise floor of the sensor after processing, dB re full scale. The per-frame SNR sets
 # the noise relative to the frame's strongest echo; without a floor, a robot facing open space
 # would see its noise shrink with its echoes to a black image, which no real sensor shows.
 NOISE_FLOOR_DB = -55.0
-DYNAMIC_RANGE_DB = 60.0
 FS = 500e3  # sampling rate for tabulating the range PSF
 WALL_STEP = 0.02  # m between wall samples; energies are weighted by it, so images do not depend on it
-
-
-def sweep(fs: float = FS) -> np.ndarray:
-    t = np.arange(int(round(SWEEP_S * fs))) / fs
-    return signal.chirp(t, F_LO, SWEEP_S, F_HI) * signal.windows.hann(len(t))
-
-
-def envelope_lowpass(env: np.ndarray, fs: float, axis: int = -1) -> np.ndarray:
-    b, a = signal.butter(2, ENVELOPE_LP_HZ, fs=fs)
-    return signal.filtfilt(b, a, env, axis=axis)
 
 
 @functools.lru_cache(maxsize=4)
@@ -108,7 +84,7 @@ def mainlobe_table(n: int = 4001) -> tuple[np.ndarray, np.ndarray]:
     return du, np.exp(-du ** 2 / (4 * sigma ** 2))
 
 
-BEAMS = {"array": beam_table, "mainlobe": mainlobe_table}
+BEAMS = dict(zip(AZIMUTH_PSFS, (beam_table, mainlobe_table)))  # the tables, in AZIMUTH_PSFS's order
 
 
 def check_psf(psf: str, processing: Processing) -> None:
@@ -175,7 +151,7 @@ class SonarModel:
 
     grid: SensorGrid
     snr_db: float = 5.0
-    dynamic_range_db: float = DYNAMIC_RANGE_DB
+    dynamic_range_db: float = Processing.model_fields["span_db"].default  # of the raw images (the format's)
     psf: str = "array"  # azimuth PSF: "array" (the eRTIS delay-and-sum pattern) or "mainlobe"
     processing: Processing = field(default_factory=Processing.ertis)
 

@@ -21,6 +21,8 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec, BytesCodec
 
+from sonarset.format.problems import Problem
+
 BLOSC_HEADER_BYTES = 16
 
 
@@ -35,7 +37,7 @@ def chunk_coords(arr: zarr.Array, start: int = 0, stop: int | None = None) -> It
     return itertools.product(first, *rest)
 
 
-def blosc_problem(head: bytes, size: int, decoded_nbytes: int) -> str | None:
+def _blosc_phrase(head: bytes, size: int, decoded_nbytes: int) -> str | None:
     """What is wrong with a blosc chunk of ``size`` bytes starting with ``head``; None if nothing.
 
     Blosc 1.x header: version, versionlz, flags, typesize (1 byte each), then little-endian uint32
@@ -78,7 +80,7 @@ class ChunkChecker:
     def key(self, coords: tuple[int, ...]) -> str:
         return self.arr.metadata.encode_chunk_key(coords)
 
-    def problem(self, coords: tuple[int, ...]) -> str | None:
+    def _problem(self, coords: tuple[int, ...]) -> str | None:
         """None when the chunk at ``coords`` looks sound, else what is wrong (a phrase)."""
         key = self.key(coords)
         if self.local is None:
@@ -121,31 +123,43 @@ class ChunkChecker:
         if size is None:
             return self._missing()
         if self.kind == "blosc":
-            return blosc_problem(head, size, self.decoded_nbytes)
+            return _blosc_phrase(head, size, self.decoded_nbytes)
         if self.kind == "raw" and size != self.decoded_nbytes:
             return f"is corrupt or truncated: {size} bytes, the chunk shape needs {self.decoded_nbytes}"
         return None
 
-    @staticmethod
-    def is_missing(problem: str) -> bool:
-        return problem.startswith("is missing")
-
     def _missing(self) -> str:
         fill = self.arr.metadata.fill_value
-        return f"is missing from storage (deleted?); zarr would silently read it as the fill value {fill}"
+        return f"{_MISSING} (deleted?); zarr would silently read it as the fill value {fill}"
 
-    def first_problem(self, start: int = 0, stop: int | None = None) -> tuple[str, str] | None:
-        """(chunk key, problem) of the first unsound chunk holding frames start..stop-1, or None."""
+    def first_problem(self, start: int = 0, stop: int | None = None) -> list[Problem]:
+        """The first unsound chunk holding frames start..stop-1 (what a reader refuses)."""
         coords = list(chunk_coords(self.arr, start, stop))
         if self.local is None:
             keys = [self.key(c) for c in coords]
-            for key, fetched in zip(keys, self._fetch(keys)):
-                p = self._judge(*fetched)
-                if p is not None:
-                    return key, p
-            return None
-        for c in coords:
-            p = self.problem(c)
-            if p is not None:
-                return self.key(c), p
-        return None
+            found = ((key, self._judge(*fetched)) for key, fetched in zip(keys, self._fetch(keys)))
+        else:
+            found = ((self.key(c), self._problem(c)) for c in coords)
+        for key, phrase in found:
+            if phrase is not None:
+                return [Problem("", f"chunk {key} {phrase}")]
+        return []
+
+    def damage(self) -> tuple[list[Problem], list[Problem]]:
+        """Every unsound chunk, as ``validate`` reports them: the chunks missing from storage, in one
+        problem, and the first whose size disagrees with its header or shape (zarr would decode it
+        from memory past its end)."""
+        missing, damaged = [], None
+        for coords in chunk_coords(self.arr):
+            phrase = self._problem(coords)
+            if phrase is None:
+                continue
+            if phrase.startswith(_MISSING):
+                missing.append(self.key(coords))
+            elif damaged is None:
+                damaged = Problem("", f"chunk {self.key(coords)} {phrase}")
+        lost = [Problem("", f"{len(missing)} chunk(s) missing from storage (deleted?), first: {missing[0]}")] if missing else []
+        return lost, ([damaged] if damaged is not None else [])
+
+
+_MISSING = "is missing from storage"

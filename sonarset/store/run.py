@@ -1,25 +1,71 @@
-"""A run of a SonarSet store, read lazily and checked as it is read (spec/FORMAT.md §2)."""
+"""A run of a SonarSet store, read lazily and checked as it is read (spec/FORMAT.md §2).
+
+The helpers that open a run's arrays (``member_names``, ``open_array``, ``decode_problems``) are
+what ``validate`` walks a run with too: the reader raises the first of their problems.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import zarr
 
-from sonarset.format.arrays import (
-    ARRAYS, OPTIONAL_ARRAYS, array_meta_problems, coordinates_match, expected_shape, frame_interval_problem,
-    time_order_problem, value_problem,
-)
 from sonarset.errors import FormatError, SonarSetError, one_line
-from sonarset.store.integrity import ChunkChecker, chunk_coords
-from sonarset.format.plausibility import command_problems
+from sonarset.format.arrays import (
+    ARRAYS, OPTIONAL_ARRAYS, array_meta_problems, coordinate_problems, expected_shape, frame_interval_problems,
+    time_order_problems, value_problems,
+)
 from sonarset.format.attrs import RunAttrs
+from sonarset.format.problems import Problem, raise_first
+from sonarset.format.rules import command_limit_problems
+from sonarset.store.integrity import ChunkChecker, chunk_coords
+from sonarset.store.root import StoreRoot
 from sonarset.store.zarrio import child_names
 
-if TYPE_CHECKING:
-    from sonarset.store.store import SonarStore
+
+def member_names(group: zarr.Group) -> set[str]:
+    """The arrays of a run group; where one member's metadata is unreadable, every child as stored
+    (opening each then says which)."""
+    try:
+        return set(group.array_keys())
+    except Exception:
+        return set(child_names(group))
+
+
+def open_array(group: zarr.Group, key: str, where: str, n_frames: int, grid_shape: tuple[int, int],
+               present: set[str]) -> tuple[zarr.Array | None, list[Problem]]:
+    """Array ``key`` of the run group at ``where`` (whose arrays are ``present``), and every problem
+    with its metadata; None where its values cannot be read (missing, unreadable, or a dtype or
+    shape the spec does not allow)."""
+    if key not in present:
+        return None, [Problem(where, f"missing {'required' if ARRAYS[key].required else 'optional'} array {key!r}")]
+    aw = f"{where}/{key}"
+    try:
+        arr = group[key]
+        if not isinstance(arr, zarr.Array):
+            return None, [Problem(aw, "is a group, not an array")]
+        dims = tuple(arr.metadata.dimension_names or ())
+        dtype, shape = str(arr.dtype), tuple(arr.shape)
+    except Exception as exc:  # metadata zarr cannot parse, or parsed but we cannot interpret
+        return None, [Problem(aw, f"unreadable zarr metadata ({one_line(exc)})")]
+    problems = [p.at(where) for p in array_meta_problems(key, dtype, dims, shape, n_frames, grid_shape)]
+    readable = dtype in ARRAYS[key].dtypes and shape == expected_shape(key, n_frames, grid_shape)
+    return (arr if readable else None), problems
+
+
+def decode_problems(arr: zarr.Array, start: int, stop: int, exc: Exception) -> list[Problem]:
+    """Frames ``start .. stop-1`` of ``arr`` failed to decode with ``exc``: the first chunk among
+    them that fails on its own."""
+    chunks = arr.metadata.chunk_grid.chunk_shape
+    for coords in chunk_coords(arr, start, stop):
+        sel = tuple(slice(c * cs, min((c + 1) * cs, n)) for c, cs, n in zip(coords, chunks, arr.shape))
+        try:
+            arr[sel]
+        except Exception as one:
+            return [Problem("", f"chunk {arr.metadata.encode_chunk_key(coords)} is corrupt or truncated: cannot be "
+                                f"decoded ({one_line(one)})")]
+    return [Problem("", f"frames {start}..{stop - 1} cannot be read ({one_line(exc)})")]
 
 
 @dataclass
@@ -48,7 +94,7 @@ class Run:
     run, the array and the chunk, instead of handing back fill values or garbage.
     """
 
-    def __init__(self, store: "SonarStore", name: str, attrs: RunAttrs):
+    def __init__(self, store: StoreRoot, name: str, attrs: RunAttrs):
         self.store, self.name, self.attrs = store, name, attrs
         #: Frames in the run (the length of every per-frame array), and the split it belongs to.
         self.n_frames, self.split = attrs.n_frames, attrs.split
@@ -64,10 +110,7 @@ class Run:
 
     def _member_names(self) -> set[str]:
         if self._members is None:
-            try:
-                self._members = set(self.group.array_keys())
-            except Exception:  # a member's metadata is unreadable: array() names it
-                self._members = set(child_names(self.group))
+            self._members = member_names(self.group)
         return self._members
 
     def has(self, key: str) -> bool:
@@ -80,25 +123,9 @@ class Run:
             return self._arrays[key]
         if key not in ARRAYS:
             raise KeyError(key)
-        where = f"{self.where}/{key}"
-        if not self.has(key):
-            raise FormatError(f"{self.where}: has no {key!r} array")
-        try:
-            arr = self.group[key]
-        except Exception as exc:
-            raise FormatError(f"{where}: unreadable zarr metadata ({one_line(exc)})") from None
-        if not isinstance(arr, zarr.Array):
-            raise FormatError(f"{where}: is a group, not an array")
-        try:
-            dims = tuple(arr.metadata.dimension_names or ())
-            problems = array_meta_problems(key, str(arr.dtype), dims, tuple(arr.shape),
-                                           expected_shape(key, self.n_frames, self.store.grid.shape))
-        except Exception as exc:  # metadata zarr accepted but we cannot interpret
-            raise FormatError(f"{where}: unusable zarr metadata ({one_line(exc)})") from None
-        if problems:
-            context = (f" (n_frames={self.n_frames}, grid {self.store.grid.shape[0]}x{self.store.grid.shape[1]})"
-                       if problems[0].startswith("shape") else "")
-            raise FormatError(f"{where}: {problems[0]}{context}")
+        arr, problems = open_array(self.group, key, self.where, self.n_frames, self.store.grid.shape,
+                                   self._member_names())
+        raise_first(problems)
         self._arrays[key] = arr
         return arr
 
@@ -129,21 +156,15 @@ class Run:
         keys = [k for k, spec in ARRAYS.items() if spec.required or self.has(k)]
         for key in keys:
             self.array(key)
-        grid = self.store.grid
-        for key, centres in (("range", grid.range_centres()), ("azimuth", grid.azimuth_centres())):
-            values = self.read(key)
-            if not coordinates_match(values, centres):
-                raise FormatError(f"{self.where}/{key}: coordinates do not match the store grid "
-                                  f"(got {values[0]:.6g}..{values[-1]:.6g}, grid {centres[0]:.6g}..{centres[-1]:.6g})")
+        for key in ("range", "azimuth"):
+            raise_first([p.at(self.where) for p in coordinate_problems(key, self.read(key), self.store.grid)])
         if chunks:
             for key in keys:
                 if self._checker(key).local is None:
                     # Remote: checking a chunk means fetching it, so each chunk is checked when
                     # it is read (``read``), through the chunk cache, not all of them at open.
                     continue
-                bad = self._checker(key).first_problem()
-                if bad is not None:
-                    raise FormatError(f"{self.where}/{key}: chunk {bad[0]} {bad[1]}")
+                raise_first([p.at(f"{self.where}/{key}") for p in self._checker(key).first_problem()])
 
     def read(self, key: str, start: int = 0, stop: int | None = None, out: np.ndarray | None = None) -> np.ndarray:
         """Frames ``start .. stop-1`` of array ``key`` (all of a coordinate array), checked.
@@ -151,7 +172,8 @@ class Run:
         The chunks read must be present and as long as their headers say, must decode, and the
         values must be what the spec allows (images finite and in [0, 1], the rest finite; a
         whole ``time`` array also strictly increasing and spaced as the declared frame rate; a
-        whole ``velocity`` array within the rig's command limits, as ``validate`` demands).
+        whole ``velocity`` array commands a ground robot could follow), by the rules ``validate``
+        applies (``sonarset.format``); commands beyond the store's own rig are only implausible.
 
         With ``out`` (an array of the block's shape, any float dtype) the values are checked and
         copied into it one chunk's worth at a time, while that piece is still in the CPU cache:
@@ -163,34 +185,25 @@ class Run:
         stop = n if stop is None else min(int(stop), n)
         start = max(0, int(start))
         where = f"{self.where}/{key}"
-        bad = self._checker(key).first_problem(start, stop)
-        if bad is not None:
-            raise FormatError(f"{where}: chunk {bad[0]} {bad[1]}")
+        raise_first([p.at(where) for p in self._checker(key).first_problem(start, stop)])
         try:
             block = arr[start:stop]
         except Exception as exc:
-            raise self._decode_error(key, start, stop, exc) from None
+            raise_first([p.at(where) for p in decode_problems(arr, start, stop, exc)])
         step = block.shape[0] if out is None else max(1, arr.metadata.chunk_grid.chunk_shape[0])
         for i in range(0, block.shape[0], step):
             piece = block[i:i + step]
-            problem = value_problem(key, piece, start + i)
-            if problem is not None:
-                frame, line = problem
-                raise FormatError(f"{where}: {line}{self._chunk_of(key, frame)}")
+            for problem in value_problems(key, piece, start + i):
+                raise FormatError(f"{problem.at(self.where)}{self._chunk_of(key, problem.frame)}")
             if out is not None:
                 out[i:i + piece.shape[0]] = piece
         if out is not None:
             block = out
         if key == "velocity" and start == 0 and stop == n:
-            # Only commands no ground robot could follow are unreadable; commands beyond this rig's
-            # declared limits are implausible, which validate reports and --allow-implausible accepts.
-            lines = command_problems(block, None)
-            if lines:
-                raise FormatError(f"{where}: {lines[0].split(': ', 1)[1]}")
+            raise_first([p.at(self.where) for p in command_limit_problems(block)])
         if key == "time" and start == 0 and stop == n:
-            line = time_order_problem(block) or frame_interval_problem(block, self.store.attrs.frame_rate_hz)
-            if line is not None:
-                raise FormatError(f"{where}: {line}")
+            raise_first([p.at(self.where) for p in
+                         time_order_problems(block) or frame_interval_problems(block, self.store.attrs.frame_rate_hz)])
         return block
 
     def read_time(self) -> np.ndarray:
@@ -205,19 +218,6 @@ class Run:
         if any(c < s for c, s in zip(chunks[1:], arr.shape[1:])):
             return ""  # chunked along other axes too: the frame alone says where
         return f" in chunk {arr.metadata.encode_chunk_key((frame // chunks[0],) + (0,) * (arr.ndim - 1))}"
-
-    def _decode_error(self, key: str, start: int, stop: int, exc: Exception) -> FormatError:
-        """The error for a read that failed: it names the first chunk that fails on its own."""
-        arr = self.array(key)
-        chunks = arr.metadata.chunk_grid.chunk_shape
-        for coords in chunk_coords(arr, start, stop):
-            sel = tuple(slice(c * cs, min((c + 1) * cs, n)) for c, cs, n in zip(coords, chunks, arr.shape))
-            try:
-                arr[sel]
-            except Exception as one:
-                return FormatError(f"{self.where}/{key}: chunk {arr.metadata.encode_chunk_key(coords)} cannot be "
-                                   f"decoded ({one_line(one)})")
-        return FormatError(f"{self.where}/{key}: frames {start}..{stop - 1} cannot be read ({one_line(exc)})")
 
     def load(self, image_dtype: str | np.dtype | None = None) -> RunData:
         """Read the whole run into memory (decoding each chunk once), checked as ``read`` does."""

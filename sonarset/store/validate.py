@@ -1,37 +1,51 @@
 """Conformance checks of a SonarSet store against spec/FORMAT.md.
 
 ``validate_store`` never raises for a bad store: it returns one :class:`Problem` per finding,
-so that ``sonarset validate`` can print them all, one line each.
+so that ``sonarset validate`` can print them all, one line each. It walks the store with the same
+helpers the readers use (``store.root``, ``store.run``, ``store.integrity``), applying the same
+rules (``sonarset.format.rules``, ``sonarset.format.arrays``): where a reader raises the first
+problem, this lists them all.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, ClassVar
 
 import numpy as np
 import zarr
-from pydantic import ValidationError
 
-from sonarset.format.arrays import (
-    ARRAYS, array_meta_problems, coordinates_match, expected_shape, frame_interval_problem, in_unit_interval,
-    nonfinite_frame, time_order_problem, unit_interval_problem,
-)
 from sonarset.errors import SonarSetError, one_line
-from sonarset.store.integrity import ChunkChecker, chunk_coords
-from sonarset.format.plausibility import store_problems
+from sonarset.format.arrays import (
+    ARRAYS, coordinate_problems, frame_interval_problems, in_unit_interval, nonfinite_problems, time_order_problems,
+    unit_interval_problems,
+)
+from sonarset.format.plausibility import Implausible, store_problems
 from sonarset.format.problems import Problem
-from sonarset.format.attrs import NAMESPACE, RUN_NAME_RE, SUPPORTED_MAJOR, RunAttrs, StoreAttrs, parse_version, pydantic_problems
-from sonarset.store.store import open_store
+from sonarset.format.rules import command_limit_problems, run_state_problems, store_attrs_problems
+from sonarset.store.integrity import ChunkChecker
+from sonarset.store.root import local_root_problems, open_root, run_group_attrs, run_groups, store_attrs
+from sonarset.store.run import decode_problems, member_names, open_array
+from sonarset.store.store import SonarStore
 from sonarset.store.zarrio import child_names, is_url
 
-__all__ = ["Problem", "ProgressFn", "validate_store"]
+__all__ = ["Problem", "ProgressFn", "Stale", "validate_store"]
 
 
 ProgressFn = Callable[[str, int, int], None]
+
+
+@dataclass(frozen=True)
+class Stale(Problem):
+    """Consolidated metadata that does not match the store (spec/FORMAT.md §6). Only readers that
+    trust the snapshot (those of URLs) are misled, and they cannot tell without listing the store,
+    which the snapshot exists to avoid; readers of local stores list it. So only ``validate``
+    reports it."""
+
+    refused_by_readers: ClassVar[bool] = False
 
 
 def validate_store(location: str | os.PathLike, *, check_data: bool = True,
@@ -49,25 +63,21 @@ def validate_store(location: str | os.PathLike, *, check_data: bool = True,
 
 
 def _validate(loc: str, check_data: bool, progress: ProgressFn | None, plausibility: bool) -> list[Problem]:
-    local = not is_url(loc)
-    problems: list[Problem] = []
-    if local:
-        early = _check_local_root(Path(loc))
+    if not is_url(loc):
+        early = local_root_problems(Path(loc))
         if early:
-            return [early]
+            return early
     # Validation must see what is really there, not a consolidated snapshot.
     try:
-        store = open_store(loc, "r", consolidated=False)
+        root, loc = open_root(loc, "r", consolidated=False)
     except SonarSetError as exc:
-        msg = str(exc)
-        prefix = f"{loc}: "
-        return [Problem(loc, msg[len(prefix):] if msg.startswith(prefix) else msg)]
-    except Exception as exc:  # a store so broken that zarr itself cannot parse it
-        return [Problem(loc, f"cannot be opened as a zarr v3 group ({type(exc).__name__}: {exc})")]
-
-    root = store.group
-    problems += _guarded(loc, lambda: _check_store_attrs(loc, store.attrs))
-    names, listing = _run_groups(loc, root)
+        return [Problem("", str(exc))]
+    attrs, problems = store_attrs(root, loc)
+    if attrs is None:
+        return problems
+    store = SonarStore(root, loc, "r")
+    problems += [p.at(loc) for p in store_attrs_problems(attrs)]
+    names, listing = run_groups(root, loc)
     problems += listing
     if not names and not listing:
         return problems + [Problem(loc, "empty store: no run groups")]
@@ -75,7 +85,10 @@ def _validate(loc: str, check_data: bool, progress: ProgressFn | None, plausibil
         problems += _guarded(f"{loc}/{name}", lambda: _check_run(store, name, check_data, progress))
     problems += _guarded(loc, lambda: _check_consolidated(loc, root, names))
     if plausibility:
-        problems += _guarded(loc, lambda: store_problems(store, check_data))
+        # A value the format refuses is not also implausible: the format problem says it.
+        refused = {p.where for p in problems}
+        problems += [p for p in _guarded(loc, lambda: store_problems(store, check_data))
+                     if not (isinstance(p, Implausible) and p.where in refused)]
     if not problems:
         problems += _guarded(loc, lambda: [] if store.runs() else [Problem(loc, "no complete run")])
     return problems
@@ -89,206 +102,72 @@ def _guarded(where: str, check: Callable[[], list[Problem]]) -> list[Problem]:
         return [Problem(where, f"cannot be checked: {one_line(exc)}")]
 
 
-def _run_groups(loc: str, root: zarr.Group) -> tuple[list[str], list[Problem]]:
-    """The root's child groups, and a problem for each child whose metadata zarr cannot parse
-    (zarr's own listing fails as a whole on one broken child)."""
-    try:
-        return sorted(root.group_keys()), []
-    except Exception:
-        pass
-    names, problems = [], []
-    for name in child_names(root):
-        try:
-            node = root[name]
-        except Exception as exc:
-            problems.append(Problem(f"{loc}/{name}", f"unreadable zarr metadata ({one_line(exc)})"))
-            continue
-        if isinstance(node, zarr.Group):
-            names.append(name)
-    return names, problems
-
-
-def _check_local_root(path: Path) -> Problem | None:
-    where = str(path)
-    if not path.exists():
-        return Problem(where, "no such file or directory")
-    if not path.is_dir():
-        return Problem(where, "not a zarr store (a file, not a directory)")
-    meta = path / "zarr.json"
-    if not meta.is_file():
-        if (path / ".zgroup").exists():
-            return Problem(where, "a Zarr v2 store; SonarSet requires Zarr v3")
-        return Problem(where, "not a zarr store (no zarr.json at its root)")
-    try:
-        doc = json.loads(meta.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        return Problem(str(meta), f"unreadable JSON ({exc})")
-    if not isinstance(doc, dict) or doc.get("zarr_format") != 3:
-        return Problem(str(meta), "not Zarr v3 metadata (zarr_format must be 3)")
-    if doc.get("node_type") != "group":
-        return Problem(where, "root is a zarr array; a SonarSet store is a group")
-    attributes = doc.get("attributes")
-    raw = attributes.get(NAMESPACE) if isinstance(attributes, dict) else None
-    if not isinstance(raw, dict):
-        return Problem(where, f"missing root attribute {NAMESPACE!r}: not a SonarSet store")
-    try:
-        major, _ = parse_version(raw.get("format_version"))
-    except ValueError as exc:
-        return Problem(where, f"attributes.{NAMESPACE}.{exc}")
-    if major != SUPPORTED_MAJOR:
-        return Problem(where, f"unknown major format version {raw.get('format_version')} "
-                              f"(this reader supports {SUPPORTED_MAJOR}.x)")
-    try:
-        StoreAttrs.model_validate(raw)
-    except ValidationError as exc:
-        return Problem(where, "; ".join(pydantic_problems(exc, f"attributes.{NAMESPACE}.")))
-    return None
-
-
-def _check_store_attrs(loc: str, attrs: StoreAttrs) -> list[Problem]:
-    """What the schema alone cannot say about the root attributes (format 1.1)."""
-    rig = attrs.rig
-    if rig is not None and not math.isclose(rig.frame_interval_s * attrs.frame_rate_hz, 1.0, rel_tol=1e-6):
-        return [Problem(loc, f"attributes.{NAMESPACE}.rig.frame_interval_s {rig.frame_interval_s:g} s disagrees "
-                             f"with frame_rate_hz {attrs.frame_rate_hz:g} (1/{attrs.frame_rate_hz:g} = "
-                             f"{1 / attrs.frame_rate_hz:g} s)")]
-    return []
-
-
-def _check_run(store, name: str, check_data: bool, progress: ProgressFn | None) -> list[Problem]:
+def _check_run(store: SonarStore, name: str, check_data: bool, progress: ProgressFn | None) -> list[Problem]:
     where = f"{store.location}/{name}"
-    out: list[Problem] = []
-    if not RUN_NAME_RE.match(name):
-        out.append(Problem(where, "invalid run name (letters, digits, '_', '.', '-')"))
-    group = store.group[name]
-    raw = group.attrs.get(NAMESPACE)
-    if not isinstance(raw, dict):
-        return out + [Problem(where, f"missing run attribute {NAMESPACE!r}")]
-    try:
-        attrs = RunAttrs.model_validate(raw)
-    except ValidationError as exc:
-        return out + [Problem(where, line) for line in pydantic_problems(exc, f"attributes.{NAMESPACE}.")]
+    attrs, out = run_group_attrs(store.group, store.location, name)
+    if attrs is None:
+        return out
+    out += [p.at(where) for p in run_state_problems(attrs)]
     if not attrs.complete:
-        return out + [Problem(where, "incomplete run: its writer did not finish (re-run it or delete the group)")]
-    arrays = _conforming_arrays(where, group, attrs.n_frames, store.grid, out)
-    for key, centres in (("range", store.grid.range_centres()), ("azimuth", store.grid.azimuth_centres())):
-        if key in arrays:
-            out += _coordinate_problems(f"{where}/{key}", arrays.pop(key), centres, "m" if key == "range" else "rad")
-    if check_data:
-        for key, arr in arrays.items():
-            out += _guarded(f"{where}/{key}", lambda: _check_data(f"{where}/{key}", key, arr, progress,
-                                                               store.attrs.frame_rate_hz))
-    return out
-
-
-def _conforming_arrays(where: str, group: zarr.Group, n_frames: int, grid, out: list[Problem]) -> dict[str, zarr.Array]:
-    """The run's arrays whose metadata lets their values be read (dtype and shape as the spec says);
-    a problem in ``out`` for every array missing, unreadable or not conforming."""
-    try:
-        present = set(group.array_keys())
-    except Exception:  # one member's metadata is unreadable: open each below to say which
-        present = set(child_names(group))
-    arrays: dict[str, zarr.Array] = {}
+        return out
+    group = store.group[name]
+    present = member_names(group)
     for key, spec in ARRAYS.items():
-        if key not in present:
-            if spec.required:
-                out.append(Problem(where, f"missing required array {key!r}"))
+        if key not in present and not spec.required:
             continue
-        aw = f"{where}/{key}"
-        try:
-            arr = group[key]
-            if not isinstance(arr, zarr.Array):
-                out.append(Problem(aw, "is a group, not an array"))
-                continue
-            dims = tuple(arr.metadata.dimension_names or ())
-            dtype, shape = str(arr.dtype), tuple(arr.shape)
-        except Exception as exc:
-            out.append(Problem(aw, f"unreadable zarr metadata ({one_line(exc)})"))
-            continue
-        found = array_meta_problems(key, dtype, dims, shape, expected_shape(key, n_frames, grid.shape))
-        out += [Problem(aw, f"{line} (n_frames={n_frames}, grid {grid.shape[0]}x{grid.shape[1]})"
-                        if line.startswith("shape") else line) for line in found]
-        if not any(line.startswith(("dtype", "shape")) for line in found):
-            arrays[key] = arr
-    return arrays
-
-
-def _coordinate_problems(aw: str, arr: zarr.Array, centres: np.ndarray, unit: str) -> list[Problem]:
-    """A coordinate array's chunks, and its values against the store grid's bin centres."""
-    damaged = _damaged_chunks(aw, arr)
-    if damaged:
-        return damaged
-    try:
-        values = arr[:]
-    except Exception as exc:
-        return [Problem(aw, f"unreadable ({one_line(exc)})")]
-    if coordinates_match(values, centres):
-        return []
-    return [Problem(aw, f"coordinates do not match the store grid (got {values[0]:.6g}..{values[-1]:.6g} {unit}, "
-                        f"grid {centres[0]:.6g}..{centres[-1]:.6g} {unit})")]
-
-
-def _damaged_chunks(aw: str, arr: zarr.Array) -> list[Problem]:
-    """Chunks missing from storage, and the first whose size disagrees with its header or shape
-    (zarr would decode it from memory past its end); at most one line each."""
-    checker = ChunkChecker(arr)
-    missing, damaged = [], None
-    for coords in chunk_coords(arr):
-        problem = checker.problem(coords)
-        if problem is None:
-            continue
-        if checker.is_missing(problem):
-            missing.append(checker.key(coords))
-        elif damaged is None:
-            damaged = (checker.key(coords), problem)
-    out = []
-    if missing:
-        out.append(Problem(aw, f"{len(missing)} chunk(s) missing from storage (deleted?), first: {missing[0]}"))
-    if damaged is not None:
-        out.append(Problem(aw, f"chunk {damaged[0]} {damaged[1]}"))
+        arr, found = open_array(group, key, where, attrs.n_frames, store.grid.shape, present)
+        out += found
+        # The coordinates are checked even in a quick pass: they say whether the run is on the grid.
+        if arr is not None and (check_data or key in ("range", "azimuth")):
+            out += _guarded(f"{where}/{key}", lambda: _data_problems(where, key, arr, progress, store))
     return out
 
 
-def _check_data(aw: str, key: str, arr: zarr.Array, progress: ProgressFn | None,
-                frame_rate_hz: float) -> list[Problem]:
-    out = _damaged_chunks(aw, arr)
-    missing = any("chunk(s) missing from storage" in p.message for p in out)
-    if len(out) > int(missing):
+def _data_problems(run: str, key: str, arr: zarr.Array, progress: ProgressFn | None,
+                   store: SonarStore) -> list[Problem]:
+    """The chunks and values of array ``key`` of the run at ``run``, as ``Run.read`` checks them,
+    all of them reported."""
+    aw = f"{run}/{key}"
+    missing, damaged = ChunkChecker(arr).damage()
+    out = [p.at(aw) for p in missing + damaged]
+    if damaged:
         return out  # a chunk that lies about its size decodes to garbage: its values say nothing
     step = arr.metadata.chunk_grid.chunk_shape[0]
     T = arr.shape[0]
-    bad_finite = bad_range = None
+    bad_finite: list[Problem] = []
+    bad_range: list[Problem] = []
     prev_t = -np.inf
     for start in range(0, T, step):
         stop = min(T, start + step)
         try:
             block = arr[start:stop]
         except Exception as exc:
-            key0 = arr.metadata.encode_chunk_key((start // step,) + (0,) * (arr.ndim - 1))
-            out.append(Problem(aw, f"chunk {key0} is corrupt or truncated ({type(exc).__name__})"))
-            return out
+            return out + [p.at(aw) for p in decode_problems(arr, start, stop, exc)]
         # Images finite and in [0, 1], the common case, in one fast pass (float16 isfinite is ~30x slower).
         clean = key == "images" and in_unit_interval(block)
-        nonfinite = None if clean else nonfinite_frame(block, start)
-        bad_finite = nonfinite if bad_finite is None else bad_finite
-        if key == "images" and bad_range is None and not clean:
-            bad_range = unit_interval_problem(block, start)
-        if key == "time" and nonfinite is None:
-            line = time_order_problem(block, prev_t, start)
-            if line is not None:
-                out.append(Problem(aw, f"time is {line}"))
-                return out
+        nonfinite = [] if clean else nonfinite_problems(key, block, start)
+        bad_finite = bad_finite or nonfinite
+        if key == "images" and not bad_range and not clean:
+            bad_range = unit_interval_problems(key, block, start)
+        if key == "time" and not nonfinite:
+            order = time_order_problems(block, prev_t, start)
+            if order:
+                return out + [p.at(run) for p in order]
             prev_t = float(block[-1])
         if progress is not None:
             progress(aw, stop, T)
-    if bad_finite is not None and not missing:
-        out.append(Problem(aw, f"NaN or infinite values (first at frame {bad_finite})"))
-    if bad_range is not None:
-        out.append(Problem(aw, bad_range))
-    if key == "time" and not out:
-        line = frame_interval_problem(arr[:], frame_rate_hz)
-        if line is not None:
-            out.append(Problem(aw, line))
+    if not missing:  # a missing chunk reads as the fill value, NaN: the missing chunk says it
+        out += [p.at(run) for p in bad_finite]
+    out += [p.at(run) for p in bad_range]
+    if out:
+        return out
+    values = arr[:]
+    if key == "time":
+        out += [p.at(run) for p in frame_interval_problems(values, store.attrs.frame_rate_hz)]
+    elif key == "velocity":
+        out += [p.at(run) for p in command_limit_problems(values)]
+    elif key in ("range", "azimuth"):
+        out += [p.at(run) for p in coordinate_problems(key, values, store.grid)]
     return out
 
 
@@ -302,12 +181,12 @@ def _check_consolidated(loc: str, root: zarr.Group, names: list[str]) -> list[Pr
     doc = json.loads(raw.to_bytes()) if raw is not None else None
     if not isinstance(doc, dict) or doc.get("consolidated_metadata") is None:
         return []
-    fix = "run `sonarset validate --consolidate`"
+    fix = "consolidate the store again"
     try:
         cons = zarr.open_group(root.store, mode="r", use_consolidated=True)
         listed = cons.metadata.consolidated_metadata.flattened_metadata
     except Exception as exc:
-        return [Problem(loc, f"consolidated metadata is unreadable ({one_line(exc)}); {fix}")]
+        return [Stale(loc, f"consolidated metadata is unreadable ({one_line(exc)}); {fix}")]
     actual, unreadable = _node_metadata(root, names)
     # Compare runs and their arrays; what cannot be read is reported by the run checks already.
     listed = {k: v for k, v in listed.items()
@@ -329,7 +208,7 @@ def _check_consolidated(loc: str, root: zarr.Group, names: list[str]) -> list[Pr
         detail = f"it lists {extra[0]}, which the store does not hold"
     else:
         detail = f"its copy of {differ[0]}'s metadata differs from the store's"
-    return [Problem(loc, f"consolidated metadata is stale ({detail}; readers of URLs trust it); {fix}")]
+    return [Stale(loc, f"consolidated metadata is stale ({detail}; readers of URLs trust it); {fix}")]
 
 
 def _node_metadata(root: zarr.Group, names: list[str]) -> tuple[dict, set[str]]:

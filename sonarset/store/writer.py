@@ -2,19 +2,17 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import Any, Mapping
 
 import numpy as np
 import zarr
 from zarr.codecs import BloscCodec
 
-from sonarset.format.arrays import ARRAYS, OPTIONAL_ARRAYS, check_run_arrays, expected_shape, time_order_problem
 from sonarset.errors import InputValidationError, SonarSetError
-from sonarset.store.run import Run
-from sonarset.format.attrs import NAMESPACE, RUN_NAME_RE, RunAttrs
-
-if TYPE_CHECKING:
-    from sonarset.store.store import SonarStore
+from sonarset.format.arrays import ARRAYS, OPTIONAL_ARRAYS, expected_shape, run_array_problems, time_order_problems
+from sonarset.format.attrs import NAMESPACE, RunAttrs, run_name_problems
+from sonarset.format.problems import raise_first
+from sonarset.store.root import StoreRoot
 
 DEFAULT_CHUNK_FRAMES = 64  # 64 x 200 x 90 float16 = 2.3 MB: large enough to stream, small to cache
 
@@ -29,7 +27,7 @@ def compressor(dtype: np.dtype, sparse: bool = False) -> BloscCodec:
 
 
 class RunWriter:
-    """Writes one run group block by block; ``commit()`` makes it visible.
+    """Writes one run group of the store ``root`` block by block; ``commit()`` makes it visible.
 
     Use as a context manager: an exception inside deletes the half-written group. A killed
     process leaves it with ``complete: false``, which readers ignore and the next writer of the
@@ -38,7 +36,7 @@ class RunWriter:
 
     def __init__(
         self,
-        store: "SonarStore",
+        root: StoreRoot,
         name: str,
         n_frames: int,
         *,
@@ -50,8 +48,7 @@ class RunWriter:
         consolidate: bool = True,
         chunk_frames: int = DEFAULT_CHUNK_FRAMES,
     ):
-        if not RUN_NAME_RE.match(name):
-            raise SonarSetError(f"invalid run name {name!r}: use letters, digits, '_', '.', '-'")
+        raise_first(run_name_problems(name), SonarSetError)
         unknown = set(optional) - set(OPTIONAL_ARRAYS)
         if unknown:
             raise SonarSetError(f"unknown optional arrays: {', '.join(sorted(unknown))}")
@@ -59,16 +56,17 @@ class RunWriter:
             raise SonarSetError(f"image dtype must be float16 or float32, got {image_dtype}")
         if n_frames < 1:
             raise SonarSetError(f"run {name!r}: needs at least one frame")
-        self.store, self.name, self.n_frames = store, name, int(n_frames)
+        self.store, self.name, self.n_frames = root, name, int(n_frames)
         self.consolidate = consolidate
         self.attrs = RunAttrs(complete=False, n_frames=self.n_frames, split=split, source=dict(source or {}))
-        root = store.group
-        if name in root.group_keys() or name in root.array_keys():
-            existing = store.run_attrs(name)
+        group = root.group
+        if name in group.group_keys() or name in group.array_keys():
+            existing = root.run_attrs(name)
             if existing is not None and existing.complete and not overwrite:
-                raise SonarSetError(f"{store.location}: run {name!r} already exists (pass overwrite to replace it)")
-            del root[name]
-        self.group = root.create_group(name, attributes={NAMESPACE: self.attrs.model_dump(mode="json")})
+                raise SonarSetError(f"{root.location}: run {name!r} already exists; overwrite replaces it",
+                                    parameter="overwrite")
+            del group[name]
+        self.group = group.create_group(name, attributes={NAMESPACE: self.attrs.model_dump(mode="json")})
         self.arrays = self._create_frame_arrays(optional, image_dtype, chunk_frames)
         self._write_coordinates()
         self._written = np.zeros(self.n_frames, dtype=bool)
@@ -122,7 +120,7 @@ class RunWriter:
                                 "with the same number of frames")
         if start < 0 or start + n > self.n_frames:
             raise SonarSetError(f"run {self.name!r}: frames {start}..{start + n - 1} outside 0..{self.n_frames - 1}")
-        problems = [] if checked else check_run_arrays(self.store.grid, blocks)
+        problems = [] if checked else run_array_problems(self.store.grid, blocks)
         if problems:
             raise InputValidationError(f"run {self.name!r} frames {start}..{start + n - 1}", problems)
         for key, values in blocks.items():
@@ -132,13 +130,13 @@ class RunWriter:
                 self.arrays[key][start:start + n] = values.astype(self.arrays[key].dtype, copy=False)
         self._written[start:start + n] = True
 
-    def commit(self) -> "Run":
+    def commit(self) -> RunAttrs:
+        """Write the per-frame vectors, then the completion flag; returns the run's attributes."""
         if not self._written.all():
             missing = int(np.flatnonzero(~self._written)[0])
             raise SonarSetError(f"run {self.name!r}: frame {missing} was never written")
-        line = time_order_problem(self._small["time"])  # each block was checked alone: check across them
-        if line is not None:
-            raise SonarSetError(f"run {self.name!r}: time is {line}")
+        # each block was checked alone: check across them
+        raise_first([p.at(f"run {self.name!r}") for p in time_order_problems(self._small["time"])], SonarSetError)
         for key, values in self._small.items():
             self.arrays[key][:] = values
         attrs = self.attrs.model_copy(update={"complete": True})
@@ -147,7 +145,7 @@ class RunWriter:
         if self.consolidate:
             self.store.consolidate()
         self._committed = True
-        return Run(self.store, self.name, attrs)
+        return attrs
 
     def abort(self) -> None:
         self.store.delete_run(self.name)

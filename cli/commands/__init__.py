@@ -1,0 +1,1 @@
+"""The commands of ``sonarset``, one module per area; cli/app.py registers them."""

@@ -1,0 +1,246 @@
+"""``sonarset eval|train|demo|export-onnx``: the predictors, EchoPT's training and its exports."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+from sonarset.models.echopt.train_config import TrainConfig
+from sonarset.models.registry import BASELINES, HORIZONS
+
+from sonarset.cli.choices import Device, Optimizer, Precision, Preset, Prior, Schedule, value
+from sonarset.cli.common import err, fail, out, per_name_progress, progress_bar, user_errors
+from sonarset.cli.options import Model, ModelDevice, ModelPrecision
+
+
+#: The defaults of ``sonarset train``: TrainConfig's (its ``command`` aside).
+TRAIN = TrainConfig(command="")
+
+
+def _int_list(text: str, what: str) -> list[int]:
+    try:
+        values = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        fail(f"{what} must be comma-separated integers, got {text!r}", 2)
+    if not values or min(values) < 1:
+        fail(f"{what} must be positive integers, got {text!r}", 2)
+    return values
+
+
+@user_errors
+def eval_(
+    store: str = typer.Argument(..., help="Store path or fsspec URL."),
+    models: str = typer.Option(",".join(BASELINES), "--models",
+                               help="Comma-separated: persistence, naive, flow, echopt:PATH (or echopt:pretrained)."),
+    horizons: str = typer.Option(",".join(map(str, HORIZONS)), "--horizons", help="Prediction horizons (1 = one-shot)."),
+    samples: int = typer.Option(1000, "--samples", min=1, help="Windows drawn (seeded), shared by all methods."),
+    out_dir: Path = typer.Option(Path("eval-out"), "--out", help="Directory for metrics.json, per_window.csv, report.md, figures."),
+    split: str = typer.Option("test", "--split", help="Split to evaluate on."),
+    worlds: str = typer.Option("", "--worlds", help="Only runs of these world families, comma-separated "
+                                                     "(default: every run of the split)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the window draw and the bootstrap."),
+    device: ModelDevice = Device("cpu"),
+    precision: ModelPrecision = Precision("auto"),
+    figures: bool = typer.Option(True, "--figures/--no-figures", help="Write the PNG figures."),
+    ceiling: bool = typer.Option(False, "--ceiling",
+                                 help="Add the noise ceiling (target frames of simulated runs re-rendered with "
+                                      "independent noise: how much of a frame is predictable at all) and the "
+                                      "observable ceiling (re-rendered from only the reflectors the window's context "
+                                      "heard: how much the context could know)."),
+) -> None:
+    """Evaluate predictors on the same windows: the paper's table, statistics and figures."""
+    from sonarset.store.store import open_store
+    from sonarset.models.eval.report import results_table, write_report
+    from sonarset.models.eval.evaluate import evaluate
+
+    specs = [m.strip() for m in models.split(",") if m.strip()]
+    s = open_store(store, check=True)
+    with progress_bar() as bar:
+        progress = per_name_progress(bar)
+        res = evaluate(s, specs, horizons=tuple(_int_list(horizons, "--horizons")), samples=samples,
+                       split=split, seed=seed, device=device.value, precision=precision.value, progress=progress,
+                       ceiling=ceiling, worlds=[w.strip() for w in worlds.split(",") if w.strip()] or None)
+    write_report(res, out_dir, figures=figures)
+    _print_notes(res.notes)
+    out.print(results_table(res, with_paper=False))
+    out.print(f"{len(res.window_ids)} windows of split {split!r}; report: {out_dir / 'report.md'}")
+
+
+def _mean(entry: dict) -> str:
+    return "undefined" if entry["mean"] is None else f"{entry['mean']:.3f}"
+
+
+def _print_notes(notes: list[str]) -> None:
+    for note in notes:
+        out.print(note, style="yellow", markup=False, highlight=False)
+
+
+@contextlib.contextmanager
+def _training_bar(show: bool):
+    """The progress callback of a training run: loss, validation and speed on a terminal, a line
+    per validation otherwise."""
+    from rich.progress import MofNCompleteColumn, TimeElapsedColumn
+
+    columns = [TextColumn("[bold]training"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
+               TimeElapsedColumn(), TimeRemainingColumn()]
+    with Progress(*columns, console=err, disable=not (err.is_terminal and show)) as bar:
+        task = bar.add_task("train", total=None, info="")
+
+        def progress(rec: dict) -> None:
+            info = f"loss {rec['train_loss']:.5f}"
+            if "val_loss" in rec:
+                info += f" val {rec['val_loss']:.5f} (best {rec['best_val_loss']:.5f}) {rec['samples_per_s']:.0f} samples/s"
+                if not err.is_terminal:
+                    err.print(f"step {rec['step']}/{rec['total_steps']} epoch {rec['epoch']:.2f} {info}", highlight=False)
+            bar.update(task, completed=rec["step"], total=rec["total_steps"], info=info)
+
+        yield progress
+
+
+@user_errors
+def train(
+    store: str = typer.Argument(..., help="Training store (its 'train' split; 'test' is never used for training)."),
+    preset: Preset = typer.Option(TRAIN.preset, "--preset",
+                                  help="small (trains on a CPU), paper (~9 M parameters), tiny (tests)."),
+    out_dir: Path = typer.Option(..., "--out", help="Run directory: model.safetensors + model.json, metrics.jsonl, "
+                                                    "state.safetensors"),
+    epochs: int = typer.Option(TRAIN.epochs, "--epochs", min=1, help="Passes over the training windows (paper: 1000)."),
+    batch_size: int = typer.Option(TRAIN.batch_size, "--batch-size", min=1),
+    lr: float = typer.Option(TRAIN.lr, "--lr", help="Adam learning rate (paper: 5e-5)."),
+    weight_decay: float = typer.Option(TRAIN.weight_decay, "--weight-decay", help="L2 regularisation (paper: 1e-4)."),
+    optimizer: Optimizer = typer.Option(TRAIN.optimizer, "--optimizer",
+                                        help="adam (paper: L2 in the gradient) or adamw (decoupled decay; use it "
+                                             "with a prior)."),
+    schedule: Schedule = typer.Option(TRAIN.schedule, "--schedule", help="none (paper) or cosine."),
+    seed: int = typer.Option(TRAIN.seed, "--seed"),
+    device: Device = typer.Option(TRAIN.device, "--device"),
+    precision: ModelPrecision = Precision(TRAIN.precision),
+    resume: bool = typer.Option(False, "--resume", help="Continue a killed run exactly where it stopped."),
+    eval_every: int = typer.Option(TRAIN.eval_every, "--eval-every", min=0,
+                                   help="Steps between validations/checkpoints (0: each epoch)."),
+    max_steps: int = typer.Option(TRAIN.max_steps, "--max-steps", min=0, help="Stop after this many steps (0: no limit)."),
+    max_minutes: float = typer.Option(TRAIN.max_minutes, "--max-minutes", min=0.0,
+                                      help="Stop after this wall time (0: no limit)."),
+    compile_: bool = typer.Option(TRAIN.compile, "--compile", help="torch.compile the model (GPU)."),
+    test_samples: int = typer.Option(TRAIN.test_samples, "--test-samples", min=0,
+                                     help="Test windows for the card's metrics (0: skip)."),
+    n_val: int = typer.Option(TRAIN.n_val, "--n-val", min=1, help="Random validation windows (paper: 1600)."),
+    prior: Optional[Prior] = typer.Option(None, "--prior", help="What the model corrects: none (paper), last (frame) "
+                                                                 "or flow (its acoustic-flow warp). Default: the "
+                                                                 "preset's (paper none, small flow)."),
+    loss: str = typer.Option(TRAIN.loss, "--loss", help="mse, l1, gdl (image-gradient difference), cc (1 - CC), "
+                                                        "w1 (1-D Wasserstein of the pixel values), energy (the "
+                                                        "batch's echo-energy deficit), or a weighted sum: "
+                                                        "cc=1,w1=50."),
+    curriculum: str = typer.Option(TRAIN.curriculum, "--curriculum",
+                                   help="Rollout steps k of the unrolled loss: k, or step:k,... "
+                                        "(e.g. 0:1,300:2,600:4,900:6)."),
+    pushforward: bool = typer.Option(TRAIN.pushforward, "--pushforward",
+                                     help="Only the last rollout step carries gradient."),
+    context_noise: float = typer.Option(TRAIN.context_noise, "--context-noise", min=0.0,
+                                        help="Std of Gaussian noise on the context frames."),
+    val_horizon: int = typer.Option(TRAIN.val_horizon, "--val-horizon", min=0,
+                                    help="Rollout steps of the validation loss (0: the curriculum's longest)."),
+    init: str = typer.Option(TRAIN.init, "--init", help="Fine-tune: start from this checkpoint's weights (pretrained "
+                                                        "or a path; same preset, prior, grid and images); the "
+                                                        "optimizer starts fresh."),
+    worlds: str = typer.Option(TRAIN.worlds, "--worlds", help="Train only on runs of these world families, "
+                                                              "comma-separated (e.g. lab,orchard; default: every "
+                                                              "training run)."),
+    n_in: int = typer.Option(TRAIN.n_in, "--n-in", min=0, help="Input frames per window (0: the preset's, the "
+                                                               "paper's 3)."),
+) -> None:
+    """Train EchoPT; the best validation weights are kept as OUT/model.safetensors with a model card.
+
+    Killed at any point, the same command with --resume continues exactly (OUT/state.safetensors)."""
+    from sonarset.models.echopt.cards import add_test_metrics
+    from sonarset.models.echopt.train import train as run_training
+    from sonarset.store.store import open_store
+
+    s = open_store(store, check=True)
+    cfg = TrainConfig(preset=preset.value, epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
+                      schedule=schedule.value, seed=seed, device=device.value, eval_every=eval_every,
+                      max_steps=max_steps, max_minutes=max_minutes, compile=compile_, test_samples=test_samples,
+                      n_val=n_val, prior=value(prior) or "", loss=loss, curriculum=curriculum, pushforward=pushforward,
+                      optimizer=optimizer.value, context_noise=context_noise, val_horizon=val_horizon, init=init,
+                      precision=precision.value, worlds=worlds, n_in=n_in)
+    main = int(os.environ.get("RANK", "0")) == 0  # under torchrun only rank 0 reports
+    with _training_bar(main) as progress:
+        res = run_training(s, out_dir, cfg, resume=resume, progress=progress)
+    if not main:
+        return
+    out.print(f"{res.steps} steps ({res.epochs_done:.2f} epochs); best validation loss {res.best_val_loss:.6f}; "
+              f"weights: {out_dir / 'model.safetensors'}")
+    if cfg.test_samples and s.runs("test"):
+        test = add_test_metrics(out_dir, s, cfg)
+        r = test["results"]
+        for m in ("flow", "echopt"):
+            one = r[m]["1"]
+            out.print(f"test one-shot {m}: CC {_mean(one['cc'])}, NRMSD {_mean(one['nrmsd'])}")
+
+
+@user_errors
+def demo(
+    out_dir: Path = typer.Option(Path("demo-out"), "--out", help="Directory for the store, report and figures."),
+    minutes: float = typer.Option(25.0, "--minutes", min=0.5, help="Length of the fresh test run."),
+    samples: int = typer.Option(1000, "--samples", min=10, help="Test windows."),
+    seed: int = typer.Option(2026, "--seed", help="Seed of the fresh run (the shipped model was trained on seed 0)."),
+    model: Model = "pretrained",
+    device: ModelDevice = Device("auto"),
+    precision: ModelPrecision = Precision("auto"),
+) -> None:
+    """Simulate a fresh test run and compare the pretrained EchoPT with persistence, naive and flow
+    (and the noise and observable ceilings)."""
+    import time
+
+    from sonarset.models import demo as pipeline
+    from sonarset.models.eval.report import results_table, write_report
+
+    pipeline.check_model(model)  # a bad model fails now, not after the simulation
+    t0 = time.perf_counter()
+    store_path = out_dir / "test.zarr"
+    out.print(f"simulating a fresh {minutes:g}-minute test run (seed {seed}) -> {store_path}")
+    with progress_bar() as bar:
+        task = bar.add_task("simulating", total=None)
+        s = pipeline.simulate_fresh_run(store_path, minutes=minutes, seed=seed,
+                                        progress=lambda name, done, total: bar.update(task, completed=done, total=total))
+    out.print(pipeline.images_note(model, s), highlight=False)
+    out.print(pipeline.runs_in(model, precision.value, device.value), highlight=False)
+    out.print(f"evaluating {', '.join(BASELINES)} and EchoPT ({model}) on {samples} windows, "
+              f"horizons {', '.join(map(str, HORIZONS))}, "
+              "with the noise and observable ceilings")
+    with progress_bar() as bar:
+        res = pipeline.evaluate_fresh_run(s, model, samples=samples, device=device.value, precision=precision.value,
+                                          progress=per_name_progress(bar))
+    write_report(res, out_dir)
+    _print_notes(res.notes)
+    out.print(results_table(res, with_paper=True))
+    for line in pipeline.echopt_against_flow(res):
+        out.print(line)
+    out.print(f"report: {out_dir / 'report.md'} (figures beside it); {time.perf_counter() - t0:.0f} s in all")
+
+
+@user_errors
+def export_onnx_(
+    model: str = typer.Argument(..., metavar="MODEL", help="EchoPT checkpoint: pretrained, a run directory or a "
+                                                          ".safetensors path."),
+    out_path: Path = typer.Argument(..., metavar="OUT.onnx", help="The ONNX file to write."),
+) -> None:
+    """Export EchoPT to ONNX for onnxruntime: a dynamic batch axis, the flow prior inside the graph,
+    the model card in the metadata; checked against torch before it is written."""
+    from sonarset.models.echopt.onnx_export import export_onnx
+
+    e = export_onnx(model, out_path)
+    out.print(f"wrote {e.path} ({e.bytes / 1e6:.1f} MB)", highlight=False)
+    if e.max_abs_diff is None:
+        out.print("note: onnxruntime is not installed, so the export was not run; pip install 'sonarset[onnx]'",
+                  style="yellow", highlight=False)
+    else:
+        out.print(f"onnxruntime matches torch to {e.max_abs_diff:.1e} (max abs) on {e.check_windows} random windows",
+                  highlight=False)
+    out.print(f"use it as --models echopt:{e.path} (eval) or --model {e.path} (demo, experiments)", highlight=False)

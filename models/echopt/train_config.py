@@ -1,0 +1,103 @@
+"""The settings of a training run (``TrainConfig``), built once by the caller (``sonarset train``
+builds it from its options) and carried whole through training, into the card and the resumable
+state. No torch here: the command line lists the optimizers and schedules without loading it.
+"""
+
+from __future__ import annotations
+
+import math
+import shlex
+import sys
+from dataclasses import dataclass, field
+
+from sonarset.errors import SonarSetError
+
+from sonarset.models.echopt.config import PRIORS
+
+OPTIMIZERS = ("adam", "adamw")
+SCHEDULES = ("none", "cosine")
+
+
+@dataclass
+class TrainConfig:
+    preset: str = "small"
+    epochs: int = 1000
+    batch_size: int = 64
+    lr: float = 5e-5
+    weight_decay: float = 1e-4  # L2, as Adam's weight_decay (MATLAB's L2Regularization)
+    # adam: the paper's, L2 added to the gradient; adamw: decoupled decay (Loshchilov & Hutter).
+    # With a prior the last convolution starts at zero, so the layers behind it see almost no
+    # gradient at first, and Adam's normalised L2 alone shrinks them by ~lr a step: in short runs
+    # they never learn (measured on the tiny preset). AdamW's decay does not go through Adam's scaling.
+    optimizer: str = "adam"  # OPTIMIZERS
+    schedule: str = "none"  # SCHEDULES: none (paper) | cosine (decays to 1% of lr over the run, 2% warm-up)
+    seed: int = 0
+    device: str = "auto"
+    n_val: int = 1600
+    eval_every: int = 0  # steps between validations and checkpoints; 0 = once per epoch
+    max_steps: int = 0  # stop after this many optimizer steps in total (0 = no limit)
+    max_minutes: float = 0.0  # stop after this much wall time in this process (0 = no limit)
+    compile: bool = False  # torch.compile (GPU)
+    precision: str = "auto"  # auto | fp32 | bf16 autocast (models/echopt/precision.py); auto: bf16 where the hardware has it
+    test_samples: int = 1000  # one-shot + AR test metrics in the card (0 = skip)
+    prior: str = ""  # config.PRIORS (none | last | flow); "" = the preset's (paper: none, small and tiny: flow)
+    loss: str = "mse"  # a term of losses.LOSSES (mse, l1, gdl, cc, w1, energy), or a weighted sum "mse=1,w1=2"
+    curriculum: str = "1"  # rollout length k: "k", or "step:k,step:k,..." from those steps on
+    pushforward: bool = False  # only the last of the k steps carries gradient
+    context_noise: float = 0.0  # std of Gaussian noise added to the measured context frames
+    val_horizon: int = 0  # rollout steps of the validation loss (0 = the curriculum's longest)
+    init: str = ""  # fine-tune: start from this checkpoint's weights (same preset, prior, grid, images)
+    worlds: str = ""  # comma-separated world families to train on ("" = every training run)
+    n_in: int = 0  # input frames per window (0 = the preset's: the paper's 3)
+    command: str = field(default_factory=lambda: " ".join(shlex.quote(a) for a in sys.argv))
+
+    def stages(self) -> list[tuple[int, int]]:
+        """The curriculum as (first step, k) pairs, sorted."""
+        try:
+            if ":" not in self.curriculum:
+                out = [(0, int(self.curriculum))]
+            else:
+                out = sorted((int(a), int(b)) for a, b in (p.split(":") for p in self.curriculum.split(",")))
+        except ValueError:
+            raise SonarSetError(f"curriculum {self.curriculum!r}: expected k or step:k,step:k (e.g. 0:1,400:2)",
+                                parameter="curriculum") from None
+        if not out or out[0][0] != 0 or any(k < 1 for _, k in out):
+            raise SonarSetError(f"curriculum {self.curriculum!r}: must start at step 0 with k >= 1",
+                                parameter="curriculum")
+        return out
+
+    def check(self) -> None:
+        """SonarSetError naming the first setting no run can have (the loss terms: losses.parse_loss)."""
+        self.stages()
+        for name, allowed in (("prior", PRIORS), ("optimizer", OPTIMIZERS), ("schedule", SCHEDULES)):
+            value = getattr(self, name)
+            if (value or name != "prior") and value not in allowed:
+                raise SonarSetError(f"{name} must be one of {', '.join(allowed)}, got {value!r}", parameter=name)
+
+    def lr_at(self, step: int, total: int) -> float:
+        """The learning rate of ``step`` of ``total``: constant, or the cosine schedule."""
+        if self.schedule == "none" or total <= 0:
+            return self.lr
+        warm = max(1, int(0.02 * total))
+        if step < warm:
+            return self.lr * (step + 1) / warm
+        t = min(1.0, (step - warm) / max(1, total - warm))
+        return self.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * t)))
+
+    def world_list(self) -> list[str] | None:
+        """The world families to train on, or None for every training run."""
+        names = [w.strip() for w in self.worlds.split(",") if w.strip()]
+        return names or None
+
+    def k_at(self, step: int) -> int:
+        return [k for s, k in self.stages() if s <= step][-1]
+
+    @property
+    def k_max(self) -> int:
+        return max(k for _, k in self.stages())
+
+
+#: Settings that must not change when a run is resumed.
+RESUME_KEYS = ("preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps", "prior", "loss",
+               "curriculum", "pushforward", "context_noise", "val_horizon", "optimizer", "weight_decay", "init",
+               "worlds", "n_in")

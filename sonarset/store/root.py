@@ -1,0 +1,233 @@
+"""The root group of a store: where it is, its attributes, its run groups, their attributes, and
+its consolidated metadata (spec/FORMAT.md §2-§6).
+
+Everything here applies the rules of ``sonarset.format.rules`` to what is stored, and returns the
+Problems it finds located at their node: the readers raise the first (``raise_first``),
+``validate`` lists them all. ``StoreRoot`` is what a run and a run writer need of a store; the
+facade (``sonarset.store.store.SonarStore``) builds on it.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+from typing import Any, Iterable
+
+import zarr
+
+from sonarset.errors import FormatError, SonarSetError, one_line
+from sonarset.format.attrs import NAMESPACE, Processing, RobotRig, RunAttrs, SensorGrid, StoreAttrs, run_name_problems
+from sonarset.format.problems import Problem, raise_first
+from sonarset.format.rules import parse_run_attrs, parse_store_attrs, root_document_problems
+from sonarset.store.zarrio import cached_remote, child_names, first_unreadable_node, is_url, open_group
+
+# Listing a group while another process writes into it atomically shows that writer's temp file
+# ("zarr.<id>.partial"); it is not a node, zarr skips it, and the warning is noise.
+# Other strays (a junk folder, a killed writer's leftovers) are not nodes either: readers ignore
+# them, as the spec says of anything that is not a node.
+warnings.filterwarnings("ignore", message=r"Object at .* is not recognized", category=UserWarning)
+# zarr-python warns on every consolidation that consolidated metadata is not yet in the v3 spec;
+# the spec (FORMAT.md §6) makes it optional and advisory, so the warning is noise to our users.
+warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part")
+
+
+def local_root_problems(path: Path) -> list[Problem]:
+    """What keeps a local directory from being a store's root, before zarr is asked to open it."""
+    where = str(path)
+    if not path.exists():
+        return [Problem(where, "no such file or directory")]
+    if not path.is_dir():
+        return [Problem(where, "not a zarr store (a file, not a directory)")]
+    meta = path / "zarr.json"
+    if not meta.is_file():
+        if (path / ".zgroup").exists() or (path / ".zarray").exists():
+            return [Problem(where, "a Zarr v2 store; SonarSet requires Zarr v3")]
+        return [Problem(where, "not a zarr store (no zarr.json at its root)")]
+    try:  # zarr's own message would not say which file
+        doc = json.loads(meta.read_bytes())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        return [Problem(str(meta), f"unreadable JSON ({one_line(exc)})")]
+    return [p.at(where) for p in root_document_problems(doc)]
+
+
+def store_attrs(group: zarr.Group, location: str) -> tuple[StoreAttrs | None, list[Problem]]:
+    """The root's attributes, or None and every problem with them."""
+    attrs, problems = parse_store_attrs(group.attrs.get(NAMESPACE))
+    return attrs, [p.at(location) for p in problems]
+
+
+def read_store_attrs(group: zarr.Group, location: str) -> StoreAttrs:
+    """The root's attributes; FormatError naming the first problem."""
+    attrs, problems = store_attrs(group, location)
+    raise_first(problems)
+    return attrs
+
+
+def run_groups(group: zarr.Group, location: str) -> tuple[list[str], list[Problem]]:
+    """The root's child groups, sorted, and a problem for each child whose metadata zarr cannot
+    parse (zarr lists children by parsing each one's metadata, so one broken ``zarr.json`` makes
+    its whole listing fail)."""
+    try:
+        return sorted(group.group_keys()), []
+    except Exception:
+        pass
+    names, problems = [], []
+    for name in child_names(group):
+        try:
+            node = group[name]
+        except Exception as exc:
+            problems.append(Problem(f"{location}/{name}", f"unreadable zarr metadata ({one_line(exc)})"))
+            continue
+        if isinstance(node, zarr.Group):
+            names.append(name)
+    return names, problems
+
+
+def run_group_attrs(group: zarr.Group, location: str, name: str) -> tuple[RunAttrs | None, list[Problem]]:
+    """Run group ``name``'s attributes, or None and every problem with the group: its name, its
+    metadata and its attributes."""
+    where = f"{location}/{name}"
+    problems = [p.at(where) for p in run_name_problems(name)]
+    try:
+        raw = group[name].attrs.get(NAMESPACE)
+    except Exception as exc:
+        return None, problems + [Problem(where, f"unreadable zarr metadata ({one_line(exc)})")]
+    attrs, found = parse_run_attrs(raw)
+    return attrs, problems + [p.at(where) for p in found]
+
+
+class StoreRoot:
+    """A store's root group and attributes: what runs and run writers need of a store."""
+
+    def __init__(self, group: zarr.Group, location: str, mode: str):
+        self.group = group
+        self.location = location
+        self.mode = mode
+        self.attrs = read_store_attrs(group, location)
+
+    @property
+    def grid(self) -> SensorGrid:
+        return self.attrs.grid
+
+    @property
+    def format_version(self) -> str:
+        return self.attrs.format_version
+
+    @property
+    def processing(self) -> Processing:
+        """How the images were made (format 1.1; a 1.0 store's images are 'raw')."""
+        return self.attrs.processing
+
+    @property
+    def rig(self) -> RobotRig | None:
+        """The robot geometry: the store's ``rig`` attribute (1.1), else None when unknown.
+
+        Backward compatibility: a store without ``rig`` (format 1.0) whose complete runs were all
+        made by the simulator gets the rig recorded in their provenance
+        (:meth:`RobotRig.from_provenance`). This is the one place that reads geometry from the
+        free-form ``source``.
+        """
+        if self.attrs.rig is not None:
+            return self.attrs.rig
+        if self.mode == "r":  # a reader's view does not change: read every run's provenance once
+            if not hasattr(self, "_provenance_rig"):
+                self._provenance_rig = self._rig_from_provenance()
+            return self._provenance_rig
+        return self._rig_from_provenance()
+
+    def _rig_from_provenance(self) -> RobotRig | None:
+        rigs = set()
+        for name in self.runs():
+            src = self.run_attrs(name).source
+            rig = RobotRig.from_provenance(src) if src.get("kind") == "simulator" else None
+            if rig is None:
+                return None
+            rigs.add(rig)
+        return rigs.pop() if len(rigs) == 1 else None
+
+    def run_attrs(self, name: str) -> RunAttrs | None:
+        """Run ``name``'s attributes; None when its metadata or attributes are unusable."""
+        try:
+            raw = self.group[name].attrs.get(NAMESPACE)
+        except Exception:  # unparseable metadata: not a usable run
+            return None
+        return parse_run_attrs(raw)[0]
+
+    def group_names(self) -> list[str]:
+        """The root's child groups, sorted. A reader refuses a store with a child whose metadata
+        zarr cannot parse, naming it; a writer (``r+``) skips it, so that it can still replace or
+        add runs."""
+        names, problems = run_groups(self.group, self.location)
+        if self.mode == "r":
+            raise_first(problems)
+        return names
+
+    def runs(self, split: str | None = None, include_incomplete: bool = False,
+             worlds: Iterable[str] | None = None) -> list[str]:
+        """Names of the runs (complete ones unless asked), sorted, optionally of one split and of
+        the world families (or world files) ``worlds`` that their ``source.world`` names."""
+        wanted = None if worlds is None else set(worlds)
+        names = []
+        for name in self.group_names():
+            attrs = self.run_attrs(name)
+            if attrs is None or not (attrs.complete or include_incomplete):
+                continue
+            if split is not None and attrs.split != split:
+                continue
+            if wanted is not None and (attrs.source or {}).get("world") not in wanted:
+                continue
+            names.append(name)
+        return names
+
+    # ---- writing --------------------------------------------------------------------------
+    def require_writable(self) -> None:
+        if self.mode == "r":
+            raise SonarSetError(f"{self.location}: store is open read-only")
+
+    def delete_run(self, name: str) -> None:
+        self.require_writable()
+        if name in self.group.group_keys():
+            del self.group[name]
+
+    def consolidate(self) -> None:
+        """Rewrite the root's consolidated metadata; call after runs were written elsewhere."""
+        self.require_writable()
+        consolidate(self.group, self.location)
+
+
+def consolidate(group: zarr.Group, location: str) -> None:
+    """Rewrite the consolidated metadata of the root ``group``; FormatError naming a node whose
+    metadata zarr cannot parse (zarr parses every node's, so one broken node stops it)."""
+    try:
+        zarr.consolidate_metadata(group.store)
+    except OSError:
+        raise
+    except Exception as exc:
+        where = first_unreadable_node(group)
+        raise FormatError(f"{location}{'/' + where[0] if where else ''}: unreadable zarr metadata "
+                          f"({one_line(where[1] if where else exc)}); cannot consolidate") from None
+
+
+def open_root(location: str, mode: str = "r", *, storage_options: dict | None = None,
+              consolidated: bool | None = None, cache_bytes: int | None = None) -> tuple[zarr.Group, str]:
+    """The root group at ``location`` (a local path or an fsspec URL) and the location as the
+    store names it, opened as ``open_store`` says; FormatError when it is not a zarr v3 group."""
+    loc = location
+    if not is_url(loc):
+        path = Path(loc.removeprefix("file://"))
+        raise_first(local_root_problems(path))
+        loc = str(path)
+        if consolidated is None:
+            consolidated = False
+    target: Any = loc
+    if is_url(loc) and mode == "r" and cache_bytes != 0:
+        target, storage_options = cached_remote(loc, storage_options, cache_bytes), None
+    try:
+        return open_group(target, mode, storage_options, consolidated), loc
+    except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError) as exc:
+        raise FormatError(f"{loc}: not a zarr store ({type(exc).__name__})") from None
+    except OSError:
+        raise
+    except Exception as exc:  # zarr's metadata errors are ValueError, TypeError, its own classes...
+        raise FormatError(f"{loc}: cannot open as a zarr v3 group: {one_line(exc)}") from None
