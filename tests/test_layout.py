@@ -44,3 +44,25 @@ def test_no_module_over_400_lines():
     long = {str(p.relative_to(ROOT)): n for p in _modules(*LIBRARY, "cli")
             if (n := len(p.read_text().splitlines())) > MAX_LINES}
     assert not long, f"modules over {MAX_LINES} lines: {long}"
+
+
+def readme_imports() -> list[tuple[str, list[str]]]:
+    """(module, names) of every ``from sonarset... import ...`` line in the README's Python blocks."""
+    text = (ROOT / "README.md").read_text()
+    found = []
+    for block in re.findall(r"```python\n(.*?)```", text, flags=re.S):
+        for node in ast.walk(ast.parse(block)):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("sonarset"):
+                found.append((node.module, [a.name for a in node.names]))
+    return found
+
+
+def test_the_readme_imports_what_exists():
+    """A user copies the README's snippets: every name they import is where the README says."""
+    import importlib
+
+    found = readme_imports()
+    assert len(found) >= 5  # the scan sees the README's snippets
+    missing = [f"{mod}.{name}" for mod, names in found for name in names
+               if not hasattr(importlib.import_module(mod), name)]
+    assert not missing, f"README imports names that do not exist: {missing}"

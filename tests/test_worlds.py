@@ -13,7 +13,7 @@ from sonarset.sim import (
     FAMILIES, ExplorationPolicy, GenerationSpec, SonarModel, generate, integrate, load_world, plan_runs,
 )
 from sonarset.sim.families import corridor_world
-from sonarset.sim.runs import world_mix
+from sonarset.sim.spec import world_mix
 from sonarset.sim.world import FenceSpec, World, WorldSpec
 from sonarset.windows import FrameBank
 

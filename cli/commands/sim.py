@@ -8,7 +8,11 @@ from typing import Optional
 import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
+from dataclasses import fields
+
 from sonarset.format.attrs import SensorGrid
+from sonarset.sim.families import FAMILIES
+from sonarset.sim.spec import DEFAULT_PROCESSING, DEFAULT_RUNS, GenerationSpec
 
 from sonarset.cli.choices import ProcessingProfile, Psf
 from sonarset.cli.common import err, out, user_errors
@@ -16,25 +20,27 @@ from sonarset.cli.common import err, out, user_errors
 
 #: The grid a store gets unless --n-range or --n-azimuth say otherwise: the format's default.
 GRID = SensorGrid.default()
+#: The library's defaults of what a store holds (GenerationSpec): the options' defaults.
+SPEC = {f.name: f.default for f in fields(GenerationSpec)}
 
 
 @user_errors
 def generate(
     out_store: str = typer.Argument(..., metavar="OUT", help="Store to write (created, or resumed)."),
-    runs: Optional[int] = typer.Option(None, "--runs", min=0, help="Training runs of a single --world (default 10)."),
-    minutes: float = typer.Option(25.0, "--minutes", min=0.0, help="Length of each run (5 Hz frames)."),
-    test_runs: int = typer.Option(1, "--test-runs", min=0,
+    runs: Optional[int] = typer.Option(None, "--runs", min=0, help=f"Training runs of a single --world (default {DEFAULT_RUNS})."),
+    minutes: float = typer.Option(SPEC["minutes"], "--minutes", min=0.0, help="Length of each run (5 Hz frames)."),
+    test_runs: int = typer.Option(SPEC["test_runs"], "--test-runs", min=0,
                                   help="Test runs (split 'test') of each world, never for training."),
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Parallel processes (default: all cores)."),
-    seed: int = typer.Option(0, "--seed", help="Master seed; same seed, same arrays, whatever the workers."),
-    world: str = typer.Option("lab", "--world",
-                              help="A world family (lab, corridor, orchard, warehouse, rooms; each run its own "
+    seed: int = typer.Option(SPEC["seed"], "--seed", help="Master seed; same seed, same arrays, whatever the workers."),
+    world: str = typer.Option(SPEC["world"], "--world",
+                              help=f"A world family ({', '.join(FAMILIES)}; each run its own "
                                    "variant) or a JSON/TOML world file; or a mix with each world's training runs: "
                                    "lab:4,orchard:2,warehouse:2,rooms:2 (then no --runs)."),
-    snr_db: float = typer.Option(5.0, "--snr-db", help="SNR at the microphones, dB."),
-    psf: Psf = typer.Option("array", "--psf", help="Azimuth PSF: array (eRTIS delay-and-sum, with side lobes) or "
+    snr_db: float = typer.Option(SPEC["snr_db"], "--snr-db", help="SNR at the microphones, dB."),
+    psf: Psf = typer.Option(SPEC["psf"], "--psf", help="Azimuth PSF: array (eRTIS delay-and-sum, with side lobes) or "
                                                   "mainlobe."),
-    processing: ProcessingProfile = typer.Option("ertis", "--processing",
+    processing: ProcessingProfile = typer.Option(DEFAULT_PROCESSING, "--processing",
                                                  help="Images: ertis (DMAS3 + coherence factor, energyscape "
                                                       "post-processing, the sensor toolchain's) or raw (delay-and-sum "
                                                       "energy, format 1.0's)."),
@@ -53,7 +59,7 @@ def generate(
     from rich.progress import MofNCompleteColumn, TimeElapsedColumn
 
     from sonarset.sim import generate as gen
-    from sonarset.sim.runs import world_mix
+    from sonarset.sim.spec import world_mix
 
     grid = SensorGrid(**{**GRID.model_dump(), "n_range": n_range, "n_azimuth": n_azimuth})
     t0 = time.perf_counter()

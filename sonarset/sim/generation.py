@@ -15,32 +15,25 @@ from typing import Callable
 
 from sonarset.store.atomic import aside_dir, remove_stale_asides, settle_zarr_writes
 from sonarset.errors import SonarSetError, first_os_error, os_error_reason
-from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.store.store import SonarStore, create_store, open_or_create_store
 from sonarset.version import __version__
 from sonarset.store.zarrio import is_url
 from sonarset.sim.families import load_world
-from sonarset.sim.runs import GenerationSpec, RunPlan, RunTarget, plan_runs, simulator_rig
+from sonarset.sim.spec import GenerationSpec
+from sonarset.sim.runs import RunPlan, RunTarget, plan_runs, simulator_rig
 
 DESCRIPTION = f"simulated by sonarset {__version__}"
 
 
 def generate(
     out: str | os.PathLike,
+    spec: GenerationSpec | None = None,
     *,
-    runs: int | None = None,
-    test_runs: int = 1,
-    minutes: float = 25.0,
-    seed: int = 0,
-    world: str = "lab",
-    snr_db: float = 5.0,
-    psf: str = "array",
-    processing: Processing | str = "ertis",
     workers: int | None = None,
-    grid: SensorGrid | None = None,
     progress: Callable[[str, int, int], None] | None = None,
     scheduler=None,
     storage_options: dict | None = None,
+    **settings,
 ) -> list[str]:
     """Simulate the runs into the store ``out`` (a path or any fsspec URL); returns the names of the
     runs written now.
@@ -50,17 +43,21 @@ def generate(
     ``distributed.Client``. Each task writes its own run group to ``out``, which every worker must
     reach (a shared file system or object storage). The arrays are the same either way.
 
-    ``world`` is a world family or file with ``runs`` training runs (default 10), or a mix that
-    counts each world's runs, ``"lab:4,orchard:2,warehouse:2,rooms:2"`` (``runs`` then stays
-    None); each world also gets ``test_runs`` test runs. Each run records its world and the
-    variant's seed in its ``source``.
+    What the store holds is ``spec``, or a ``GenerationSpec`` made of ``settings`` (its fields, with
+    its defaults: ``generate(out, runs=2, minutes=1.0)``). ``world`` is a world family or file with
+    ``runs`` training runs (default ``DEFAULT_RUNS``), or a mix that counts each world's runs,
+    ``"lab:4,orchard:2,warehouse:2,rooms:2"`` (``runs`` then stays None); each world also gets
+    ``test_runs`` test runs. Each run records its world and the variant's seed in its ``source``.
 
     ``processing`` is a profile name (``ertis``, the default, or ``raw``) or ``Processing`` settings;
-    the store records it, with the robot's rig, in its attributes. The settings from ``runs`` to
-    ``grid`` make one ``GenerationSpec``, checked there.
+    the store records it, with the robot's rig, in its attributes.
     """
-    spec = GenerationSpec(runs=runs, test_runs=test_runs, minutes=minutes, seed=seed, world=world, snr_db=snr_db,
-                          psf=psf, processing=processing, grid=grid or SensorGrid.default())
+    if spec is None:
+        if settings.get("grid", ...) is None:  # None: the default grid, as for every other setting
+            del settings["grid"]
+        spec = GenerationSpec(**settings)
+    elif settings:
+        raise TypeError(f"generate takes a spec or its settings, not both (got {', '.join(settings)})")
     for name, _ in spec.world_mix():
         load_world(name, 0)  # fail fast on a bad world name or file, before any process starts
     plans = plan_runs(spec)

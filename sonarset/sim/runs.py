@@ -14,16 +14,15 @@ from typing import Iterator
 
 import numpy as np
 
-from sonarset.errors import SonarSetError
 from sonarset.store.writer import DEFAULT_CHUNK_FRAMES
 from sonarset.format.attrs import Processing, RobotRig, SensorGrid
 from sonarset.store.store import open_store
 from sonarset.version import __version__
 from sonarset.sim.robot import SENSOR_OFFSET, V_MAX, W_MAX, WHEEL_BASE, ExplorationPolicy, apply_slip, integrate
-from sonarset.sim.sonar import SonarModel, check_psf
+from sonarset.sim.sonar import SonarModel
+from sonarset.sim.spec import DT, GenerationSpec
 from sonarset.sim.families import load_world
 
-DT = 0.2  # s, 5 Hz frames
 
 
 def simulator_rig() -> RobotRig:
@@ -59,86 +58,6 @@ def world_seed(seed: int) -> int:
     """The seed of the world-family variant a run (or trial) seeded ``seed`` drives in: one rule for
     generated runs and the experiments, so a seed names the same world in both."""
     return seed % 1_000_003
-
-
-def world_mix(world: str, runs: int | None = None) -> list[tuple[str, int]]:
-    """The (world, training runs) pairs of a ``world`` value.
-
-    ``lab`` takes ``runs`` (default 10); a mix names each world's count, ``lab:4,orchard:2``
-    (built-in families or world files, in order), and then ``runs`` must not be given.
-    """
-    entries = [e.strip() for e in world.split(",") if e.strip()]
-    if not entries:
-        raise SonarSetError("world is empty; give a world family (lab) or a mix (lab:4,orchard:2)", parameter="world")
-    mix = []
-    for entry in entries:
-        name, sep, count = entry.rpartition(":")
-        if sep and count.strip().isdigit() and name.strip():
-            mix.append((name.strip(), int(count)))
-        else:
-            mix.append((entry, None))
-    counted = [n is not None for _, n in mix]
-    if any(counted) and not all(counted):
-        raise SonarSetError(f"world {world!r}: give every world a run count (lab:4,orchard:2) or none",
-                            parameter="world")
-    if not any(counted):
-        if len(mix) > 1:
-            raise SonarSetError(f"world {world!r}: several worlds need a run count each (lab:4,orchard:2)",
-                                parameter="world")
-        return [(mix[0][0], 10 if runs is None else runs)]
-    if runs is not None:
-        raise SonarSetError(f"world {world!r} gives the run counts; leave runs unset", parameter="world")
-    names = [name for name, _ in mix]
-    if len(set(names)) < len(names):
-        raise SonarSetError(f"world {world!r}: a world is named twice", parameter="world")
-    return [(name, int(n)) for name, n in mix]
-
-
-@dataclass(frozen=True)
-class GenerationSpec:
-    """What a store of simulated runs holds: the settings that decide its arrays, checked once, here.
-
-    ``world`` is a world family or file with ``runs`` training runs (default 10), or a mix that
-    counts each world's runs (``runs`` then stays None); each world also gets ``test_runs`` test
-    runs of ``minutes`` each. ``processing`` is a profile name or ``Processing`` settings (held as
-    settings); ``psf`` the azimuth PSF, which must suit the processing's beamformer. Invalid
-    settings raise SonarSetError with a one-line reason.
-    """
-
-    runs: int | None = None
-    test_runs: int = 1
-    minutes: float = 25.0
-    seed: int = 0
-    world: str = "lab"
-    snr_db: float = 5.0
-    psf: str = "array"
-    processing: Processing = field(default_factory=Processing.ertis)
-    grid: SensorGrid = field(default_factory=SensorGrid.default)
-
-    def __post_init__(self) -> None:
-        mix = self.world_mix()
-        if isinstance(self.processing, str):
-            try:
-                object.__setattr__(self, "processing", Processing.named(self.processing))
-            except ValueError as exc:
-                raise SonarSetError(str(exc), parameter="processing") from None
-        try:
-            check_psf(self.psf, self.processing)
-        except ValueError as exc:
-            raise SonarSetError(str(exc), parameter="psf") from None
-        if self.n_frames < 1:
-            raise SonarSetError(f"minutes must give at least one frame at 5 Hz (got {self.minutes})",
-                                parameter="minutes")
-        if min(n for _, n in mix) < 0 or self.test_runs < 0 or sum(n for _, n in mix) + self.test_runs * len(mix) < 1:
-            raise SonarSetError("need at least one run", parameter="runs")
-
-    @property
-    def n_frames(self) -> int:
-        """Frames of every run."""
-        return int(round(self.minutes * 60 / DT))
-
-    def world_mix(self) -> list[tuple[str, int]]:
-        return world_mix(self.world, self.runs)
 
 
 def plan_runs(spec: GenerationSpec) -> list[RunPlan]:

@@ -29,6 +29,7 @@ from sonarset.sensor.energyscape import dmas3_beam_table, dmas3_noise_gain, post
 from sonarset.sensor.ertis import AZIMUTH_PSFS, C_SOUND, F_HI, F_LO, envelope_lowpass, microphone_y, sweep
 from sonarset.sim.kernels import accumulate_psf_coherence, coherence_amplitude, reflector_echoes
 from sonarset.sim.robot import sensor_pose
+from sonarset.sim.spec import check_psf
 from sonarset.sim.world import World
 
 ABSORPTION_DB_PER_M = 1.3  # at 40 kHz (ISO 9613-1:1993, 20 degC, 50 % RH), over the two-way path 2r
@@ -85,15 +86,6 @@ def mainlobe_table(n: int = 4001) -> tuple[np.ndarray, np.ndarray]:
 
 
 BEAMS = dict(zip(AZIMUTH_PSFS, (beam_table, mainlobe_table)))  # the tables, in AZIMUTH_PSFS's order
-
-
-def check_psf(psf: str, processing: Processing) -> None:
-    """ValueError unless the azimuth PSF ``psf`` can be used with ``processing``."""
-    if psf not in BEAMS:
-        raise ValueError(f"psf must be one of {', '.join(BEAMS)}, got {psf!r}")
-    if processing.beamformer != "das" and psf != "array":
-        raise ValueError(f"psf {psf!r} is a delay-and-sum ablation; it needs a 'das' beamformer "
-                         f"(processing {processing.profile!r} uses {processing.beamformer!r})")
 
 
 def emitter_directivity(theta: np.ndarray, f: float = 40e3) -> np.ndarray:
