@@ -141,3 +141,14 @@ def test_models_that_take_other_windows_are_refused_together(stores):
     res = evaluate(stores["mainlobe"], ["naive"], predictors={"four": FourFrames(GRID)}, horizons=(1,), samples=5)
     assert res.methods == ["four", "naive"] and np.isfinite(res.per_window["naive"][1]["cc"]).all()
     assert res.examples["frames"].shape[0] == 4 and metrics_document(res)["windows"]["n_in"] == 4
+
+
+def test_a_report_of_one_window_says_why_instead_of_printing_nan(stores, tmp_path):
+    """One window: no spread, no test. The report says so in words; it never prints nan."""
+    import re
+
+    res = evaluate(stores["mainlobe"], ["persistence", "flow"], horizons=(1, 3), samples=1, seed=1)
+    write_report(res, tmp_path / "one", figures=False)
+    text = (tmp_path / "one" / "report.md").read_text()
+    assert not re.search(r"\bnan\b", text, flags=re.I)
+    assert "n/a (one window)" in text

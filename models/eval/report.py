@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from sonarset.store.atomic import atomic_text, atomic_write
+from sonarset.store.atomic import atomic_text, atomic_write, publish_files
 from sonarset.scoring.ceiling import CEILING, CEILINGS, OBSERVABLE
 from sonarset.scoring.echoes import ECHO_METRICS
-from sonarset.report.numbers import finite_or_none, format_p, horizon_name
+from sonarset.report.numbers import finite_or_none, format_interval, format_p, format_value, horizon_name
 
 from sonarset.models.eval.result import (ECHO_FLOOR, FADE_TOLERANCE, IMAGE_METRICS, METRICS, EvalResult, fade_summary,
                                          undefined_counts)
@@ -50,17 +50,17 @@ CEILING_LABELS = {CEILING: "noise ceiling", OBSERVABLE: "observable ceiling"}
 
 def write_report(res: EvalResult, out: str | os.PathLike, *, figures: bool = True) -> Path:
     """metrics.json, per_window.csv, the figures (unless ``figures`` is False) and report.md in ``out``."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_text(out / "metrics.json", json.dumps(metrics_document(res), indent=2) + "\n")
-    atomic_write(out / "per_window.csv", lambda path: write_per_window(res, path))
-    figs = []
-    if figures:
-        from sonarset.models.eval.figures import write_figures
+    def write(folder: Path) -> None:
+        atomic_text(folder / "metrics.json", json.dumps(metrics_document(res), indent=2) + "\n")
+        atomic_write(folder / "per_window.csv", lambda path: write_per_window(res, path))
+        figs = []
+        if figures:
+            from sonarset.models.eval.figures import write_figures
 
-        figs = write_figures(res, out)
-    atomic_text(out / "report.md", render_report(res, figs))
-    return out
+            figs = write_figures(res, folder)
+        atomic_text(folder / "report.md", render_report(res, figs))
+
+    return publish_files(out, write, last="report.md")
 
 
 def metrics_document(res: EvalResult) -> dict:
@@ -144,8 +144,8 @@ def results_table(res: EvalResult, with_paper: bool = True) -> str:
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
         if with_paper and m in PAPER:
             p = PAPER[m]
-            cells = [f"{p['cc'].get(h, float('nan')):.2f}" if h in p["cc"] else "-" for h in res.horizons]
-            cells += [f"{p['nrmsd'].get(h, float('nan')):.2f}" if h in p["nrmsd"] else "-" for h in res.horizons]
+            cells = [format_value(p["cc"][h], ".2f") if h in p["cc"] else "-" for h in res.horizons]
+            cells += [format_value(p["nrmsd"][h], ".2f") if h in p["nrmsd"] else "-" for h in res.horizons]
             lines.append(f"| *{m} (paper)* | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -172,7 +172,7 @@ def _mean_only(entry: dict) -> str:
 def _cell(entry: dict) -> str:
     if entry["mean"] is None:
         return "undefined"
-    return f"{entry['mean']:.3f} ({entry['std']:.3f})"
+    return f"{entry['mean']:.3f} ({format_value(entry['std'], '.3f')})"
 
 
 def render_report(res: EvalResult, figures: list[str]) -> str:
@@ -226,7 +226,7 @@ def gap_section(res: EvalResult) -> list[str]:
              "than flow; negative: worse). The gap itself is the observable ceiling minus flow.", "",
              "| method | horizon | CC share | NRMSD share | echo F1 share |", "|---|---|---|---|---|"]
     for h in res.horizons:
-        cells = [f"{(s[OBSERVABLE][str(h)][k]['mean'] or 0) - (s['flow'][str(h)][k]['mean'] or 0):+.3f}" for k in keys]
+        cells = [_gap(s[OBSERVABLE][str(h)][k]["mean"], s["flow"][str(h)][k]["mean"]) for k in keys]
         lines.append(f"| *gap (observable - flow)* | {horizon_name(h)} | " + " | ".join(cells) + " |")
     for m, per in gap.items():
         for h in res.horizons:
@@ -254,8 +254,9 @@ def statistics_section(res: EvalResult) -> list[str]:
         if c.p_holm is not None and np.isfinite(c.p_holm) and c.p_holm < 0.05:
             a_better = (c.mean_diff < 0) if LOWER_IS_BETTER[c.metric] else (c.mean_diff > 0)
             better = c.a if a_better else c.b
-        lines.append(f"| {horizon_name(c.horizon)} | {c.metric} | {c.a} | {c.b} | {c.mean_diff:+.4f} | "
-                     f"[{c.ci_low:+.4f}, {c.ci_high:+.4f}] | {format_p(c.t_two_sample_p)} | {format_p(c.t_paired_p)} | "
+        why = "n/a (one window)" if c.n < 2 else "n/a (undefined)"
+        lines.append(f"| {horizon_name(c.horizon)} | {c.metric} | {c.a} | {c.b} | {format_value(c.mean_diff, '+.4f', why)} | "
+                     f"{format_interval(c.ci_low, c.ci_high, '+.4f', why)} | {format_p(c.t_two_sample_p)} | {format_p(c.t_paired_p)} | "
                      f"{format_p(c.wilcoxon_p)} | {format_p(c.p_holm)} | {better} |")
     return lines
 
@@ -274,3 +275,10 @@ def fade_section(res: EvalResult, figures: list[str]) -> list[str]:
             f"No fade: both ratios within {FADE_TOLERANCE:.0%} of 1 at every step "
             "(per step in metrics.json, `fade`" + ("; the figure `fade.png`)." if drawn else ")."),
             "", fade_table(res, fade)]
+
+
+def _gap(observable: float | None, flow: float | None) -> str:
+    """The observable ceiling's lead over flow, or why there is none."""
+    if observable is None or flow is None:
+        return "undefined"
+    return format_value(observable - flow, "+.3f", "undefined")

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
-from sonarset.store.atomic import atomic_text, save_figure
+from sonarset.store.atomic import atomic_text, publish_files, save_figure
 from sonarset.perf import keep_freed_memory
 from sonarset.errors import SonarSetError
 from sonarset.format.attrs import Processing, SensorGrid
@@ -127,9 +127,9 @@ def mean_ci(x: np.ndarray, seed: int = 0) -> tuple[float, float, float]:
 def write_outputs(out: str | os.PathLike, metrics: dict, figure, figure_name: str, report: list[str]) -> Path:
     """An experiment's outputs in ``out`` (created): metrics.json (NaNs as null), the figure, and
     report.md from the report's lines."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_text(out / "metrics.json", json.dumps(finite_or_none(metrics), indent=2) + "\n")
-    save_figure(figure, out / figure_name)
-    atomic_text(out / "report.md", "\n".join(report) + "\n")
-    return out
+    def write(folder: Path) -> None:
+        atomic_text(folder / "metrics.json", json.dumps(finite_or_none(metrics), indent=2) + "\n")
+        save_figure(figure, folder / figure_name)
+        atomic_text(folder / "report.md", "\n".join(report) + "\n")
+
+    return publish_files(out, write, last="report.md")

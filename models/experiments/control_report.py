@@ -11,7 +11,7 @@ from scipy import ndimage
 
 from sonarset.sim.control import BurstDetector
 from sonarset.report.plots import pyplot
-from sonarset.report.numbers import format_p
+from sonarset.report.numbers import format_interval, format_p, format_value
 from sonarset.sim.families import corridor_world
 from sonarset.sim.world import World
 
@@ -54,9 +54,18 @@ def outcome_table(res: ControlResult) -> list[str]:
         tt, dv = s["travel_time_s"], s["midline_deviation_m"]
         lines.append(f"| {c} | {s['success']} | {s['collision']} | {s['timeout']} | "
                      f"{s['success_rate_ci'][0]:.2f}-{s['success_rate_ci'][1]:.2f} | "
-                     f"{tt['mean']:.1f} [{tt['ci_low']:.1f}, {tt['ci_high']:.1f}] ({tt['median']:.1f}) | "
-                     f"{dv['mean']:.3f} [{dv['ci_low']:.3f}, {dv['ci_high']:.3f}] |")
+                     f"{_mean_ci(tt, '.1f', 'n/a (no robot arrived)', median=True)} | "
+                     f"{_mean_ci(dv, '.3f', 'n/a (no episode)')} |")
     return lines
+
+
+def _mean_ci(stat: dict, spec: str, why: str, median: bool = False) -> str:
+    """``mean [CI]`` (and ``(median)``) of a summary, or why it has none."""
+    mean = format_value(stat["mean"], spec, why)
+    if mean == why:
+        return why
+    text = f"{mean} {format_interval(stat['ci_low'], stat['ci_high'], spec, '[n/a]')}"
+    return text + (f" ({format_value(stat['median'], spec)})" if median else "")
 
 
 def tests_table(res: ControlResult) -> list[str]:
@@ -65,7 +74,7 @@ def tests_table(res: ControlResult) -> list[str]:
              "that succeeded in both) and deviation, McNemar's exact test on success; Holm-corrected.", "",
              "| a vs b | metric | pairs | mean a - b | p (Holm) |", "| --- | --- | ---: | ---: | ---: |"]
     for c in res.comparisons:
-        lines.append(f"| {c['a']} vs {c['b']} | {c['metric']} | {c['n_pairs']} | {c['mean_diff']:+.3f} | "
+        lines.append(f"| {c['a']} vs {c['b']} | {c['metric']} | {c['n_pairs']} | {format_value(c['mean_diff'], '+.3f', 'n/a (no pairs)')} | "
                      f"{format_p(c['p_holm'])} |")
     return lines
 
@@ -74,9 +83,10 @@ def detector_and_gains(res: ControlResult) -> list[str]:
     """The burst detector's scores and the controller's gains, a sentence each."""
     det = res.detector
     return ["", f"Burst detector (range bins with a pixel above {BurstDetector.level} > {BurstDetector.max_coverage:.0%}): "
-            + "; ".join(f"{c}: recall {d['recall']:.3f}, precision {d['precision']:.3f} over {d['frames']} frames"
+            + "; ".join(f"{c}: recall {format_value(d['recall'], '.3f')}, precision {format_value(d['precision'], '.3f')} "
+                          f"over {d['frames']} frames"
                         for c, d in det.items() if isinstance(d, dict))
-            + (f"; false alarms on clean frames {det['false_positive_rate_clean']:.4f}"
+            + (f"; false alarms on clean frames {format_value(det['false_positive_rate_clean'], '.4f')}"
                if "false_positive_rate_clean" in det else "") + ".",
             "", "Controller gains: " + ", ".join(f"{k} = {v}" for k, v in res.gains.items()) + "."]
 

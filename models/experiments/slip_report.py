@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from sonarset.report.plots import pyplot
-from sonarset.report.numbers import format_p, horizon_name
+from sonarset.report.numbers import format_interval, format_p, format_value, horizon_name
 
 from sonarset.models.experiments.common import write_outputs
 from sonarset.models.experiments.slip import DETECTORS, HORIZONS, KINDS, SlipPeriod, SlipResult
@@ -71,7 +71,7 @@ def auc_table(res: SlipResult) -> list[str]:
             for det in DETECTORS:
                 for kind in KINDS:
                     x = by[(name, h, kind, det)]
-                    cells.append(f"{x['auc_mean']:.2f} [{x['ci_low']:.2f}, {x['ci_high']:.2f}]")
+                    cells.append(_auc_cell(x))
             lines.append(f"| {name} | {horizon_name(h)} | " + " | ".join(cells) + " |")
     return lines + ["", "Detectors: " + "; ".join(f"`{k}` is {v}" for k, v in DETECTOR_TEXT.items()) + "."]
 
@@ -86,7 +86,7 @@ def tests_table(res: SlipResult) -> list[str]:
              "| --- | --- | ---: | --- | ---: | ---: |"]
     for c in res.comparisons:
         lines.append(f"| {c['detector']} | {c['a']} - {c['b']} | {horizon_name(c['horizon'])} | {c['kind']} | "
-                     f"{c['mean_auc_diff']:+.3f} | {format_p(c['p_holm'])} |")
+                     f"{format_value(c['mean_auc_diff'], '+.3f', 'n/a (no trials)')} | {format_p(c['p_holm'])} |")
     return lines
 
 
@@ -100,7 +100,7 @@ def paper_trajectory_table(res: SlipResult) -> list[str]:
              *_header("{d}: both | {d}: one")]
     for name in res.names:
         for h in HORIZONS:
-            cells = [f"{res.signal_ratios[f'{name}|{h}|{det}'][kind]:.2f}" for det in DETECTORS for kind in KINDS]
+            cells = [format_value(res.signal_ratios[f"{name}|{h}|{det}"][kind], ".2f") for det in DETECTORS for kind in KINDS]
             lines.append(f"| {name} | {horizon_name(h)} | " + " | ".join(cells) + " |")
     return lines
 
@@ -135,3 +135,10 @@ def fig5(res: SlipResult):
     fig.suptitle("Wheel-slip detection signals on the paper's trajectory (EchoPT paper, Fig. 5)")
     fig.tight_layout()
     return fig
+
+
+def _auc_cell(x: dict) -> str:
+    """``mean [CI]`` of an AUC, or why there is none (an AUC needs slip-free and slipping frames)."""
+    why = "n/a (no slip-free and slipping frames)"
+    mean = format_value(x["auc_mean"], ".2f", why)
+    return mean if mean == why else f"{mean} {format_interval(x['ci_low'], x['ci_high'], '.2f', '[n/a]')}"

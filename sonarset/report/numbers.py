@@ -14,6 +14,21 @@ def format_p(p: float | None) -> str:
     return "< 1e-300" if p < 1e-300 else f"{p:.1e}" if p < 1e-3 else f"{p:.3f}"
 
 
+def format_value(x: float | None, spec: str, why: str = "n/a") -> str:
+    """``x`` as ``spec`` formats it (``"+.4f"``), or ``why``, in words, where it is undefined (None,
+    NaN, infinite): a report never prints nan."""
+    if x is None or not math.isfinite(x):
+        return why
+    return format(x, spec)
+
+
+def format_interval(low: float | None, high: float | None, spec: str, why: str = "n/a") -> str:
+    """``[low, high]`` as ``spec`` formats them, or ``why`` where either is undefined."""
+    if low is None or high is None or not (math.isfinite(low) and math.isfinite(high)):
+        return why
+    return f"[{format(low, spec)}, {format(high, spec)}]"
+
+
 def horizon_name(h: int) -> str:
     """'one-shot' for one step ahead, 'AR-h' for an auto-regressive rollout of h steps."""
     return "one-shot" if h == 1 else f"AR-{h}"

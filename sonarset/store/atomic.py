@@ -93,6 +93,45 @@ def _alive(pid: int) -> bool:
     return True
 
 
+def publish_files(out: str | os.PathLike, write: Callable[[Path], object], *, last: str) -> Path:
+    """Write a set of files (a report) into the directory ``out`` as one unit.
+
+    ``write(folder)`` makes them in a hidden directory beside ``out``. A new ``out`` is that
+    directory renamed into place. Into an existing one, which may hold files of its own (the demo's
+    store), the files move with ``last`` (the file that says the set is whole: report.md) removed
+    first and renamed in last: a reader, or a kill at any moment, never finds ``last`` beside files
+    of another set. What a killed writer left aside is removed by the next one (``aside_dir``).
+    """
+    import shutil
+
+    from sonarset.errors import SonarSetError
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise SonarSetError(f"{out}: exists and is not a folder; the report needs a folder")
+    aside = aside_dir(out)
+    try:
+        write(aside)
+        if not (aside / last).is_file():
+            raise FileNotFoundError(f"{aside / last}: the set's last file was not written")
+        umask = os.umask(0)
+        os.umask(umask)
+        aside.chmod(0o777 & ~umask)  # a directory as mkdir makes it, not mkdtemp's private one
+        try:
+            os.rename(aside, out)  # a new (or empty) directory: the whole set at once
+            return out
+        except OSError:
+            if not out.is_dir():
+                raise
+        (out / last).unlink(missing_ok=True)
+        for name in sorted(p.name for p in aside.iterdir() if p.name != last):
+            os.replace(aside / name, out / name)
+        os.replace(aside / last, out / last)
+        return out
+    finally:
+        shutil.rmtree(aside, ignore_errors=True)
+
+
 def exchange(a: str | os.PathLike, b: str | os.PathLike) -> None:
     """Swap the directories ``a`` and ``b`` in one atomic step: a reader sees either, never neither.
 
