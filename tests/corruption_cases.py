@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -163,6 +164,32 @@ class Kind:
     says: dict[str, str] = field(default_factory=dict)
 
 
+
+def _fifo(rel: str) -> Callable[[Path], None]:
+    """``rel`` replaced by a FIFO: a reader that opens it waits for a writer that never comes."""
+    def apply(store: Path) -> None:
+        (store / rel).unlink()
+        os.mkfifo(store / rel)
+    return apply
+
+
+def _links(*pairs: tuple[str, str]) -> Callable[[Path], None]:
+    """Symbolic links at ``rel`` pointing to ``target`` (``rel`` replaced where it exists)."""
+    def apply(store: Path) -> None:
+        for rel, target in pairs:
+            (store / rel).unlink(missing_ok=True)
+            (store / rel).symlink_to(target)
+    return apply
+
+
+def _nested(rel: str, depth: int) -> Callable[[Path], None]:
+    """``rel``'s attributes gain a value nested ``depth`` lists deep."""
+    def apply(store: Path) -> None:
+        doc = json.loads((store / rel).read_text())
+        text = json.dumps(doc)[:-1] + ', "deep": ' + "[" * depth + "]" * depth + "}"
+        (store / rel).write_text(text)
+    return apply
+
 IMG1 = "images: chunk c/1/0/0"
 KINDS = [
     Kind("image chunk deleted", _chunk("images", "c/1/0/0", lambda b: None), f"{IMG1} is missing",
@@ -253,4 +280,17 @@ KINDS = [
          ok=("info", "eval", "train", "show")),
     Kind("unknown extra array in a run", _extra_array, "", ok=COMMANDS),
     Kind("junk directory in the root", _junk_directory, "", ok=COMMANDS),
+    # what a store directory may hold (store/local.py): folders and regular files, metadata within limits
+    Kind("run zarr.json is a FIFO", _fifo("test_000/zarr.json"), "test_000/zarr.json: a FIFO"),
+    Kind("array zarr.json is a FIFO", _fifo("test_000/images/zarr.json"), "test_000/images/zarr.json: a FIFO"),
+    Kind("image chunk is a FIFO", _fifo("test_000/images/c/1/0/0"), "test_000/images/c/1/0/0: a FIFO"),
+    Kind("run zarr.json links to /dev/zero", _links(("test_000/zarr.json", "/dev/zero")),
+         "test_000/zarr.json: a symbolic link"),
+    Kind("symlink loop inside a run", _links(("test_000/loopa", "loopb"), ("test_000/loopb", "loopa")),
+         "test_000/loopa: a symbolic link"),
+    Kind("chunk folder links back up", _links(("test_000/images/c/loop", "../../images")),
+         "test_000/images/c/loop: a symbolic link"),
+    Kind("root zarr.json nested 100,000 deep", _nested("zarr.json", 100_000), "zarr.json: JSON nested too deeply"),
+    Kind("run zarr.json nested 200 deep", _nested("test_000/zarr.json", 200),
+         "test_000/zarr.json: JSON nested deeper than 64 levels"),
 ]

@@ -9,7 +9,6 @@ facade (``sonarset.store.store.SonarStore``) builds on it.
 
 from __future__ import annotations
 
-import json
 import warnings
 from pathlib import Path
 from typing import Any, Iterable
@@ -20,6 +19,7 @@ from sonarset.errors import FormatError, SonarSetError, one_line
 from sonarset.format.attrs import NAMESPACE, Processing, RobotRig, RunAttrs, SensorGrid, StoreAttrs, run_name_problems
 from sonarset.format.problems import Problem, raise_first
 from sonarset.format.rules import parse_run_attrs, parse_store_attrs, root_document_problems
+from sonarset.store.local import read_document, tree_problems
 from sonarset.store.zarrio import cached_remote, child_names, first_unreadable_node, is_url, open_group
 
 # Listing a group while another process writes into it atomically shows that writer's temp file
@@ -45,10 +45,12 @@ def local_root_problems(path: Path) -> list[Problem]:
             return [Problem(where, "a Zarr v2 store; SonarSet requires Zarr v3")]
         return [Problem(where, "not a zarr store (no zarr.json at its root)")]
     try:  # zarr's own message would not say which file
-        doc = json.loads(meta.read_bytes())
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        doc = read_document(meta)
+    except ValueError as exc:
+        return [Problem(str(meta), str(exc))]
+    except OSError as exc:
         return [Problem(str(meta), f"unreadable JSON ({one_line(exc)})")]
-    return [p.at(where) for p in root_document_problems(doc)]
+    return [p.at(where) for p in root_document_problems(doc)] or tree_problems(path)
 
 
 def store_attrs(group: zarr.Group, location: str) -> tuple[StoreAttrs | None, list[Problem]]:
