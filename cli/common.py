@@ -48,11 +48,11 @@ def command_flags(fn: Callable) -> dict[str, str]:
     return flags
 
 
-def with_flag(message: str, parameter: str | None, flags: dict[str, str]) -> str:
+def with_flag(message: str, parameter: str | None, flags: dict[str, str], append: bool = True) -> str:
     """A library message as the command line says it, with the flag (of ``flags``) that sets the
     library's ``parameter``: in place of the parameter's name where the message, or a parenthesis
     in it, opens with that name ("batch_size 3 is ..." -> "--batch-size 3 is ...", "(allow_implausible
-    imports it)" -> "(--allow-implausible imports it)"), else after the message in parentheses. A
+    imports it)" -> "(--allow-implausible imports it)"), else (``append``) after the message in parentheses. A
     parameter no option sets (the command chose its value) leaves the message as it is."""
     flag = flags.get(PARAMETER_OPTIONS.get(parameter, parameter)) if parameter else None
     if flag is None:
@@ -60,7 +60,7 @@ def with_flag(message: str, parameter: str | None, flags: dict[str, str]) -> str
     named = re.compile(rf"(^|\(){re.escape(parameter)}(?![\w-])")
     if named.search(message):
         return named.sub(lambda m: m[1] + flag, message)
-    return f"{message} ({flag})"
+    return f"{message} ({flag})" if append else message
 
 
 def user_errors(fn: Callable) -> Callable:
@@ -73,7 +73,8 @@ def user_errors(fn: Callable) -> Callable:
         except InputValidationError as exc:
             flags = command_flags(fn)
             for line in exc.problems:
-                err.print(f"[bold red]error:[/] {exc.source}: {with_flag(line, exc.parameter, flags)}",
+                # the parameter is about some of the lines (those that name it), not every one
+                err.print(f"[bold red]error:[/] {exc.source}: {with_flag(line, exc.parameter, flags, append=False)}",
                           highlight=False, soft_wrap=True)
             raise typer.Exit(1)
         except SonarSetError as exc:

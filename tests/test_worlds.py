@@ -144,3 +144,16 @@ def test_info_names_each_runs_world(mixed_store):
     worlds = {run["name"]: run["world"] for run in json.loads(r.output)["runs"]}
     seed = mixed_store.run("run_001").attrs.source["world_seed"]
     assert worlds["run_000"].startswith("orchard #") and worlds["run_001"] == f"warehouse #{seed}"
+
+
+@pytest.mark.parametrize("name, text, says", [
+    ("deep.json", lambda: '{"walls": ' + "[" * 100_000 + "]" * 100_000 + "}", "nested too deeply"),
+    ("deep.toml", lambda: "walls = " + "[" * 5_000 + "]" * 5_000 + "\n", "nested too deeply"),
+    ("big.json", lambda: " " * (17 * 2**20) + "{}", "17 MiB is not a world file"),
+], ids=["deep-json", "deep-toml", "17-MiB"])
+def test_world_files_too_deep_or_too_large_are_refused_in_one_line(tmp_path, name, text, says):
+    path = tmp_path / name
+    path.write_text(text())
+    with pytest.raises(SonarSetError, match=says) as exc:
+        load_world(str(path))
+    assert str(path) in str(exc.value) and "\n" not in str(exc.value)

@@ -264,6 +264,10 @@ FAMILIES: dict[str, Callable[[int], World]] = {
 }
 
 
+#: The largest world file read: walls and circles by the hundred thousand fit in far less.
+MAX_WORLD_BYTES = 16 * 2**20
+
+
 def load_world(name_or_path: str, seed: int = 0) -> World:
     """A built-in world family's variant ``seed`` (``families.FAMILIES``) or a JSON/TOML world file."""
     if name_or_path in FAMILIES:
@@ -271,6 +275,9 @@ def load_world(name_or_path: str, seed: int = 0) -> World:
     path = Path(name_or_path)
     if not path.is_file():
         raise SonarSetError(f"{name_or_path}: not a built-in world family ({', '.join(FAMILIES)}) nor a world file")
+    if path.stat().st_size > MAX_WORLD_BYTES:
+        raise SonarSetError(f"{path}: {path.stat().st_size / 2**20:.0f} MiB is not a world file "
+                            f"(the limit is {MAX_WORLD_BYTES // 2**20} MiB)")
     try:
         text = path.read_text()
         if path.suffix == ".toml":
@@ -281,7 +288,11 @@ def load_world(name_or_path: str, seed: int = 0) -> World:
             doc = json.loads(text)
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise SonarSetError(f"{path}: cannot parse world file ({exc})") from None
+    except RecursionError:
+        raise SonarSetError(f"{path}: cannot parse world file (nested too deeply)") from None
     try:
         return World.from_spec(WorldSpec.model_validate(doc))
     except ValidationError as exc:
         raise SonarSetError(f"{path}: {pydantic_problems(exc)[0]}") from None
+    except RecursionError:
+        raise SonarSetError(f"{path}: not a world file (nested too deeply)") from None
