@@ -55,9 +55,11 @@ def validate(
     from sonarset.store.validate import validate_store
 
     if consolidate:
+        from sonarset.store.lock import writer_lock
         from sonarset.store.store import open_store
 
-        open_store(store, "r+").consolidate()
+        with writer_lock(store):
+            open_store(store, "r+").consolidate()
     with progress_bar() as bar:
         task = bar.add_task("validating", total=None)
 

@@ -24,6 +24,7 @@ from sonarset.errors import SonarSetError, first_os_error, os_error_reason
 from sonarset.store.run import Run
 from sonarset.format.attrs import Processing, RobotRig, SensorGrid, run_name_problems, split_problems
 from sonarset.store.store import SonarStore, create_store, open_or_create_store, open_store
+from sonarset.store.lock import writer_lock
 from sonarset.store.zarrio import is_url
 
 #: Writes the imported run into ``store``; ``replace``: over a run of the same name. It must not
@@ -78,8 +79,17 @@ class ImportTarget:
         (``processing``) on the same ``rig``; a new one is made by ``create_store`` with ``grid``,
         ``rig`` and ``new_store``'s keywords.
         """
+        with writer_lock(self.location):  # one writer at a time; what exists is decided under the lock
+            return self._write_locked(run_name, write, overwrite=overwrite, grid=grid, processing=processing,
+                                      rig=rig, new_store=new_store)
+
+    def _write_locked(self, run_name: str, write: WriteRun, *, overwrite: bool, grid: SensorGrid,
+                      processing: Processing | None, rig: RobotRig | None, new_store: Mapping[str, Any]) -> Run:
         loc = self.location
-        if self.existing is None:
+        existing = self.existing
+        if existing is None and (Path(loc) / "zarr.json").exists():
+            existing = open_store(loc)  # another writer made the store since ``at`` looked
+        if existing is None:
             dest = write_new_store(loc, run_name, lambda store: write(store, False), grid=grid, rig=rig, **new_store)
             return open_store(dest).run(run_name)
         store = open_or_create_store(loc, grid, processing=processing, rig=rig)

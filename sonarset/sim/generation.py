@@ -17,6 +17,7 @@ from sonarset.store.atomic import aside_dir, remove_stale_asides, settle_zarr_wr
 from sonarset.errors import SonarSetError, first_os_error, os_error_reason
 from sonarset.store.store import SonarStore, create_store, open_or_create_store
 from sonarset.version import __version__
+from sonarset.store.lock import writer_lock
 from sonarset.store.zarrio import is_url
 from sonarset.sim.families import load_world
 from sonarset.sim.spec import GenerationSpec
@@ -62,19 +63,20 @@ def generate(
         load_world(name, 0)  # fail fast on a bad world name or file, before any process starts
     plans = plan_runs(spec)
     loc = os.fspath(out).removeprefix("file://")  # a local path: the store is created aside and renamed
-    if not is_url(loc):
-        _prepare_local(Path(loc), spec, [p.name for p in plans])
-    store = open_or_create_store(loc, spec.grid, description=DESCRIPTION, storage_options=storage_options,
-                                 processing=spec.processing, rig=simulator_rig())
-    todo = _runs_to_do(store, plans)
-    try:
-        _simulate_into(store, RunTarget(loc, spec.grid, storage_options), todo, workers, progress, scheduler)
-    except OSError as exc:
-        settle_zarr_writes()
-        exc = first_os_error(exc)  # the run writer's clean-up failed too: report the cause
-        raise SonarSetError(f"{loc}: cannot write {exc.filename or 'the store'}: {os_error_reason(exc)} (complete "
-                            "runs are kept; re-run the same command to resume)") from None
-    return [p.name for p in todo]
+    with writer_lock(loc):  # one writer at a time: a second generate is refused, not interleaved
+        if not is_url(loc):
+            _prepare_local(Path(loc), spec, [p.name for p in plans])
+        store = open_or_create_store(loc, spec.grid, description=DESCRIPTION, storage_options=storage_options,
+                                     processing=spec.processing, rig=simulator_rig())
+        todo = _runs_to_do(store, plans)
+        try:
+            _simulate_into(store, RunTarget(loc, spec.grid, storage_options), todo, workers, progress, scheduler)
+        except OSError as exc:
+            settle_zarr_writes()
+            exc = first_os_error(exc)  # the run writer's clean-up failed too: report the cause
+            raise SonarSetError(f"{loc}: cannot write {exc.filename or 'the store'}: {os_error_reason(exc)} (complete "
+                                "runs are kept; re-run the same command to resume)") from None
+        return [p.name for p in todo]
 
 
 def _runs_to_do(store: SonarStore, plans: list[RunPlan]) -> list[RunPlan]:
