@@ -3,9 +3,9 @@
 A writer (generate, import, import-raw, consolidating validate) holds an advisory lock on a file
 beside the store, ``.<store name>.lock``, for as long as it writes; a second writer is refused in
 one line naming the holder. The lock is the kernel's (``flock``): it goes when its process does,
-killed or not, so a lock is never stale; the file keeps the last holder's pid, host and start for
-the message. URLs (object stores, servers) have no such lock: their writers must be one by
-arrangement. Where the lock file cannot be made (a read-only folder), nothing can be written
+killed or not, so a lock is never stale; the file holds the holder's pid, host and start for the
+message, and goes when the writer finishes (a killed writer's stays, unlocked, until the next).
+URLs (object stores, servers) have no such lock: their writers must be one by arrangement. Where the lock file cannot be made (a read-only folder), nothing can be written
 either, and writers go on without it (a read-only store still reads, and a writer with nothing to
 do still succeeds).
 """
@@ -45,7 +45,7 @@ def writer_lock(location: str | os.PathLike) -> Iterator[None]:
     lock = lock_path(loc)
     try:
         lock.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = _acquire(lock, loc)
     except OSError as exc:
         if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
             yield
@@ -53,16 +53,37 @@ def writer_lock(location: str | os.PathLike) -> Iterator[None]:
         raise
     try:
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise SonarSetError(f"{loc}: another writer is at work on it ({_holder(fd)}); "
-                                "a store takes one writer at a time") from None
-        os.ftruncate(fd, 0)
-        os.write(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
-                                 "since": time.strftime("%Y-%m-%dT%H:%M:%S%z")}).encode())
+            os.ftruncate(fd, 0)
+            os.write(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
+                                     "since": time.strftime("%Y-%m-%dT%H:%M:%S%z")}).encode())
+        except OSError:  # a full disk: the lock holds without its note
+            pass
         yield
     finally:
-        os.close(fd)  # releases the lock
+        # Unlinked while still held: a writer that opens the name from now on makes a new file, and
+        # one that opened this file before is told by the inode check in _acquire to start over.
+        with contextlib.suppress(OSError):
+            os.unlink(lock)
+        os.close(fd)
+
+
+def _acquire(lock: Path, loc: str) -> int:
+    """An open descriptor of ``lock`` holding its flock; SonarSetError while another holds it."""
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _holder(fd)
+            os.close(fd)
+            raise SonarSetError(f"{loc}: another writer is at work on it ({holder}); "
+                                "a store takes one writer at a time") from None
+        try:
+            if os.fstat(fd).st_ino == os.stat(lock).st_ino:
+                return fd
+        except FileNotFoundError:
+            pass
+        os.close(fd)  # the holder before us removed this file as we locked it: lock the new one
 
 
 def _holder(fd: int) -> str:
