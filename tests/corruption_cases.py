@@ -19,6 +19,7 @@ from typing import Callable
 import numpy as np
 import zarr
 
+from sonarset.format.arrays import FRAME_ARRAYS
 from sonarset.format.attrs import SensorGrid
 
 GRID = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=50, azimuth_min_rad=-math.pi / 2,
@@ -190,6 +191,17 @@ def _nested(rel: str, depth: int) -> Callable[[Path], None]:
         (store / rel).write_text(text)
     return apply
 
+
+def _length(n: int) -> Callable[[Path], None]:
+    """Run test_000 declares ``n`` frames, consistently: its ``n_frames`` and every time-indexed
+    array's shape, over the chunks of the real 150 frames."""
+    def apply(store: Path) -> None:
+        _json(store, "test_000/zarr.json", lambda d: d["attributes"]["sonarset"].update(n_frames=n))
+        for key in FRAME_ARRAYS:
+            if (store / "test_000" / key / "zarr.json").exists():
+                _json(store, f"test_000/{key}/zarr.json", lambda d: d.update(shape=[n, *d["shape"][1:]]))
+    return apply
+
 IMG1 = "images: chunk c/1/0/0"
 KINDS = [
     Kind("image chunk deleted", _chunk("images", "c/1/0/0", lambda b: None), f"{IMG1} is missing",
@@ -293,4 +305,7 @@ KINDS = [
     Kind("root zarr.json nested 100,000 deep", _nested("zarr.json", 100_000), "zarr.json: JSON nested too deeply"),
     Kind("run zarr.json nested 200 deep", _nested("test_000/zarr.json", 200),
          "test_000/zarr.json: JSON nested deeper than 64 levels"),
+    # a length edited consistently far beyond what is stored: refused from the counts, at once
+    Kind("run length edited to a million frames", _length(10**6), "images: at least"),
+    Kind("run length edited to 1e12 frames", _length(10**12), "images: at least"),
 ]

@@ -34,7 +34,14 @@ def chunk_coords(arr: zarr.Array, start: int = 0, stop: int | None = None) -> It
         return iter(())
     first = range(start // chunks[0], math.ceil(stop / chunks[0]))
     rest = [range(math.ceil(s / c)) for s, c in zip(arr.shape[1:], chunks[1:])]
-    return itertools.product(first, *rest)
+    # itertools.product would first copy every range into a tuple: the time axis may declare 1e11 chunks
+    return ((i, *tail) for i in first for tail in itertools.product(*rest))
+
+
+def declared_chunks(arr: zarr.Array) -> int:
+    """How many stored chunks the array's shape declares."""
+    chunks = arr.metadata.chunk_grid.chunk_shape
+    return math.prod(math.ceil(s / c) for s, c in zip(arr.shape, chunks)) if arr.ndim else 1
 
 
 def _blosc_phrase(head: bytes, size: int, decoded_nbytes: int) -> str | None:
@@ -134,7 +141,7 @@ class ChunkChecker:
 
     def first_problem(self, start: int = 0, stop: int | None = None) -> list[Problem]:
         """The first unsound chunk holding frames start..stop-1 (what a reader refuses)."""
-        coords = list(chunk_coords(self.arr, start, stop))
+        coords = chunk_coords(self.arr, start, stop)  # lazy: a reader stops at the first unsound chunk
         if self.local is None:
             keys = [self.key(c) for c in coords]
             found = ((key, self._judge(*fetched)) for key, fetched in zip(keys, self._fetch(keys)))
@@ -149,6 +156,9 @@ class ChunkChecker:
         """Every unsound chunk, as ``validate`` reports them: the chunks missing from storage, in one
         problem, and the first whose size disagrees with its header or shape (zarr would decode it
         from memory past its end)."""
+        beyond = self.beyond_storage()
+        if beyond:
+            return beyond, []
         missing, damaged = [], None
         for coords in chunk_coords(self.arr):
             phrase = self._problem(coords)
@@ -160,6 +170,24 @@ class ChunkChecker:
                 damaged = Problem("", f"chunk {self.key(coords)} {phrase}")
         lost = [Problem("", f"{len(missing)} chunk(s) missing from storage (deleted?), first: {missing[0]}")] if missing else []
         return lost, ([damaged] if damaged is not None else [])
+
+
+    def beyond_storage(self) -> list[Problem]:
+        """A local array whose shape declares far more chunks than its folder holds files (an
+        edited length, a runaway writer): said from the counts, in the time of a listing of what
+        is stored, where visiting each declared chunk could take hours. Empty elsewhere."""
+        if self.local is None:
+            return []
+        stored, declared = self._stored_files(), declared_chunks(self.arr)
+        if declared <= 2 * stored + 16:
+            return []
+        first = next(k for k in map(self.key, chunk_coords(self.arr)) if not os.path.exists(os.path.join(self.local, k)))
+        return [Problem("", f"at least {declared - stored} of {declared} chunk(s) missing from storage "
+                            f"(deleted, or a shape edited?), first: {first}")]
+
+    def _stored_files(self) -> int:
+        """Files below the local array's folder other than its metadata: at most its stored chunks."""
+        return sum(len(files) - ("zarr.json" in files) for _, _, files in os.walk(self.local))
 
 
 _MISSING = "is missing from storage"

@@ -156,6 +156,8 @@ class Run:
         keys = [k for k, spec in ARRAYS.items() if spec.required or self.has(k)]
         for key in keys:
             self.array(key)
+            # cheap (a listing), and before anything reads: an absurd length is refused, not allocated
+            raise_first([p.at(f"{self.where}/{key}") for p in self._checker(key).beyond_storage()])
         for key in ("range", "azimuth"):
             raise_first([p.at(self.where) for p in coordinate_problems(key, self.read(key), self.store.grid)])
         if chunks:

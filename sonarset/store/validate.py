@@ -117,6 +117,8 @@ def _check_run(store: SonarStore, name: str, check_data: bool, progress: Progres
             continue
         arr, found = open_array(group, key, where, attrs.n_frames, store.grid.shape, present)
         out += found
+        if arr is not None and not check_data:  # what a reader refuses at open, even in a quick pass
+            out += [p.at(f"{where}/{key}") for p in ChunkChecker(arr).beyond_storage()]
         # The coordinates are checked even in a quick pass: they say whether the run is on the grid.
         if arr is not None and (check_data or key in ("range", "azimuth")):
             out += _guarded(f"{where}/{key}", lambda: _data_problems(where, key, arr, progress, store))
@@ -128,6 +130,9 @@ def _data_problems(run: str, key: str, arr: zarr.Array, progress: ProgressFn | N
     """The chunks and values of array ``key`` of the run at ``run``, as ``Run.read`` checks them,
     all of them reported."""
     aw = f"{run}/{key}"
+    beyond = ChunkChecker(arr).beyond_storage()
+    if beyond:  # a length far beyond storage: its values are fill, and visiting them could take hours
+        return [p.at(aw) for p in beyond]
     missing, damaged = ChunkChecker(arr).damage()
     out = [p.at(aw) for p in missing + damaged]
     if damaged:
