@@ -277,6 +277,10 @@ def test_deep_embedded_metadata_and_huge_sidecar(tmp_path, monkeypatch):
     monkeypatch.setattr(sidecar, "MAX_METADATA_BYTES", 200)
     with pytest.raises(InputValidationError, match="more than a metadata file holds"):
         load_recording(src)
+    # embedded in the .npz, the same cap: the metadata array is no way round it
+    src = write_npz(tmp_path / "embedded.npz", None, metadata=np.array(json.dumps({"source": {"note": "x" * 300}})), **a)
+    with pytest.raises(InputValidationError, match="array 'metadata'.*more than metadata holds"):
+        load_recording(src)
 
 
 # ---- replacing a run, and a full disk ----------------------------------------------------------

@@ -41,7 +41,10 @@ def sidecar_for(src: Path) -> Path:
 
 
 def parse_metadata(text: str) -> dict:
-    """A metadata JSON object: strict JSON (no NaN, no Infinity), at most MAX_METADATA_DEPTH deep."""
+    """A metadata JSON object: strict JSON (no NaN, no Infinity), at most MAX_METADATA_DEPTH deep and
+    MAX_METADATA_BYTES long, wherever it comes from (a sidecar, or the ``metadata`` array of an .npz)."""
+    if len(text) > MAX_METADATA_BYTES:  # characters: at least as many bytes
+        raise ValueError(f"{len(text) / 2**20:.0f} MiB is more than metadata holds ({MAX_METADATA_BYTES // 2**20} MiB)")
     def constant(name: str):
         raise ValueError(f"{name} is not valid JSON")
 
