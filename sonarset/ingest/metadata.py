@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import ValidationError
 
+from sonarset.store.local import json_depth
 from sonarset.format import plausibility as plaus
 from sonarset.format.attrs import SensorGrid
 from sonarset.format.problems import pydantic_problems
@@ -45,6 +46,7 @@ def parse_metadata(text: str) -> dict:
     MAX_METADATA_BYTES long, wherever it comes from (a sidecar, or the ``metadata`` array of an .npz)."""
     if len(text) > MAX_METADATA_BYTES:  # characters: at least as many bytes
         raise ValueError(f"{len(text) / 2**20:.0f} MiB is more than metadata holds ({MAX_METADATA_BYTES // 2**20} MiB)")
+
     def constant(name: str):
         raise ValueError(f"{name} is not valid JSON")
 
@@ -60,13 +62,8 @@ def parse_metadata(text: str) -> dict:
         raise ValueError(f"nested too deeply (at most {MAX_METADATA_DEPTH} levels)") from None
     if not isinstance(doc, dict):
         raise ValueError("top level must be a JSON object")
-    stack = [(doc, 1)]
-    while stack:
-        node, depth = stack.pop()
-        if depth > MAX_METADATA_DEPTH:
-            raise ValueError(f"nested too deeply (at most {MAX_METADATA_DEPTH} levels)")
-        children = node.values() if isinstance(node, dict) else node
-        stack += [(c, depth + 1) for c in children if isinstance(c, (dict, list))]
+    if json_depth(doc) > MAX_METADATA_DEPTH:
+        raise ValueError(f"nested too deeply (at most {MAX_METADATA_DEPTH} levels)")
     return doc
 
 

@@ -156,9 +156,6 @@ class ChunkChecker:
         """Every unsound chunk, as ``validate`` reports them: the chunks missing from storage, in one
         problem, and the first whose size disagrees with its header or shape (zarr would decode it
         from memory past its end)."""
-        beyond = self.beyond_storage()
-        if beyond:
-            return beyond, []
         missing, damaged = [], None
         for coords in chunk_coords(self.arr):
             phrase = self._problem(coords)

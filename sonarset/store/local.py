@@ -68,7 +68,7 @@ def read_document(path: Path, size: int | None = None):
         raise ValueError("JSON nested too deeply to parse") from None
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise _NotJSON(f"unreadable JSON ({one_line(exc)})") from None
-    if _depth(doc) > MAX_METADATA_DEPTH:
+    if json_depth(doc) > MAX_METADATA_DEPTH:
         raise ValueError(f"JSON nested deeper than {MAX_METADATA_DEPTH} levels")
     return doc
 
@@ -91,14 +91,12 @@ class _NotJSON(ValueError):
     pass
 
 
-def _depth(doc) -> int:
-    """Nesting depth of a parsed JSON document, without recursion."""
-    deepest, stack = 0, [(doc, 1)]
+def json_depth(doc) -> int:
+    """How many objects and arrays deep a parsed JSON document nests (a scalar: 0), without recursion."""
+    deepest, stack = 0, [(doc, 1)] if isinstance(doc, (dict, list)) else []
     while stack:
         node, depth = stack.pop()
         deepest = max(deepest, depth)
-        if isinstance(node, dict):
-            stack += [(v, depth + 1) for v in node.values()]
-        elif isinstance(node, list):
-            stack += [(v, depth + 1) for v in node]
+        children = node.values() if isinstance(node, dict) else node
+        stack += [(c, depth + 1) for c in children if isinstance(c, (dict, list))]
     return deepest

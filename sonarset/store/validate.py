@@ -130,10 +130,11 @@ def _data_problems(run: str, key: str, arr: zarr.Array, progress: ProgressFn | N
     """The chunks and values of array ``key`` of the run at ``run``, as ``Run.read`` checks them,
     all of them reported."""
     aw = f"{run}/{key}"
-    beyond = ChunkChecker(arr).beyond_storage()
+    checker = ChunkChecker(arr)
+    beyond = checker.beyond_storage()
     if beyond:  # a length far beyond storage: its values are fill, and visiting them could take hours
         return [p.at(aw) for p in beyond]
-    missing, damaged = ChunkChecker(arr).damage()
+    missing, damaged = checker.damage()
     out = [p.at(aw) for p in missing + damaged]
     if damaged:
         return out  # a chunk that lies about its size decodes to garbage: its values say nothing
