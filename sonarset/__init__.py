@@ -4,13 +4,13 @@ This package never imports torch; ``sonarset.models`` and ``sonarset.cli`` do, l
 """
 
 from sonarset.version import __version__
-from sonarset.errors import FormatError, GridMismatchError, InputValidationError, SonarSetError
+from sonarset.errors import FormatError, GridMismatchError, InputValidationError, RemoteError, SonarSetError
 from sonarset.format.attrs import FORMAT_VERSION, Processing, RobotRig, RunAttrs, SensorGrid, StoreAttrs
 from sonarset.format.sidecars import RecordingMeta
-from sonarset.store import Run, RunData, RunWriter, SonarStore, create_store, open_or_create_store, open_store
+from sonarset.store import RemoteLimits, Run, RunData, RunWriter, SonarStore, create_store, open_or_create_store, open_store
 
 __all__ = [
     "__version__", "FORMAT_VERSION", "FormatError", "GridMismatchError", "InputValidationError",
-    "Processing", "RecordingMeta", "RobotRig", "Run", "RunAttrs", "RunData", "RunWriter", "SensorGrid",
+    "Processing", "RecordingMeta", "RemoteError", "RemoteLimits", "RobotRig", "Run", "RunAttrs", "RunData", "RunWriter", "SensorGrid",
     "SonarSetError", "SonarStore", "StoreAttrs", "create_store", "open_or_create_store", "open_store",
 ]

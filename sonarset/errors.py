@@ -23,6 +23,11 @@ class FormatError(SonarSetError):
     """A store or file does not follow the SonarSet format."""
 
 
+class RemoteError(SonarSetError):
+    """A remote store did not answer in time or kept failing (``sonarset.store.remote``): nothing
+    is known about the store, so no check reports it as a problem of the store."""
+
+
 class GridMismatchError(SonarSetError):
     """Data or a model was made for another sensor grid."""
 

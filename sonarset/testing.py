@@ -1,4 +1,5 @@
-"""Helpers for tests and benchmarks of remote stores: a read-only HTTP server on loopback."""
+"""Helpers for tests and benchmarks of remote stores: a read-only HTTP server on loopback, which
+can also misbehave the ways real servers do (``FAULTS``)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import contextlib
 import functools
 import http.server
 import threading
+import time
 from typing import Iterator
 
 
@@ -17,17 +19,59 @@ class CountingHandler(http.server.SimpleHTTPRequestHandler):
     def log_message(self, *args) -> None:
         pass
 
+    fault: str | None = None
+    faults_left = -1  # how many requests still fail (-1: all)
+
     def do_GET(self) -> None:
-        type(self).requests += 1
+        cls = type(self)
+        cls.requests += 1
+        if cls.fault is not None and cls.faults_left != 0 and (cls.fault in ("hang", "trickle") or "/c/" in self.path):
+            cls.faults_left -= 1
+            return FAULTS[cls.fault](self)
         super().do_GET()
+
+    def _hang(self) -> None:
+        time.sleep(60)
+
+    def _trickle(self) -> None:
+        self.send_response(200)
+        self.send_header("Content-Length", "100")
+        self.end_headers()
+        for _ in range(100):
+            self.wfile.write(b"{")
+            self.wfile.flush()
+            time.sleep(1)
+
+    def _server_error(self) -> None:
+        self.send_error(500)
+
+    def _short_body(self) -> None:
+        data = open(self.translate_path(self.path), "rb").read()
+        self.send_response(200)
+        self.send_header("Content-Length", str(len(data)))
+        self.end_headers()
+        self.wfile.write(data[: len(data) // 2])
+        self.close_connection = True
+
+
+# What a misbehaving server does: accept and never answer, answer a byte a second (both for every
+# request), or for chunk requests only: answer HTTP 500, or send half the body it announced.
+FAULTS = {"hang": CountingHandler._hang, "trickle": CountingHandler._trickle,
+          "server_error": CountingHandler._server_error, "short_body": CountingHandler._short_body}
 
 
 @contextlib.contextmanager
-def serve_directory(directory: str) -> Iterator[tuple[str, type[CountingHandler]]]:
-    """(base URL, handler class whose ``requests`` counts GETs) of ``directory`` served on 127.0.0.1."""
-    handler = type("Handler", (CountingHandler,), {"requests": 0})
+def serve_directory(directory: str, fault: str | None = None,
+                    times: int = -1) -> Iterator[tuple[str, type[CountingHandler]]]:
+    """(base URL, handler class whose ``requests`` counts GETs) of ``directory`` served on 127.0.0.1;
+    with a ``fault`` (a key of ``FAULTS``) the first ``times`` affected requests (-1: all) misbehave."""
+    if fault is not None and fault not in FAULTS:
+        raise ValueError(f"fault must be one of {sorted(FAULTS)}, got {fault!r}")
+    handler = type("Handler", (CountingHandler,), {"requests": 0, "fault": fault, "faults_left": times})
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(handler, directory=directory))
     thread = threading.Thread(target=server.serve_forever, daemon=True)
+    # a hanging request must not hold the caller at shutdown
+    server.daemon_threads, server.block_on_close = True, False
     thread.start()
     try:
         yield f"http://127.0.0.1:{server.server_address[1]}", handler

@@ -16,6 +16,7 @@ from typing import Any, Callable, ClassVar
 
 import numpy as np
 
+from sonarset.errors import RemoteError
 from sonarset.format.arrays import FRAME_INTERVAL_TOLERANCE
 from sonarset.format.attrs import RobotRig, SensorGrid
 from sonarset.format.sidecars import RecordingUnits
@@ -232,11 +233,15 @@ def store_problems(store, check_data: bool = True) -> list[Implausible]:
     try:
         rig = store.rig
         names = store.runs()
+    except RemoteError:  # the server failed, not the store: never a finding
+        raise
     except Exception:
         return out
     for name in names:
         try:
             velocity = np.asarray(store.group[name]["velocity"][:])
+        except RemoteError:
+            raise
         except Exception:
             continue
         out += [Implausible(p.where, p.message).at(f"{loc}/{name}") for p in command_problems(velocity, rig)]

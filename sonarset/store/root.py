@@ -15,12 +15,12 @@ from typing import Any, Iterable
 
 import zarr
 
-from sonarset.errors import FormatError, SonarSetError, one_line
+from sonarset.errors import FormatError, RemoteError, SonarSetError, one_line
 from sonarset.format.attrs import NAMESPACE, Processing, RobotRig, RunAttrs, SensorGrid, StoreAttrs, run_name_problems
 from sonarset.format.problems import Problem, raise_first
 from sonarset.format.rules import parse_run_attrs, parse_store_attrs, root_document_problems
 from sonarset.store.local import read_document, tree_problems
-from sonarset.store.zarrio import cached_remote, child_names, first_unreadable_node, is_url, open_group
+from sonarset.store.zarrio import child_names, first_unreadable_node, is_url, open_group, remote_store
 
 # Listing a group while another process writes into it atomically shows that writer's temp file
 # ("zarr.<id>.partial"); it is not a node, zarr skips it, and the warning is noise.
@@ -72,12 +72,16 @@ def run_groups(group: zarr.Group, location: str) -> tuple[list[str], list[Proble
     its whole listing fail)."""
     try:
         return sorted(group.group_keys()), []
+    except RemoteError:  # the server failed, not the store: never a finding
+        raise
     except Exception:
         pass
     names, problems = [], []
     for name in child_names(group):
         try:
             node = group[name]
+        except RemoteError:
+            raise
         except Exception as exc:
             problems.append(Problem(f"{location}/{name}", f"unreadable zarr metadata ({one_line(exc)})"))
             continue
@@ -93,6 +97,8 @@ def run_group_attrs(group: zarr.Group, location: str, name: str) -> tuple[RunAtt
     problems = [p.at(where) for p in run_name_problems(name)]
     try:
         raw = group[name].attrs.get(NAMESPACE)
+    except RemoteError:
+        raise
     except Exception as exc:
         return None, problems + [Problem(where, f"unreadable zarr metadata ({one_line(exc)})")]
     attrs, found = parse_run_attrs(raw)
@@ -152,6 +158,8 @@ class StoreRoot:
         """Run ``name``'s attributes; None when its metadata or attributes are unusable."""
         try:
             raw = self.group[name].attrs.get(NAMESPACE)
+        except RemoteError:
+            raise
         except Exception:  # unparseable metadata: not a usable run
             return None
         return parse_run_attrs(raw)[0]
@@ -205,6 +213,8 @@ def consolidate(group: zarr.Group, location: str) -> None:
         zarr.consolidate_metadata(group.store)
     except OSError:
         raise
+    except RemoteError:
+        raise
     except Exception as exc:
         where = first_unreadable_node(group)
         raise FormatError(f"{location}{'/' + where[0] if where else ''}: unreadable zarr metadata "
@@ -212,7 +222,8 @@ def consolidate(group: zarr.Group, location: str) -> None:
 
 
 def open_root(location: str, mode: str = "r", *, storage_options: dict | None = None,
-              consolidated: bool | None = None, cache_bytes: int | None = None) -> tuple[zarr.Group, str]:
+              consolidated: bool | None = None, cache_bytes: int | None = None,
+              remote_limits=None) -> tuple[zarr.Group, str]:
     """The root group at ``location`` (a local path or an fsspec URL) and the location as the
     store names it, opened as ``open_store`` says; FormatError when it is not a zarr v3 group."""
     loc = location
@@ -223,13 +234,17 @@ def open_root(location: str, mode: str = "r", *, storage_options: dict | None = 
         if consolidated is None:
             consolidated = False
     target: Any = loc
-    if is_url(loc) and mode == "r" and cache_bytes != 0:
-        target, storage_options = cached_remote(loc, storage_options, cache_bytes), None
+    if is_url(loc):
+        target = remote_store(loc, storage_options, read_only=mode == "r", cache_bytes=cache_bytes,
+                              limits=remote_limits)
+        storage_options = None
     try:
         return open_group(target, mode, storage_options, consolidated), loc
     except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError) as exc:
         raise FormatError(f"{loc}: not a zarr store ({type(exc).__name__})") from None
-    except OSError:
+    except (OSError, SonarSetError):
+        raise
+    except RemoteError:
         raise
     except Exception as exc:  # zarr's metadata errors are ValueError, TypeError, its own classes...
         raise FormatError(f"{loc}: cannot open as a zarr v3 group: {one_line(exc)}") from None

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import zarr
 
-from sonarset.errors import FormatError, SonarSetError, one_line
+from sonarset.errors import FormatError, RemoteError, SonarSetError, one_line
 from sonarset.format.arrays import (
     ARRAYS, OPTIONAL_ARRAYS, array_meta_problems, coordinate_problems, expected_shape, frame_interval_problems,
     time_order_problems, value_problems,
@@ -29,6 +29,8 @@ def member_names(group: zarr.Group) -> set[str]:
     (opening each then says which)."""
     try:
         return set(group.array_keys())
+    except RemoteError:  # the server failed, not the store: never a finding
+        raise
     except Exception:
         return set(child_names(group))
 
@@ -47,6 +49,8 @@ def open_array(group: zarr.Group, key: str, where: str, n_frames: int, grid_shap
             return None, [Problem(aw, "is a group, not an array")]
         dims = tuple(arr.metadata.dimension_names or ())
         dtype, shape = str(arr.dtype), tuple(arr.shape)
+    except RemoteError:
+        raise
     except Exception as exc:  # metadata zarr cannot parse, or parsed but we cannot interpret
         return None, [Problem(aw, f"unreadable zarr metadata ({one_line(exc)})")]
     problems = [p.at(where) for p in array_meta_problems(key, dtype, dims, shape, n_frames, grid_shape)]
@@ -62,6 +66,8 @@ def decode_problems(arr: zarr.Array, start: int, stop: int, exc: Exception) -> l
         sel = tuple(slice(c * cs, min((c + 1) * cs, n)) for c, cs, n in zip(coords, chunks, arr.shape))
         try:
             arr[sel]
+        except RemoteError:
+            raise
         except Exception as one:
             return [Problem("", f"chunk {arr.metadata.encode_chunk_key(coords)} is corrupt or truncated: cannot be "
                                 f"decoded ({one_line(one)})")]
@@ -101,6 +107,8 @@ class Run:
         self.where = f"{store.location}/{name}"
         try:
             self.group = store.group[name]
+        except RemoteError:
+            raise
         except Exception as exc:
             raise FormatError(f"{self.where}: unreadable zarr metadata ({one_line(exc)})") from None
         self._members: set[str] | None = None
@@ -190,6 +198,8 @@ class Run:
         raise_first([p.at(where) for p in self._checker(key).first_problem(start, stop)])
         try:
             block = arr[start:stop]
+        except RemoteError:
+            raise
         except Exception as exc:
             raise_first([p.at(where) for p in decode_problems(arr, start, stop, exc)])
         step = block.shape[0] if out is None else max(1, arr.metadata.chunk_grid.chunk_shape[0])

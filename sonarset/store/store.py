@@ -22,8 +22,9 @@ from sonarset.format.problems import raise_first
 from sonarset.format.rules import run_state_problems, store_attrs_problems
 from sonarset.store.root import StoreRoot, open_root, run_group_attrs
 from sonarset.store.run import Run
+from sonarset.store.remote import RemoteLimits
 from sonarset.store.writer import DEFAULT_CHUNK_FRAMES, RunWriter
-from sonarset.store.zarrio import is_url, url_exists
+from sonarset.store.zarrio import is_url, remote_store, url_exists
 from sonarset.version import __version__
 
 __all__ = ["SonarStore", "create_store", "open_or_create_store", "open_store"]
@@ -140,6 +141,7 @@ def open_store(
     storage_options: dict | None = None,
     consolidated: bool | None = None,
     cache_bytes: int | None = None,
+    remote_limits: RemoteLimits | None = None,
     check: bool = False,
 ) -> SonarStore:
     """Open a SonarSet store from a local path or any fsspec URL (``s3://``, ``https://``,
@@ -153,13 +155,17 @@ def open_store(
     (default 512 MiB, ``0`` for none; ``sonarset.store.cache``), so chunks are fetched once, not once
     per window.
 
+    Every request to a URL ends within ``remote_limits.timeout_s`` (default 30 s, or
+    ``SONARSET_REMOTE_TIMEOUT``) and transient server failures are retried with backoff
+    (``sonarset.store.remote``); what still fails raises RemoteError naming the URL.
+
     ``check=True`` (what ``eval``, ``train``, ``info`` and ``show`` use) also runs
     :meth:`SonarStore.check`: a store that fails it raises FormatError here.
     """
     if mode not in ("r", "r+"):
         raise ValueError("mode must be 'r' or 'r+' (use create_store to make a new store)")
     group, loc = open_root(os.fspath(location), mode, storage_options=storage_options, consolidated=consolidated,
-                           cache_bytes=cache_bytes)
+                           cache_bytes=cache_bytes, remote_limits=remote_limits)
     store = SonarStore(group, loc, mode)
     return store.check() if check else store
 
@@ -195,16 +201,13 @@ def create_store(
         doc.pop("rig", None)  # unknown: absent, as in a 1.0 store
     kwargs: dict[str, Any] = {"mode": "w" if overwrite else "w-", "zarr_format": 3,
                               "attributes": {NAMESPACE: doc}}
-    if storage_options:
-        kwargs["storage_options"] = storage_options
+    target: Any = remote_store(loc, storage_options, read_only=False) if is_url(loc) else loc
     try:
-        group = zarr.open_group(loc, **kwargs)
+        group = zarr.open_group(target, **kwargs)
     except (FileExistsError, zarr.errors.ContainsGroupError, zarr.errors.ContainsArrayError):
         raise SonarSetError(f"{loc}: already exists; overwrite replaces it", parameter="overwrite") from None
     zarr.consolidate_metadata(group.store)
-    return SonarStore(zarr.open_group(loc, mode="r+", use_consolidated=False,
-                                      **({"storage_options": storage_options} if storage_options else {})),
-                      loc, "r+")
+    return SonarStore(zarr.open_group(group.store, mode="r+", use_consolidated=False), loc, "r+")
 
 
 def open_or_create_store(

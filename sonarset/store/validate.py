@@ -18,7 +18,7 @@ from typing import Callable, ClassVar
 import numpy as np
 import zarr
 
-from sonarset.errors import SonarSetError, one_line
+from sonarset.errors import RemoteError, SonarSetError, one_line
 from sonarset.format.arrays import (
     ARRAYS, coordinate_problems, frame_interval_problems, in_unit_interval, nonfinite_problems, time_order_problems,
     unit_interval_problems,
@@ -58,6 +58,8 @@ def validate_store(location: str | os.PathLike, *, check_data: bool = True,
     loc = os.fspath(location)
     try:
         return _validate(loc, check_data, progress, plausibility)
+    except RemoteError:
+        raise
     except Exception as exc:  # a check that is not guarded below: still a finding, never a crash
         return [Problem(loc, f"cannot be checked: {one_line(exc)}")]
 
@@ -70,6 +72,8 @@ def _validate(loc: str, check_data: bool, progress: ProgressFn | None, plausibil
     # Validation must see what is really there, not a consolidated snapshot.
     try:
         root, loc = open_root(loc, "r", consolidated=False)
+    except RemoteError:
+        raise
     except SonarSetError as exc:
         return [Problem("", str(exc))]
     attrs, problems = store_attrs(root, loc)
@@ -98,6 +102,8 @@ def _guarded(where: str, check: Callable[[], list[Problem]]) -> list[Problem]:
     """Run one check; an exception it raises is a finding about the store, never a crash."""
     try:
         return check()
+    except RemoteError:
+        raise
     except Exception as exc:  # zarr and numpy raise many types on broken metadata or chunks
         return [Problem(where, f"cannot be checked: {one_line(exc)}")]
 
@@ -147,6 +153,8 @@ def _data_problems(run: str, key: str, arr: zarr.Array, progress: ProgressFn | N
         stop = min(T, start + step)
         try:
             block = arr[start:stop]
+        except RemoteError:
+            raise
         except Exception as exc:
             return out + [p.at(aw) for p in decode_problems(arr, start, stop, exc)]
         # Images finite and in [0, 1], the common case, in one fast pass (float16 isfinite is ~30x slower).

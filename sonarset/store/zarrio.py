@@ -7,7 +7,7 @@ from typing import Any
 
 import zarr
 
-from sonarset.errors import FormatError
+from sonarset.errors import FormatError, RemoteError
 
 
 def is_url(location: str) -> bool:
@@ -17,24 +17,31 @@ def is_url(location: str) -> bool:
 
 def url_exists(url: str, storage_options: dict | None) -> bool:
     """Whether a store's root metadata exists at ``url``."""
-    import fsspec
+    from zarr.core.sync import sync
 
-    fs, path = fsspec.core.url_to_fs(url, **(storage_options or {}))
-    return fs.exists(f"{path.rstrip('/')}/zarr.json")
+    return sync(remote_store(url, storage_options, read_only=True).exists("zarr.json"))
 
 
-def cached_remote(url: str, storage_options: dict | None, cache_bytes: int | None):
-    """The read-only zarr store at ``url`` behind an LRU chunk cache of ``cache_bytes`` (default
-    ``cache.DEFAULT_CACHE_BYTES``): a reader then fetches each chunk once, not once per window."""
+def remote_store(url: str, storage_options: dict | None, *, read_only: bool, cache_bytes: int | None = 0,
+                 limits=None):
+    """The zarr store at ``url``, every request bounded in time and retried on transient failures
+    (``sonarset.store.remote``); for reading (``cache_bytes`` not 0) behind an LRU chunk cache of
+    ``cache_bytes`` (None: ``cache.DEFAULT_CACHE_BYTES``), so a reader fetches each chunk once,
+    not once per window. Writers never cache: they must see the store as it is. ``limits`` (a
+    ``remote.RemoteLimits``) default to the environment's."""
     from zarr.storage import FsspecStore
 
     from sonarset.store.cache import DEFAULT_CACHE_BYTES, ChunkCache
+    from sonarset.store.remote import BoundedRemote
 
     try:
-        remote = FsspecStore.from_url(url, storage_options=storage_options, read_only=True)
+        remote = FsspecStore.from_url(url, storage_options=storage_options, read_only=read_only)
     except (ValueError, TypeError, ImportError) as exc:
         raise FormatError(f"{url}: cannot open: {exc}") from None
-    return ChunkCache(remote, cache_bytes or DEFAULT_CACHE_BYTES)
+    bounded = BoundedRemote(remote, url, limits)
+    if not read_only or cache_bytes == 0:
+        return bounded
+    return ChunkCache(bounded, cache_bytes or DEFAULT_CACHE_BYTES)
 
 
 def open_group(location: Any, mode: str, storage_options: dict | None, consolidated: bool | None) -> zarr.Group:
@@ -73,6 +80,8 @@ def first_unreadable_node(root: zarr.Group) -> tuple[str, Exception] | None:
     for name in child_names(root):
         try:
             node = root[name]
+        except RemoteError:  # the server failed, not the store: never a finding
+            raise
         except Exception as exc:
             return name, exc
         if not isinstance(node, zarr.Group):
@@ -80,6 +89,8 @@ def first_unreadable_node(root: zarr.Group) -> tuple[str, Exception] | None:
         for child in child_names(node):
             try:
                 root[f"{name}/{child}"]
+            except RemoteError:
+                raise
             except Exception as exc:
                 return f"{name}/{child}", exc
     return None
