@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -82,3 +83,22 @@ def test_cli_on_a_hanging_server_exits_1_with_one_line(store):
     assert r.stderr.strip().splitlines() == [f"error: {url}/zarr.json: no complete answer within 1 s "
                                              "(the limit is SONARSET_REMOTE_TIMEOUT)"]
     assert elapsed < 20
+
+
+def test_an_absurd_length_behind_a_url_is_refused_from_a_few_requests(store):
+    """A consistent edit to 1e12 frames, consolidated so URL readers trust it: every reader refuses
+    it after a bisection (about 40 existence checks per array), in validate's quick pass too."""
+    import zarr
+
+    from tests.corruption_cases import _length
+
+    _length(10**12)(Path(store.location))
+    zarr.consolidate_metadata(store.location)
+    with served(store) as (url, handler):
+        t0 = time.perf_counter()
+        with pytest.raises(SonarSetError, match=r"test_000/\w+: \d+ chunk\(s\) declared, but storage ends at chunk c/3"):
+            open_store(url, check=True)
+        for check_data in (False, True):
+            found = [str(p) for p in validate_store(url, check_data=check_data)]
+            assert any("storage ends at chunk c/3" in p for p in found), found
+        assert time.perf_counter() - t0 < 20 and handler.requests < 2000

@@ -15,7 +15,7 @@ import itertools
 import math
 import os
 import struct
-from typing import Iterable
+from typing import Iterable, Iterator
 
 import numpy as np
 import zarr
@@ -126,6 +126,13 @@ class ChunkChecker:
             out.append((None, b"") if raw is None else (len(raw), raw[:BLOSC_HEADER_BYTES]))
         return out
 
+    def _fetched(self, keys: Iterable[str], batch: int = 64) -> Iterator[tuple[str, str | None]]:
+        """(key, phrase) of each chunk of a non-local store, fetched ``batch`` at a time: concurrent
+        enough to hide round trips, and a caller that stops early never lists the rest."""
+        keys = iter(keys)
+        while block := list(itertools.islice(keys, batch)):
+            yield from ((key, self._judge(*fetched)) for key, fetched in zip(block, self._fetch(block)))
+
     def _judge(self, size: int | None, head: bytes) -> str | None:
         if size is None:
             return self._missing()
@@ -143,8 +150,7 @@ class ChunkChecker:
         """The first unsound chunk holding frames start..stop-1 (what a reader refuses)."""
         coords = chunk_coords(self.arr, start, stop)  # lazy: a reader stops at the first unsound chunk
         if self.local is None:
-            keys = [self.key(c) for c in coords]
-            found = ((key, self._judge(*fetched)) for key, fetched in zip(keys, self._fetch(keys)))
+            found = self._fetched(map(self.key, coords))
         else:
             found = ((self.key(c), self._problem(c)) for c in coords)
         for key, phrase in found:
@@ -157,14 +163,18 @@ class ChunkChecker:
         problem, and the first whose size disagrees with its header or shape (zarr would decode it
         from memory past its end)."""
         missing, damaged = [], None
-        for coords in chunk_coords(self.arr):
-            phrase = self._problem(coords)
+        coords = chunk_coords(self.arr)
+        if self.local is None:
+            found = self._fetched(map(self.key, coords))
+        else:
+            found = ((self.key(c), self._problem(c)) for c in coords)
+        for key, phrase in found:
             if phrase is None:
                 continue
             if phrase.startswith(_MISSING):
-                missing.append(self.key(coords))
+                missing.append(key)
             elif damaged is None:
-                damaged = Problem("", f"chunk {self.key(coords)} {phrase}")
+                damaged = Problem("", f"chunk {key} {phrase}")
         lost = [Problem("", f"{len(missing)} chunk(s) missing from storage (deleted?), first: {missing[0]}")] if missing else []
         return lost, ([damaged] if damaged is not None else [])
 
@@ -172,15 +182,45 @@ class ChunkChecker:
     def beyond_storage(self) -> list[Problem]:
         """A local array whose shape declares far more chunks than its folder holds files (an
         edited length, a runaway writer): said from the counts, in the time of a listing of what
-        is stored, where visiting each declared chunk could take hours. Empty elsewhere."""
+        is stored, where visiting each declared chunk could take hours. A remote array, which may
+        not list, is probed instead (``_beyond_remote``)."""
+        declared = declared_chunks(self.arr)
         if self.local is None:
-            return []
-        stored, declared = self._stored_files(), declared_chunks(self.arr)
+            return self._beyond_remote(declared)
+        stored = self._stored_files()
         if declared <= 2 * stored + 16:
             return []
         first = next(k for k in map(self.key, chunk_coords(self.arr)) if not os.path.exists(os.path.join(self.local, k)))
         return [Problem("", f"at least {declared - stored} of {declared} chunk(s) missing from storage "
                             f"(deleted, or a shape edited?), first: {first}")]
+
+    def _beyond_remote(self, declared: int) -> list[Problem]:
+        """Writers fill an array's chunks from the first frame on, so when the last declared chunk
+        is missing, a bisection on the first chunk of each time step finds where storage ends in
+        about log2(chunks) requests. Only a length far beyond that end is refused here; holes
+        before it are what ``damage`` and the readers report, chunk by chunk."""
+        if self.arr.ndim == 0:
+            return []
+        time_chunks = math.ceil(self.arr.shape[0] / self.arr.metadata.chunk_grid.chunk_shape[0])
+        per_step = declared // max(time_chunks, 1)
+        if time_chunks < 16 or self._has_time_chunk(time_chunks - 1):
+            return []
+        lo, hi = -1, time_chunks - 1  # chunk lo is stored (or lo is before the first), hi is not
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            lo, hi = (mid, hi) if self._has_time_chunk(mid) else (lo, mid)
+        stored = hi * per_step
+        if declared <= 2 * stored + 16:
+            return []
+        first = self.key((hi,) + (0,) * (self.arr.ndim - 1))
+        return [Problem("", f"{declared} chunk(s) declared, but storage ends at chunk {first} "
+                            f"(the last is missing too; deleted, or a shape edited?)")]
+
+    def _has_time_chunk(self, i: int) -> bool:
+        from zarr.core.sync import sync
+
+        key = self.key((i,) + (0,) * (self.arr.ndim - 1))
+        return sync(self.arr.store_path.store.exists(f"{self.arr.store_path.path}/{key}"))
 
     def _stored_files(self) -> int:
         """Files below the local array's folder other than its metadata: at most its stored chunks."""
