@@ -55,10 +55,15 @@ app.command("export-onnx")(model.export_onnx_)
 
 def main() -> None:
     from sonarset.perf import keep_freed_memory
+    from sonarset.pool import Terminated, terminated_as_interrupt
 
     keep_freed_memory()
     try:
-        app()
+        with terminated_as_interrupt():  # SIGTERM cleans up as Ctrl-C does (sonarset.pool)
+            app()
+    except KeyboardInterrupt as exc:  # one that arrived outside a command's own handler
+        err.print(f"[bold red]error:[/] {'terminated' if isinstance(exc, Terminated) else 'interrupted'}")
+        sys.exit(143 if isinstance(exc, Terminated) else 130)
     except Exception as exc:  # an unexpected error is a bug: say so in one line
         if os.environ.get("SONARSET_DEBUG"):
             raise

@@ -14,6 +14,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from typer.models import OptionInfo
 
 from sonarset.errors import InputValidationError, SonarSetError
+from sonarset.pool import Terminated
 
 out = Console(soft_wrap=True)
 err = Console(stderr=True, soft_wrap=True)
@@ -79,6 +80,8 @@ def user_errors(fn: Callable) -> Callable:
             raise typer.Exit(1)
         except SonarSetError as exc:
             fail(with_flag(str(exc), exc.parameter, command_flags(fn)))
+        except Terminated:
+            fail("terminated", 143)
         except KeyboardInterrupt:
             fail("interrupted", 130)
         except (OSError, MemoryError) as exc:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import json
-import multiprocessing as mp
 import os
 from pathlib import Path
 from typing import Callable, Sequence
@@ -13,6 +12,7 @@ from typing import Callable, Sequence
 import numpy as np
 from sonarset.store.atomic import atomic_text, publish_files, save_figure
 from sonarset.perf import keep_freed_memory
+from sonarset.pool import WorkerPool
 from sonarset.errors import SonarSetError
 from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.report.numbers import finite_or_none
@@ -99,19 +99,12 @@ def parallel_map(fn: Callable, tasks: Sequence, workers: int | None = None,
             if progress:
                 progress(i + 1, len(tasks))
         return results
-    saved = {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
-    os.environ.update({k: "1" for k, v in saved.items() if v is None})
-    try:
-        with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker) as pool:
-            futures = {pool.submit(fn, t): i for i, t in enumerate(tasks)}
-            for n, f in enumerate(cf.as_completed(futures), 1):
-                results[futures[f]] = f.result()
-                if progress:
-                    progress(n, len(tasks))
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
+    with WorkerPool(workers, _init_worker) as pool:
+        futures = {pool.submit(fn, t): i for i, t in enumerate(tasks)}
+        for n, f in enumerate(cf.as_completed(futures), 1):
+            results[futures[f]] = f.result()
+            if progress:
+                progress(n, len(tasks))
     return results
 
 

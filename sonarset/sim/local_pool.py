@@ -1,7 +1,8 @@
 """Run generation tasks in a local process pool (``generate`` without a ``scheduler``).
 
-One task per run, exactly the function a Dask cluster runs (``runs.write_run``); progress comes
-back through a managed queue, and only this process writes the root's consolidated metadata.
+One task per run, exactly the function a Dask cluster runs (``runs.write_run``), in a
+``sonarset.pool.WorkerPool`` (no worker outlives this process); progress comes back through a queue
+the workers inherit, and only this process writes the root's consolidated metadata.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import os
 import threading
 
 from sonarset.perf import keep_freed_memory
+from sonarset.pool import WorkerPool
 from sonarset.sim.runs import RunPlan, RunTarget, write_run
 
 
@@ -30,43 +32,54 @@ def run_locally(target: RunTarget, plans: list[RunPlan], workers: int | None, pr
             write_run(target, plan, _Direct(progress, total), spare)
             store.consolidate()
         return
-    ctx = mp.get_context("spawn")  # no fork: zarr's event loop thread must not be copied
-    # One BLAS/OpenMP thread per worker: the workers already fill the cores.
-    saved = {k: os.environ.get(k) for k in _THREAD_VARS}
-    os.environ.update({k: "1" for k in _THREAD_VARS if k not in os.environ})
+    _run_pool(target, plans, workers, total, progress, store)
+
+
+def _run_pool(target: RunTarget, todo: list[RunPlan], workers: int, total: dict, progress, store) -> None:
+    """One task per run in a process pool; progress arrives through a queue the workers inherit."""
+    ctx = mp.get_context("spawn")
+    queue = ctx.Queue()
+    spare = ctx.Event()  # set once fewer runs remain than workers: a core is free
     try:
-        _run_pool(ctx, target, plans, workers, total, progress, store)
+        _drive(WorkerPool(workers, _init_worker, (queue, spare)), target, todo, workers, total, progress, store,
+               queue, spare)
     finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
+        # Freed now, not at exit: a semaphore still alive then is reported as leaked.
+        queue.close()
+        queue = spare = None
 
 
-_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+def _drive(pool: WorkerPool, target, todo, workers, total, progress, store, queue, spare) -> None:
+    with pool:
+        pending = {pool.submit(_write_run_in_worker, target, p) for p in todo}
+        done = {p.name: 0 for p in todo}
+        while pending:
+            if len(pending) < workers:
+                spare.set()
+            finished, pending = cf.wait(pending, timeout=0.2)
+            while not queue.empty():
+                name, n = queue.get()
+                done[name] += n
+                if progress:
+                    progress(name, done[name], total[name])
+            for f in finished:
+                f.result()  # re-raise a worker's error here
+            if finished:
+                # Only this process writes root metadata; zarr writes it atomically.
+                store.consolidate()
 
 
-def _run_pool(ctx, target: RunTarget, todo: list[RunPlan], workers: int, total: dict, progress, store) -> None:
-    """One task per run in a process pool; progress arrives through a managed queue."""
-    with ctx.Manager() as manager:
-        queue = manager.Queue()
-        spare = manager.Event()  # set once fewer runs remain than workers: a core is free
-        with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=keep_freed_memory) as pool:
-            pending = {pool.submit(write_run, target, p, queue, spare) for p in todo}
-            done = {p.name: 0 for p in todo}
-            while pending:
-                if len(pending) < workers:
-                    spare.set()
-                finished, pending = cf.wait(pending, timeout=0.2)
-                while not queue.empty():
-                    name, n = queue.get()
-                    done[name] += n
-                    if progress:
-                        progress(name, done[name], total[name])
-                for f in finished:
-                    f.result()  # re-raise a worker's error here
-                if finished:
-                    # Only this process writes root metadata; zarr writes it atomically.
-                    store.consolidate()
+_QUEUE = _SPARE = None
+
+
+def _init_worker(queue, spare) -> None:
+    global _QUEUE, _SPARE
+    _QUEUE, _SPARE = queue, spare
+    keep_freed_memory()
+
+
+def _write_run_in_worker(target: RunTarget, plan: RunPlan) -> str:
+    return write_run(target, plan, _QUEUE, _SPARE)
 
 
 class _Direct:

@@ -1,0 +1,124 @@
+"""A process pool that leaves nothing behind: what ``generate`` and the experiments run in.
+
+Three ways a plain ``ProcessPoolExecutor`` leaks or shouts:
+- SIGKILL of the parent: the workers are orphaned and run their task to the end (minutes, hundreds
+  of MB each). Here each worker watches its parent and exits as soon as it is gone.
+- SIGTERM or Ctrl-C in the parent: leaving the ``with`` block waits for the running tasks. Here an
+  exception (KeyboardInterrupt included) terminates the workers at once and re-raises.
+- Ctrl-C reaches the whole process group: every worker prints its own KeyboardInterrupt
+  traceback, some while still importing. Here workers are started with SIGINT blocked (the mask
+  survives exec), so only the parent sees it, and the parent tears the pool down.
+
+Workers are spawned, never forked: zarr's event loop thread must not be copied.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import multiprocessing as mp
+import os
+import signal
+import threading
+import time
+from typing import Any, Callable, Iterator
+
+PARENT_POLL_S = 0.5
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@contextlib.contextmanager
+def sigint_held() -> Iterator[None]:
+    """SIGINT blocked in this thread: processes started now inherit it blocked; one that arrives
+    meanwhile is delivered (as KeyboardInterrupt) when the block ends."""
+    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+class WorkerPool:
+    """A spawn-context process pool of ``workers`` processes, each running ``initializer(*initargs)``
+    first; one BLAS/OpenMP thread per worker (the workers already fill the cores)."""
+
+    def __init__(self, workers: int, initializer: Callable | None = None, initargs: tuple = ()):
+        self.context = mp.get_context("spawn")
+        self._pool = cf.ProcessPoolExecutor(workers, mp_context=self.context, initializer=_start_worker,
+                                            initargs=(os.getpid(), initializer, initargs))
+
+    def submit(self, fn: Callable, *args: Any) -> cf.Future:
+        # The pool starts its processes inside submit: start them with SIGINT blocked.
+        with sigint_held(), _one_thread_per_worker():
+            return self._pool.submit(fn, *args)
+
+    def terminate(self) -> None:
+        """Stop every worker now, running tasks included, and drop the queued ones."""
+        processes = list((getattr(self._pool, "_processes", None) or {}).values())
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        for p in processes:
+            if p.is_alive():
+                p.terminate()
+        for p in processes:
+            p.join(5)
+            if p.is_alive():
+                p.kill()
+
+    def __enter__(self) -> "WorkerPool":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self._pool.shutdown(wait=True)
+        else:
+            self.terminate()
+
+
+@contextlib.contextmanager
+def _one_thread_per_worker() -> Iterator[None]:
+    saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+    os.environ.update({k: "1" for k, v in saved.items() if v is None})
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+
+
+@contextlib.contextmanager
+def terminated_as_interrupt() -> Iterator[None]:
+    """Within: SIGTERM raises ``Terminated`` in the main thread, so the same clean-up as for Ctrl-C
+    runs (pools torn down, partial files removed) before the process exits."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def raise_terminated(signum, frame):
+        raise Terminated()
+
+    old = signal.signal(signal.SIGTERM, raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, handled where Ctrl-C is (it is a KeyboardInterrupt)."""
+
+
+def _start_worker(parent: int, initializer: Callable | None, initargs: tuple) -> None:
+    threading.Thread(target=_exit_when_orphaned, args=(parent,), daemon=True, name="parent-watch").start()
+    if initializer is not None:
+        initializer(*initargs)
+
+
+def _exit_when_orphaned(parent: int) -> None:
+    # A dead parent's children are re-parented (to init or a subreaper): the ppid changes.
+    while os.getppid() == parent:
+        time.sleep(PARENT_POLL_S)
+    os._exit(1)
