@@ -229,3 +229,30 @@ def test_full_disk_is_one_line_and_resumable(tmp_path, reference, monkeypatch):
     got = _arrays(out)
     assert all(got[k].tobytes() == ref[k].tobytes() for k in ref) and got.keys() == ref.keys()
     assert _leftovers(out) == []
+
+
+@pytest.mark.parametrize("damage", ["images array removed", "velocity chunk removed", "image chunk cut short"])
+def test_a_rerun_repairs_a_run_flagged_complete_but_broken(tmp_path, reference, damage):
+    """What a concurrent or interrupted writer can leave: a complete flag over a broken run. The
+    same command re-simulates that run (deterministic: the same bytes), never says "complete"."""
+    import shutil
+
+    ref, _ = reference
+    out = tmp_path / "s.zarr"
+    assert CliRunner().invoke(app, ["generate", str(out), *ARGS]).exit_code == 0
+    run = out / "test_000"
+    if damage == "images array removed":
+        shutil.rmtree(run / "images")
+    elif damage == "velocity chunk removed":
+        (run / "velocity" / "c" / "0" / "0").unlink()
+    else:
+        chunk = run / "images" / "c" / "1" / "0" / "0"
+        chunk.write_bytes(chunk.read_bytes()[:100])
+    assert validate_store(out)
+    res = CliRunner().invoke(app, ["generate", str(out), *ARGS])
+    assert res.exit_code == 0, res.output
+    assert "wrote 1 run(s)" in res.output
+    assert validate_store(out) == []
+    got = open_store(out)
+    for key in KEYS:
+        np.testing.assert_array_equal(got.run("test_000")[key][:], ref[("test_000", key)])

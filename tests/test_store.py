@@ -1,5 +1,7 @@
 import json
 
+import os
+
 import numpy as np
 import pytest
 
@@ -76,6 +78,18 @@ def test_commit_refuses_unwritten_frames(store):
     w.write(0, **blk)
     with pytest.raises(SonarSetError, match="frame 5 was never written"):
         w.commit()
+
+
+def test_commit_verifies_storage_before_the_complete_flag(store):
+    """A writer whose array vanished under it (another writer deleted the run) is not flagged complete."""
+    import shutil
+
+    w = store.run_writer("run_011", 10)
+    w.write(0, **make_run(10, 4, "float16"))
+    shutil.rmtree(os.path.join(store.location, "run_011", "images"))
+    with pytest.raises(FormatError, match="run_011.*images"):
+        w.commit()
+    assert "run_011" not in open_store(store.location).runs()
 
 
 def test_existing_run_needs_overwrite(store):

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Callable
 
 from sonarset.store.atomic import aside_dir, remove_stale_asides, settle_zarr_writes
-from sonarset.errors import SonarSetError, first_os_error, os_error_reason
+from sonarset.errors import FormatError, SonarSetError, first_os_error, os_error_reason
 from sonarset.store.store import SonarStore, create_store, open_or_create_store
 from sonarset.version import __version__
 from sonarset.store.lock import writer_lock
@@ -76,20 +76,29 @@ def generate(
             exc = first_os_error(exc)  # the run writer's clean-up failed too: report the cause
             raise SonarSetError(f"{loc}: cannot write {exc.filename or 'the store'}: {os_error_reason(exc)} (complete "
                                 "runs are kept; re-run the same command to resume)") from None
+        # Success is said of a store readers accept, never of one a writer left broken.
+        store.check([p.name for p in plans], chunks=True)
         return [p.name for p in todo]
 
 
 def _runs_to_do(store: SonarStore, plans: list[RunPlan]) -> list[RunPlan]:
-    """The plans whose run is not complete yet; a complete run made with other settings is an error."""
+    """The plans whose run is not complete yet, or is flagged complete but broken (an array or
+    chunk missing or cut short: re-simulated, the simulation is deterministic); a complete run
+    made with other settings is an error."""
     todo = []
     complete = set(store.runs())  # listing reads every run's attributes: once, not once per plan
     for plan in plans:
         if plan.name in complete:
-            have = {"processing": "raw", **store.run(plan.name).attrs.source}  # 1.0 runs were raw
+            run = store.run(plan.name)
+            have = {"processing": "raw", **run.attrs.source}  # 1.0 runs were raw
             if {k: have.get(k) for k in plan.source()} != plan.source():
                 raise SonarSetError(f"{store.location}: run {plan.name} was generated with other settings; "
                                     "use a new output or the same options")
-            continue
+            try:
+                run.check(chunks=True)  # a stat per chunk: cheap next to simulating the run again
+                continue
+            except FormatError:
+                pass
         todo.append(plan)
     return todo
 

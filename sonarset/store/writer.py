@@ -13,6 +13,7 @@ from sonarset.format.arrays import ARRAYS, OPTIONAL_ARRAYS, expected_shape, run_
 from sonarset.format.attrs import NAMESPACE, RunAttrs, run_name_problems
 from sonarset.format.problems import raise_first
 from sonarset.store.root import StoreRoot
+from sonarset.store.run import Run
 
 DEFAULT_CHUNK_FRAMES = 64  # 64 x 200 x 90 float16 = 2.3 MB: large enough to stream, small to cache
 
@@ -140,6 +141,9 @@ class RunWriter:
         for key, values in self._small.items():
             self.arrays[key][:] = values
         attrs = self.attrs.model_copy(update={"complete": True})
+        # Flagged complete only once storage holds what a reader will accept (every array and chunk
+        # present, sized as declared): a writer that lost an array to a concurrent one fails here.
+        Run(self.store, self.name, attrs).check(chunks=True)
         # The completion flag is the run's last write: everything before it is already durable.
         self.group.attrs.update({NAMESPACE: attrs.model_dump(mode="json")})
         if self.consolidate:
