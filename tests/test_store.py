@@ -92,6 +92,21 @@ def test_commit_verifies_storage_before_the_complete_flag(store):
     assert "run_011" not in open_store(store.location).runs()
 
 
+def test_a_run_replaced_while_open_is_refused_not_mixed(store):
+    """import --overwrite swaps a new run folder in; a reader holding the old run gets a clean error
+    on its next read, never the new velocities beside the old images."""
+    from sonarset.ingest.target import move_run_in
+
+    reader = open_store(store.location).run("run_000")
+    reader.read("images")
+    move_run_in(open_store(store.location, "r+"), "run_000",
+                lambda side: side.write_run("run_000", **make_run(30, 9), chunk_frames=8))
+    with pytest.raises(FormatError, match="run_000: run changed while reading"):
+        reader.read("velocity")
+    again = open_store(store.location).run("run_000")  # opened again: the new run, whole
+    np.testing.assert_array_equal(again.read("velocity"), make_run(30, 9)["velocity"])
+
+
 def test_existing_run_needs_overwrite(store):
     with pytest.raises(SonarSetError, match="already exists"):
         store.write_run("run_000", **make_run(5, 1))

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import os
+
 import numpy as np
 import zarr
 
@@ -112,9 +114,28 @@ class Run:
         except Exception as exc:
             raise FormatError(f"{self.where}: unreadable zarr metadata ({one_line(exc)})") from None
         self._members: set[str] | None = None
+        self._identity = self._folder_identity()
         self._arrays: dict[str, zarr.Array] = {}
         self._checkers: dict[str, ChunkChecker] = {}
         self._time: np.ndarray | None = None
+
+    def _folder_identity(self) -> tuple[int, int] | None:
+        """(device, inode) of a local run's folder; None for remote stores or when it is gone. A
+        replaced run (``import --overwrite`` swaps a new folder in) has another identity."""
+        root = getattr(self.store.group.store, "root", None)
+        if not isinstance(self.store.group.store, zarr.storage.LocalStore) or root is None:
+            return None
+        try:
+            st = os.stat(os.path.join(str(root), self.store.group.path, self.name))
+        except OSError:
+            return None
+        return st.st_dev, st.st_ino
+
+    def _unchanged(self) -> None:
+        """FormatError when the run was replaced since it was opened: what was read may mix the two."""
+        if self._identity is not None and self._folder_identity() != self._identity:
+            raise FormatError(f"{self.where}: run changed while reading (another writer replaced it); "
+                              "open it again to read the new one")
 
     def _member_names(self) -> set[str]:
         if self._members is None:
@@ -216,6 +237,7 @@ class Run:
         if key == "time" and start == 0 and stop == n:
             raise_first([p.at(self.where) for p in
                          time_order_problems(block) or frame_interval_problems(block, self.store.attrs.frame_rate_hz)])
+        self._unchanged()  # after the read: a swap during it, or since the run's other reads, is caught
         return block
 
     def read_time(self) -> np.ndarray:
