@@ -177,3 +177,25 @@ def test_unit_interval_bit_test_is_exact(dtype):
         b = a.copy()
         b[500] = bad
         assert not in_unit_interval(b), bad
+
+
+def test_consolidating_a_read_only_store_with_a_current_snapshot_is_nothing_to_do(store, monkeypatch):
+    """generate with nothing to do and validate --consolidate succeed on a read-only store; a
+    snapshot that needs rewriting still fails with the file system's error."""
+    import errno
+
+    import zarr
+
+    from sonarset.store import root
+
+    def read_only(*args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    store.consolidate()
+    monkeypatch.setattr(root.zarr, "consolidate_metadata", read_only)
+    open_store(store.location, "r+").consolidate()  # current: no write needed
+    monkeypatch.undo()
+    zarr.open_group(store.location, mode="r+").create_group("run_099")  # the snapshot lacks it now
+    monkeypatch.setattr(root.zarr, "consolidate_metadata", read_only)
+    with pytest.raises(OSError, match="Read-only"):
+        open_store(store.location, "r+").consolidate()

@@ -9,6 +9,9 @@ facade (``sonarset.store.store.SonarStore``) builds on it.
 
 from __future__ import annotations
 
+import errno
+import json
+
 import warnings
 from pathlib import Path
 from typing import Any, Iterable
@@ -211,7 +214,11 @@ def consolidate(group: zarr.Group, location: str) -> None:
     metadata zarr cannot parse (zarr parses every node's, so one broken node stops it)."""
     try:
         zarr.consolidate_metadata(group.store)
-    except OSError:
+    except OSError as exc:
+        # A read-only store whose snapshot is current needs no write: nothing to do is success.
+        if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM) and \
+                consolidated_staleness(group, child_names(group)) is None:
+            return
         raise
     except RemoteError:
         raise
@@ -220,6 +227,70 @@ def consolidate(group: zarr.Group, location: str) -> None:
         raise FormatError(f"{location}{'/' + where[0] if where else ''}: unreadable zarr metadata "
                           f"({one_line(where[1] if where else exc)}); cannot consolidate") from None
 
+
+
+def consolidated_staleness(root: zarr.Group, names: list[str]) -> str | None:
+    """How the root's consolidated metadata disagrees with the run groups ``names`` and their arrays
+    as stored ("stale (it lacks run_003 ...)"), or None when it agrees or there is none."""
+    from zarr.core.buffer import default_buffer_prototype
+    from zarr.core.sync import sync
+
+    raw = sync(root.store.get(f"{root.path}/zarr.json" if root.path else "zarr.json", prototype=default_buffer_prototype()))
+    doc = json.loads(raw.to_bytes()) if raw is not None else None
+    if not isinstance(doc, dict) or doc.get("consolidated_metadata") is None:
+        return None
+    try:
+        cons = zarr.open_group(root.store, mode="r", use_consolidated=True)
+        listed = cons.metadata.consolidated_metadata.flattened_metadata
+    except Exception as exc:
+        return f"unreadable ({one_line(exc)})"
+    actual, unreadable = node_metadata(root, names)
+    # Compare runs and their arrays; what cannot be read is reported by the run checks already.
+    listed = {k: v for k, v in listed.items()
+              if k.count("/") <= 1 and k not in unreadable and k.split("/")[0] not in unreadable}
+
+    def plain(meta) -> dict:
+        d = meta.to_dict()
+        d.pop("consolidated_metadata", None)  # nested snapshots are compared node by node
+        return d
+
+    lacks = sorted(set(actual) - set(listed))
+    extra = sorted(set(listed) - set(actual))
+    differ = sorted(k for k in set(actual) & set(listed) if plain(actual[k]) != plain(listed[k]))
+    if not (lacks or extra or differ):
+        return None
+    if lacks:
+        detail = f"it lacks {lacks[0]}" + (f" and {len(lacks) - 1} more node(s)" if len(lacks) > 1 else "")
+    elif extra:
+        detail = f"it lists {extra[0]}, which the store does not hold"
+    else:
+        detail = f"its copy of {differ[0]}'s metadata differs from the store's"
+    return f"stale ({detail}; readers of URLs trust it)"
+
+
+def node_metadata(root: zarr.Group, names: list[str]) -> tuple[dict, set[str]]:
+    """The metadata of every readable node under the root's run groups (runs and their arrays),
+    and the keys of those whose metadata zarr cannot parse (the run checks report them)."""
+    actual, unreadable = {}, set()
+    for name in names:
+        try:
+            group = root[name]
+            actual[name] = group.metadata
+        except RemoteError:
+            raise
+        except Exception:
+            unreadable.add(name)
+            continue
+        for child in child_names(group):
+            key = f"{name}/{child}"
+            try:
+                actual[key] = root[key].metadata
+            except RemoteError:
+                raise
+            except Exception:
+                unreadable.add(key)
+    unreadable |= {n for n in child_names(root) if n not in names}  # children that are no group
+    return actual, unreadable
 
 def open_root(location: str, mode: str = "r", *, storage_options: dict | None = None,
               consolidated: bool | None = None, cache_bytes: int | None = None,

@@ -9,7 +9,6 @@ problem, this lists them all.
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,10 +26,11 @@ from sonarset.format.plausibility import Implausible, store_problems
 from sonarset.format.problems import Problem
 from sonarset.format.rules import command_limit_problems, run_state_problems, store_attrs_problems
 from sonarset.store.integrity import ChunkChecker
-from sonarset.store.root import local_root_problems, open_root, run_group_attrs, run_groups, store_attrs
+from sonarset.store.root import (consolidated_staleness, local_root_problems, open_root, run_group_attrs, run_groups,
+                                 store_attrs)
 from sonarset.store.run import decode_problems, member_names, open_array
 from sonarset.store.store import SonarStore
-from sonarset.store.zarrio import child_names, is_url
+from sonarset.store.zarrio import is_url
 
 __all__ = ["Problem", "ProgressFn", "Stale", "validate_store"]
 
@@ -188,59 +188,7 @@ def _data_problems(run: str, key: str, arr: zarr.Array, progress: ProgressFn | N
 def _check_consolidated(loc: str, root: zarr.Group, names: list[str]) -> list[Problem]:
     """Consolidated metadata is optional, but when present it must match the store node for node:
     a URL reader trusts it instead of listing, so a run or array it lacks cannot be read there."""
-    from zarr.core.buffer import default_buffer_prototype
-    from zarr.core.sync import sync
-
-    raw = sync(root.store.get(f"{root.path}/zarr.json" if root.path else "zarr.json", prototype=default_buffer_prototype()))
-    doc = json.loads(raw.to_bytes()) if raw is not None else None
-    if not isinstance(doc, dict) or doc.get("consolidated_metadata") is None:
+    stale = consolidated_staleness(root, names)
+    if stale is None:
         return []
-    fix = "consolidate the store again"
-    try:
-        cons = zarr.open_group(root.store, mode="r", use_consolidated=True)
-        listed = cons.metadata.consolidated_metadata.flattened_metadata
-    except Exception as exc:
-        return [Stale(loc, f"consolidated metadata is unreadable ({one_line(exc)}); {fix}")]
-    actual, unreadable = _node_metadata(root, names)
-    # Compare runs and their arrays; what cannot be read is reported by the run checks already.
-    listed = {k: v for k, v in listed.items()
-              if k.count("/") <= 1 and k not in unreadable and k.split("/")[0] not in unreadable}
-
-    def plain(meta) -> dict:
-        d = meta.to_dict()
-        d.pop("consolidated_metadata", None)  # nested snapshots are compared node by node
-        return d
-
-    lacks = sorted(set(actual) - set(listed))
-    extra = sorted(set(listed) - set(actual))
-    differ = sorted(k for k in set(actual) & set(listed) if plain(actual[k]) != plain(listed[k]))
-    if not (lacks or extra or differ):
-        return []
-    if lacks:
-        detail = f"it lacks {lacks[0]}" + (f" and {len(lacks) - 1} more node(s)" if len(lacks) > 1 else "")
-    elif extra:
-        detail = f"it lists {extra[0]}, which the store does not hold"
-    else:
-        detail = f"its copy of {differ[0]}'s metadata differs from the store's"
-    return [Stale(loc, f"consolidated metadata is stale ({detail}; readers of URLs trust it); {fix}")]
-
-
-def _node_metadata(root: zarr.Group, names: list[str]) -> tuple[dict, set[str]]:
-    """The metadata of every readable node under the root's run groups (runs and their arrays),
-    and the keys of those whose metadata zarr cannot parse (the run checks report them)."""
-    actual, unreadable = {}, set()
-    for name in names:
-        try:
-            group = root[name]
-            actual[name] = group.metadata
-        except Exception:
-            unreadable.add(name)
-            continue
-        for child in child_names(group):
-            key = f"{name}/{child}"
-            try:
-                actual[key] = root[key].metadata
-            except Exception:
-                unreadable.add(key)
-    unreadable |= {n for n in child_names(root) if n not in names}  # children that are no group
-    return actual, unreadable
+    return [Stale(loc, f"consolidated metadata is {stale}; consolidate the store again")]
