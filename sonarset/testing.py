@@ -27,7 +27,10 @@ class CountingHandler(http.server.SimpleHTTPRequestHandler):
         cls.requests += 1
         if cls.fault is not None and cls.faults_left != 0 and (cls.fault in ("hang", "trickle") or "/c/" in self.path):
             cls.faults_left -= 1
-            return FAULTS[cls.fault](self)
+            try:
+                return FAULTS[cls.fault](self)
+            except (BrokenPipeError, ConnectionResetError):  # the client gave up first: as it should
+                return None
         super().do_GET()
 
     def _hang(self) -> None:

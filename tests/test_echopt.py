@@ -119,6 +119,12 @@ def test_checkpoint_is_safetensors_with_a_card(tmp_path):
     (tmp_path / "bad.json").write_text((tmp_path / "m.json").read_text())
     with pytest.raises(SonarSetError, match="cannot load weights"):
         load_checkpoint(tmp_path / "bad", TINY_GRID)
+    for k, v in model.state_dict().items():  # a diverged training: weights that are NaN
+        if v.is_floating_point():
+            v.fill_(float("nan"))
+    nan = save_checkpoint(tmp_path / "nan", model, {"grid": TINY_GRID.model_dump(), "preset": "tiny"})
+    with pytest.raises(SonarSetError, match="weight tensors hold NaN or infinite values"):
+        load_checkpoint(nan, TINY_GRID)
 
 
 @pytest.mark.parametrize("field,value,message", [

@@ -11,6 +11,7 @@ import json
 import os
 from pathlib import Path
 
+import torch
 from safetensors.torch import load_file, save_file
 
 from sonarset.store.atomic import atomic_text, atomic_write
@@ -69,4 +70,9 @@ def load_checkpoint(spec: str | os.PathLike, grid: SensorGrid | None = None, dev
         model.load_state_dict(state)
     except Exception as exc:  # safetensors raises its own error types
         raise SonarSetError(f"{path}: cannot load weights ({type(exc).__name__}: {exc})") from None
+    # NaN weights make every prediction NaN, which scores as "undefined" rather than failing.
+    broken = [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if broken:
+        raise SonarSetError(f"{path}: {len(broken)} of {len(state)} weight tensors hold NaN or infinite values "
+                            f"(first: {broken[0]}); a diverged training? use another checkpoint")
     return model.to(device).eval(), card

@@ -1,0 +1,301 @@
+"""The hostile-input table (issue 26): slow and failing servers, absurd lengths behind a URL, bad
+model cards, deep world files, signals to worker pools, concurrent writers and read-only stores,
+each against the commands a user runs, as real processes.
+
+    python bench/bench_hostile.py [--imports 20] [--remote-timeout 10]
+
+Prints one markdown row per (case, command): exit code, seconds, peak RSS, stderr lines, and the
+verdict: clean when the exit code is the expected one, stderr is at most one line (validate: one
+line per problem, each a finding), no traceback or "internal error", within 30 s and 2 GB. The on-disk corruption
+table (60 kinds) is ``python bench/bench_readcheck.py --table``. Remote rows run with
+SONARSET_REMOTE_TIMEOUT=--remote-timeout (default 10 s; the product's default is 30 s).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from sonarset.testing import serve_directory  # noqa: E402
+
+LIMIT_S, LIMIT_MB = 30.0, 2048
+CLI = [sys.executable, "-m", "sonarset.cli"]
+ENV = {**os.environ, "COLUMNS": "200", "NO_COLOR": "1"}
+
+
+def run(args: list, *, env: dict | None = None, timeout: float = 120, cwd=None) -> dict:
+    """Run the CLI with ``args``; exit code, wall seconds, peak RSS (MB) and stderr."""
+    with tempfile.TemporaryFile("w+") as err:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen([*CLI, *map(str, args)], stdout=subprocess.DEVNULL, stderr=err, cwd=cwd,
+                                env={**ENV, **(env or {})})
+        rc, peak = _wait(proc, timeout)
+        seconds = time.perf_counter() - t0
+        err.seek(0)
+        text = err.read()
+    return {"rc": rc, "s": seconds, "mb": peak / 1024, "stderr": text}
+
+
+def _wait(proc: subprocess.Popen, timeout: float) -> tuple[int, int]:
+    deadline = time.monotonic() + timeout
+    while True:
+        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+        if pid:
+            proc.returncode = os.waitstatus_to_exitcode(status)
+            return proc.returncode, usage.ru_maxrss
+        if time.monotonic() > deadline:
+            proc.kill()
+        time.sleep(0.05)
+
+
+def lines(stderr: str) -> list[str]:
+    # the multiprocessing resource tracker's note on semaphores it cleaned up is not ours to print
+    return [ln for ln in stderr.splitlines() if ln.strip() and "resource_tracker" not in ln
+            and "warnings.warn(" not in ln]
+
+
+def verdict(result: dict, expect: int, per_problem: bool = False) -> str:
+    out = lines(result["stderr"])
+    problems = []
+    if result["rc"] != expect:
+        problems.append(f"exit {result['rc']}, expected {expect}")
+    if per_problem:  # validate: one line per problem, each saying so
+        if not all(ln.startswith(("invalid:", "error:")) for ln in out):
+            problems.append("a line that is no finding")
+    elif len(out) > 1:
+        problems.append(f"{len(out)} lines")
+    if "Traceback" in result["stderr"] or "internal error" in result["stderr"]:
+        problems.append("traceback")
+    if result["s"] > LIMIT_S:
+        problems.append("too slow")
+    if result["mb"] > LIMIT_MB:
+        problems.append("too much memory")
+    return "clean" if not problems else "**" + ", ".join(problems) + "**"
+
+
+ROWS: list[str] = []
+
+
+def row(case: str, command: str, result: dict, expect: int = 1) -> None:
+    first = (lines(result["stderr"]) or [""])[0].replace("|", "\\|")
+    if len(first) > 110:
+        first = first[:107] + "..."
+    ROWS.append(f"| {case} | {command} | {result['rc']} | {result['s']:.1f} | {result['mb']:.0f} | "
+                f"{verdict(result, expect, command.startswith('validate'))} | {first} |")
+    print(ROWS[-1], flush=True)
+
+
+def reader_commands(store: str, work: Path) -> dict[str, list]:
+    return {
+        "info": ["info", store],
+        "validate": ["validate", store],
+        "validate --quick": ["validate", "--quick", store],
+        "eval": ["eval", store, "--models", "naive,flow", "--samples", "20", "--no-figures", "--out", work / "e"],
+        "train": ["train", store, "--preset", "tiny", "--max-steps", "1", "--out", work / "t"],
+        "show": ["show", store, "--out", work / "show.png"],
+    }
+
+
+def remote_cases(store: Path, work: Path, timeout_s: float) -> None:
+    env = {"SONARSET_REMOTE_TIMEOUT": str(timeout_s)}
+    for fault in ("hang", "trickle", "server_error", "short_body"):
+        with serve_directory(str(store.parent), fault) as (base, _):
+            for name, args in reader_commands(f"{base}/{store.name}", work).items():
+                row(f"HTTP: {fault.replace('_', ' ')}", name, run(args, env=env))
+    big = work / "big.zarr"
+    shutil.copytree(store, big)
+    from tests.corruption_cases import _length
+
+    import zarr
+
+    _length(10**12)(big)
+    zarr.consolidate_metadata(str(big))
+    with serve_directory(str(work)) as (base, _):
+        for name, args in reader_commands(f"{base}/big.zarr", work).items():
+            row("HTTP: 1e12 frames declared, consolidated", name, run(args, env=env))
+
+
+def card_cases(store: Path, work: Path) -> None:
+    from safetensors.numpy import load_file, save_file
+
+    pretrained = Path(__file__).resolve().parents[1] / "models" / "pretrained"
+    card = json.loads((pretrained / "echopt-small.json").read_text())
+    weights = load_file(pretrained / "echopt-small.safetensors")
+
+    def edited(name: str, change=None, nan_weights: bool = False) -> Path:
+        d = work / "cards" / name
+        d.mkdir(parents=True)
+        doc = json.loads(json.dumps(card))
+        if change:
+            change(doc)
+        (d / "model.json").write_text(json.dumps(doc))
+        w = {k: (np.full_like(v, np.nan) if nan_weights else v) for k, v in weights.items()}
+        save_file(w, d / "model.safetensors")
+        return d / "model.safetensors"
+
+    cases = {
+        "card: dt 0": lambda d: d["config"].update(dt=0.0),
+        "card: 0 heads": lambda d: d["config"].update(n_heads=0),
+        "card: 0 patch": lambda d: d["config"].update(patch=[0, 5]),
+        "card: 0x0 grid": lambda d: d["config"].update(n_range=0, n_azimuth=0),
+        "card: n_layers 1e6": lambda d: d["config"].update(n_layers=10**6),
+        "card: unknown prior": lambda d: d["config"].update(prior="magic"),
+        "card: d_embed -8": lambda d: d["config"].update(d_embed=-8),
+    }
+    for case, change in cases.items():
+        path = edited(case.split(": ")[1].replace(" ", "_"), change)
+        row(case, "eval", run(["eval", store, "--models", f"echopt:{path}", "--samples", "20", "--no-figures",
+                               "--out", work / "e"]))
+    path = edited("nan_weights", nan_weights=True)
+    row("weights: all NaN", "eval", run(["eval", store, "--models", f"echopt:{path}", "--samples", "20",
+                                         "--no-figures", "--out", work / "e"]))
+
+
+def world_cases(work: Path) -> None:
+    deep = work / "deep.json"
+    deep.write_text("[" * 100_000 + "]" * 100_000)
+    row("world file: JSON nested 1e5 deep", "generate", run(["generate", work / "w.zarr", "--world", deep]))
+    toml = work / "deep.toml"
+    toml.write_text("a = " + "[" * 100_000 + "]" * 100_000 + "\n")
+    row("world file: TOML nested 1e5 deep", "generate", run(["generate", work / "w.zarr", "--world", toml]))
+
+
+def signal_cases(work: Path) -> None:
+    for how, sig in (("SIGINT to the group", signal.SIGINT), ("SIGTERM", signal.SIGTERM), ("SIGKILL", signal.SIGKILL)):
+        out = work / f"sig-{sig}.zarr"
+        t0 = time.perf_counter()
+        proc = subprocess.Popen([*CLI, "generate", out, "--minutes", "25", "--runs", "3", "--workers", "2"],
+                                stderr=subprocess.PIPE, text=True, start_new_session=True, env=ENV)
+        workers: set[int] = set()
+        while len(workers) < 2 and time.perf_counter() - t0 < 60:
+            time.sleep(0.1)
+            workers = {c for c in _children(proc.pid) if b"spawn_main" in _cmdline(c)}
+        time.sleep(2)
+        (os.killpg if sig == signal.SIGINT else os.kill)(proc.pid, sig)
+        stderr = proc.communicate(timeout=60)[1]
+        t1 = time.perf_counter()
+        while any(map(_alive, workers)) and time.perf_counter() - t1 < 20:
+            time.sleep(0.1)
+        left = sum(map(_alive, workers))
+        result = {"rc": proc.returncode, "s": time.perf_counter() - t1, "mb": 0,
+                  "stderr": stderr + (f"\n{left} worker(s) still running" if left else "")}
+        row(f"generate --workers 2, {how}", f"workers gone ({len(workers)} seen)", result,
+            expect={signal.SIGINT: 130, signal.SIGTERM: 143, signal.SIGKILL: -9}[sig])
+
+
+def _children(pid: int) -> set[int]:
+    out = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                out.add(int(stat.parent.name))
+        except (OSError, ValueError, IndexError):
+            pass
+    return out
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return b""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def concurrent_cases(work: Path, repeats: int) -> None:
+    rng = np.random.default_rng(3)
+    T, R, A = 12, 32, 16
+    rec = work / "rec.npz"
+    np.savez(rec, images=rng.random((T, R, A), dtype=np.float32),
+             velocity=np.c_[rng.uniform(0, 0.3, T), rng.uniform(-0.5, 0.5, T)].astype(np.float32),
+             time=np.arange(T) * 0.2, range=0.5 + (np.arange(R) + 0.5) * (4.5 / R),
+             azimuth=-np.pi / 2 + (np.arange(A) + 0.5) * (np.pi / A))
+    from sonarset import open_store
+    from sonarset.store.validate import validate_store
+
+    outcomes = {"one imported, one refused, store valid": 0}
+    worst = {"rc": 1, "s": 0.0, "mb": 0.0, "stderr": ""}
+    for i in range(repeats):
+        store = work / f"imp{i}.zarr"
+        procs = [subprocess.Popen([*CLI, "import", rec, store, "--name", "A"], stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.PIPE, text=True, env=ENV) for _ in range(2)]
+        t0 = time.perf_counter()
+        results = [(p.wait(timeout=120), p.communicate()[1]) for p in procs]
+        codes = sorted(c for c, _ in results)
+        ok = codes == [0, 1] and open_store(store).runs() == ["A"] and validate_store(store) == []
+        key = "one imported, one refused, store valid" if ok else f"exits {codes}"
+        outcomes[key] = outcomes.get(key, 0) + 1
+        refusal = next((e for c, e in results if c == 1), "")
+        worst = max(worst, {"rc": 1 if ok else 0, "s": time.perf_counter() - t0, "mb": 0.0, "stderr": refusal},
+                    key=lambda r: r["s"])
+    worst["stderr"] = f"{outcomes}\n" if len(outcomes) > 1 and outcomes[next(iter(outcomes))] < repeats else ""
+    print(f"concurrent same-name imports x{repeats}: {outcomes}")
+    row(f"two `import --name A` at once, x{repeats}", "import", worst, expect=1)
+
+
+def read_only_cases(store: Path, work: Path) -> None:
+    mnt = work / "ro"
+    mnt.mkdir()
+    src = work / "ro-src"
+    shutil.copytree(store, src / store.name)
+    mounted = subprocess.run(["mount", "--bind", src, mnt], capture_output=True).returncode == 0 and \
+        subprocess.run(["mount", "-o", "remount,bind,ro", mnt], capture_output=True).returncode == 0
+    if not mounted:
+        print("read-only rows skipped: cannot make a read-only bind mount here (needs root)")
+        return
+    try:
+        ro = mnt / store.name
+        row("read-only store", "info", run(["info", ro]), expect=0)
+        row("read-only store", "generate (nothing to do)", run(["generate", ro, *GENERATE]), expect=0)
+        row("read-only store", "validate --consolidate", run(["validate", "--consolidate", ro]), expect=0)
+        row("read-only store", "generate --runs 2 (a run to write)", run(["generate", ro, *GENERATE_MORE]), expect=1)
+    finally:
+        subprocess.run(["umount", mnt])
+
+
+GENERATE = ["--minutes", "0.5", "--runs", "1", "--seed", "5"]
+GENERATE_MORE = ["--minutes", "0.5", "--runs", "2", "--seed", "5"]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--imports", type=int, default=20, help="concurrent same-name import pairs")
+    ap.add_argument("--remote-timeout", type=float, default=10.0)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        store = work / "s.zarr"
+        subprocess.run([*CLI, "generate", store, *GENERATE], check=True, capture_output=True, env=ENV)
+        print(f"{time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores, {sys.platform}")
+        print("| case | command | exit | s | peak MB | verdict | what it says |")
+        print("|---|---|---|---|---|---|---|")
+        remote_cases(store, work, args.remote_timeout)
+        card_cases(store, work)
+        world_cases(work)
+        read_only_cases(store, work)
+        concurrent_cases(work, args.imports)
+        signal_cases(work)
+        clean = sum("| clean |" in r for r in ROWS)
+        print(f"\n{clean} of {len(ROWS)} rows clean")
+
+
+if __name__ == "__main__":
+    main()
