@@ -14,7 +14,7 @@ import typer
 
 from sonarset import __version__
 
-from sonarset.cli.commands import ingest, model, sim, store
+from sonarset.cli.commands import bag, ingest, model, sim, store
 from sonarset.cli.common import err, out
 from sonarset.cli.experiment import experiment_app
 
@@ -44,6 +44,8 @@ app.command()(store.info)
 app.command()(store.validate)
 app.command("import")(ingest.import_)
 app.command("import-raw")(ingest.import_raw_)
+app.command("import-bag")(bag.import_bag_)
+app.command("export-bag")(bag.export_bag_)
 app.command()(store.schema)
 app.command()(sim.generate)
 app.command()(store.show)

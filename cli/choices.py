@@ -17,6 +17,7 @@ from sonarset.sensor.ertis import AZIMUTH_PSFS
 from sonarset.models.echopt.config import PRESETS, PRIORS
 from sonarset.models.echopt.precision import DEVICES, PRECISIONS
 from sonarset.models.echopt.train_config import OPTIMIZERS, SCHEDULES
+from sonarset.ingest.bag.reader import STAMPS
 
 
 def _choices(name: str, values: Iterable[str]) -> type[enum.Enum]:
@@ -34,6 +35,7 @@ Prior = _choices("Prior", PRIORS)
 Optimizer = _choices("Optimizer", OPTIMIZERS)
 Schedule = _choices("Schedule", SCHEDULES)
 Precision = _choices("Precision", PRECISIONS)
+Stamps = _choices("Stamps", STAMPS)
 
 
 def value(choice: enum.Enum | None) -> str | None:

@@ -26,7 +26,9 @@ def fail(message: str, code: int = 1) -> None:
 
 
 #: Library parameter names that a command's option spells differently (the option's Python name).
-PARAMETER_OPTIONS = {"meta_path": "meta", "max_time_s": "max_time", "model_specs": "models"}
+PARAMETER_OPTIONS = {"meta_path": "meta", "max_time_s": "max_time", "model_specs": "models", "commands": "cmd_vel",
+                     "odometry": "odom", "command_offset_s": "cmd_offset", "command_timeout_s": "cmd_timeout",
+                     "runs": "run"}
 
 
 def _option_infos(hint) -> list[OptionInfo]:
@@ -73,10 +75,12 @@ def user_errors(fn: Callable) -> Callable:
             return fn(*args, **kwargs)
         except InputValidationError as exc:
             flags = command_flags(fn)
+            named = exc.parameter if isinstance(exc.parameter, tuple) else (exc.parameter,)
             for line in exc.problems:
-                # the parameter is about some of the lines (those that name it), not every one
-                err.print(f"[bold red]error:[/] {exc.source}: {with_flag(line, exc.parameter, flags, append=False)}",
-                          highlight=False, soft_wrap=True)
+                # a parameter is about some of the lines (those that name it), not every one
+                for parameter in named:
+                    line = with_flag(line, parameter, flags, append=False)
+                err.print(f"[bold red]error:[/] {exc.source}: {line}", highlight=False, soft_wrap=True)
             raise typer.Exit(1)
         except SonarSetError as exc:
             fail(with_flag(str(exc), exc.parameter, command_flags(fn)))

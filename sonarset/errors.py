@@ -34,9 +34,10 @@ class GridMismatchError(SonarSetError):
 
 class InputValidationError(SonarSetError):
     """Several problems were found in an input; ``problems`` holds one line each (the lines of
-    ``sonarset.format.problems.Problem`` findings, or lines)."""
+    ``sonarset.format.problems.Problem`` findings, or lines). ``parameter`` may be a tuple: the
+    parameters some of the lines name."""
 
-    def __init__(self, source: str, problems: list, *, parameter: str | None = None):
+    def __init__(self, source: str, problems: list, *, parameter: str | tuple[str, ...] | None = None):
         self.source = source
         self.problems = [str(p) for p in problems]
         problems = self.problems

@@ -121,7 +121,7 @@ class Run:
 
     def _folder_identity(self) -> tuple[int, int] | None:
         """(device, inode) of a local run's folder; None for remote stores or when it is gone. A
-        replaced run (``import --overwrite`` swaps a new folder in) has another identity."""
+        replaced run (an overwriting import swaps a new folder in) has another identity."""
         root = getattr(self.store.group.store, "root", None)
         if not isinstance(self.store.group.store, zarr.storage.LocalStore) or root is None:
             return None

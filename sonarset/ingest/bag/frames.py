@@ -1,0 +1,157 @@
+"""Sonar frames from ``ProjectedSonarImage`` and ``sensor_msgs/Image`` messages, on one grid.
+
+A ProjectedSonarImage carries its geometry: range-bin centres and one unit direction per beam
+in the sensor frame (Z forward, X up, so Y right); its pixels are range-major (index =
+range_bin * beam_count + beam) in any of ten dtypes, either byte order. Beams are put in the
+store's order (azimuth increasing, left positive); beams or ranges that are not uniformly spaced
+are resampled onto the uniform grid with the same extent and count (linear, ``scipy``), with a
+note. A ``sensor_msgs/Image`` (mono8, mono16, 32FC1...) has rows = range bins and columns =
+beams in azimuth order, and takes its grid from the sidecar.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sonarset.errors import one_line
+from sonarset.format.attrs import SensorGrid
+import sonarset.ingest.bag.messages as m
+
+UNIFORM_RTOL = 1e-4  # the store's own tolerance (format.attrs._uniform_edges)
+
+
+class FrameDecoder:
+    """Decodes one topic's frames; the first message fixes the geometry every later one must share."""
+
+    def __init__(self, topic: str, grid: SensorGrid | None):
+        self.topic, self.grid = topic, grid
+        self.msgtype: str | None = None
+        self.dtype: str | None = None
+        self.notes: list[str] = []
+        self._ranges = self._azimuths = None
+        self._order = None  # beam permutation into increasing azimuth
+        self._resample = None  # (range, azimuth) resamplers, when the beams or bins are not uniform
+
+    def decode(self, index: int, msg, problems: list[str]) -> np.ndarray | None:
+        where = f"topic {self.topic!r}, message {index}"
+        try:
+            if hasattr(msg, "beam_directions"):
+                self.msgtype = m.SONAR_IMAGE
+                return self._sonar_image(where, msg, problems)
+            self.msgtype = m.PLAIN_IMAGE
+            return self._plain_image(where, msg, problems)
+        except (ValueError, TypeError) as exc:
+            problems.append(f"{where}: {one_line(exc)}")
+            return None
+
+    def _sonar_image(self, where: str, msg, problems: list[str]) -> np.ndarray | None:
+        data = msg.image
+        if data.dtype not in m.SONAR_DTYPES:
+            problems.append(f"{where}: unknown SonarImageData dtype {data.dtype} (0-9 are defined)")
+            return None
+        dtype = np.dtype(m.SONAR_DTYPES[data.dtype]).newbyteorder(">" if data.is_bigendian else "<")
+        ranges = np.asarray(msg.ranges, np.float64)
+        beams = int(data.beam_count)
+        if self._ranges is None:
+            directions = np.array([(d.x, d.y, d.z) for d in msg.beam_directions], np.float64).reshape(-1, 3)
+            if len(directions) != beams:
+                problems.append(f"{where}: {len(directions)} beam directions for beam_count {beams}")
+                return None
+            if not self._set_geometry(where, ranges, m.beam_azimuths(directions), problems):
+                return None
+            self.dtype = dtype.str
+        elif len(ranges) != len(self._ranges) or not np.allclose(ranges, self._ranges, rtol=1e-6, atol=1e-9) \
+                or beams != len(self._order):
+            problems.append(f"{where}: the ranges or beams differ from the first message's; "
+                            "a run has one sensor grid")
+            return None
+        raw = np.asarray(data.data, np.uint8)
+        need = len(ranges) * beams * dtype.itemsize
+        if raw.size != need:
+            problems.append(f"{where}: image data has {raw.size} bytes, {len(ranges)} ranges x {beams} beams "
+                            f"of {dtype.name} need {need}")
+            return None
+        image = raw.view(dtype).reshape(len(ranges), beams)
+        return self._to_grid(image.astype(np.float32))
+
+    def _plain_image(self, where: str, msg, problems: list[str]) -> np.ndarray | None:
+        if self.grid is None:
+            problems.append(f"{where}: a sensor_msgs/Image carries no range or azimuth: give the grid in the "
+                            "sidecar (its 'grid')")
+            return None
+        kind = m.PLAIN_ENCODINGS.get(msg.encoding)
+        if kind is None:
+            problems.append(f"{where}: image encoding {msg.encoding!r} is not a single-channel one "
+                            f"({', '.join(m.PLAIN_ENCODINGS)})")
+            return None
+        dtype = np.dtype(kind).newbyteorder(">" if msg.is_bigendian else "<")
+        rows, cols, step = int(msg.height), int(msg.width), int(msg.step)
+        if (rows, cols) != self.grid.shape:
+            problems.append(f"{where}: image is {rows} x {cols} (range x azimuth), the grid is "
+                            f"{self.grid.shape[0]} x {self.grid.shape[1]}")
+            return None
+        raw = np.asarray(msg.data, np.uint8)
+        if step < cols * dtype.itemsize or raw.size != rows * step:
+            problems.append(f"{where}: image data has {raw.size} bytes, {rows} rows of step {step} need "
+                            f"{rows * step} (and a step of at least {cols * dtype.itemsize})")
+            return None
+        self.dtype = dtype.str
+        image = raw.reshape(rows, step)[:, :cols * dtype.itemsize].copy().view(dtype)
+        return image.astype(np.float32)
+
+    def _set_geometry(self, where: str, ranges: np.ndarray, azimuths: np.ndarray, problems: list[str]) -> bool:
+        if len(ranges) < 2 or len(azimuths) < 2:
+            problems.append(f"{where}: a sonar image needs at least 2 ranges and 2 beams")
+            return False
+        if not (np.isfinite(ranges).all() and np.isfinite(azimuths).all()):
+            problems.append(f"{where}: ranges or beam directions are not finite")
+            return False
+        order = np.argsort(azimuths, kind="stable")
+        if np.any(np.diff(azimuths[order]) <= 0):
+            problems.append(f"{where}: two beams point the same way")
+            return False
+        if np.any(np.diff(ranges) <= 0):
+            problems.append(f"{where}: range bins must increase")
+            return False
+        if np.all(np.diff(order) < 0):
+            self.notes.append("beams run right to left in the messages; stored left-positive, as the spec says")
+        az = azimuths[order]
+        self._ranges, self._azimuths, self._order = ranges, az, order
+        uniform_r, uniform_a = _uniform(ranges), _uniform(az)
+        grid = SensorGrid(range_min_m=float(ranges[0] - (ranges[-1] - ranges[0]) / (len(ranges) - 1) / 2),
+                          range_max_m=float(ranges[-1] + (ranges[-1] - ranges[0]) / (len(ranges) - 1) / 2),
+                          n_range=len(ranges), n_azimuth=len(az),
+                          azimuth_min_rad=float(az[0] - (az[-1] - az[0]) / (len(az) - 1) / 2),
+                          azimuth_max_rad=float(az[-1] + (az[-1] - az[0]) / (len(az) - 1) / 2))
+        if uniform_r and uniform_a:
+            grid = SensorGrid.from_centres(ranges, az)
+        else:
+            self._resample = (None if uniform_r else (ranges, grid.range_centres()),
+                              None if uniform_a else (az, grid.azimuth_centres()))
+            which = " and ".join(w for w, u in (("range bins", uniform_r), ("beams", uniform_a)) if not u)
+            self.notes.append(f"{which} are not uniformly spaced: resampled linearly onto {grid.describe()}")
+        if self.grid is not None and not self.grid.matches(grid, rtol=1e-4):
+            problems.append(f"{where}: the messages' grid {grid.describe()} differs from the given "
+                            f"{self.grid.describe()}")
+            return False
+        self.grid = grid
+        return True
+
+    def _to_grid(self, image: np.ndarray) -> np.ndarray:
+        image = image[:, self._order]
+        if self._resample is not None:
+            from scipy.interpolate import interp1d
+
+            along_r, along_a = self._resample
+            if along_a is not None:
+                image = interp1d(along_a[0], image, axis=1, bounds_error=False,
+                                 fill_value=(image[:, 0], image[:, -1]))(along_a[1])
+            if along_r is not None:
+                image = interp1d(along_r[0], image, axis=0, bounds_error=False,
+                                 fill_value=(image[0], image[-1]))(along_r[1])
+        return np.ascontiguousarray(image, np.float32)
+
+
+def _uniform(centres: np.ndarray) -> bool:
+    step = np.diff(centres)
+    return bool(np.max(np.abs(step - step.mean())) <= UNIFORM_RTOL * step.mean())

@@ -1,0 +1,219 @@
+"""``import_bag``: a ROS bag (ROS 1, ROS 2 sqlite3 or MCAP) as runs of a SonarSet store.
+
+Everything is read and checked before anything is written, as ``import`` does: the bag's topics
+(``reader``), the frames on one grid (``frames``), commands and poses on the frames and the
+splits at dropped pings (``align``), then every run's arrays against the format. Each run is
+then written as ``import`` writes one (built aside, moved in whole).
+
+Pixel values become the store's [0, 1] energyscape by one recorded rule (``source.value_rule``):
+integer pixels are divided by their type's full scale (255 for uint8); float pixels are taken as
+an energyscape already, unless the sidecar's ``image_encoding`` says 'db' (decibels re full
+scale) or 'linear' (energy), which map over ``dynamic_range_db`` as for ``import``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from pydantic import ValidationError
+
+from sonarset.errors import InputValidationError, SonarSetError
+from sonarset.format.arrays import FRAME_INTERVAL_TOLERANCE, run_array_problems
+from sonarset.format.attrs import Processing, SensorGrid
+from sonarset.format.problems import pydantic_problems
+from sonarset.format.units import grid_to_si
+import sonarset.ingest.bag.align as align
+from sonarset.ingest.bag.reader import BagStreams, read_streams
+from sonarset.ingest.images import _encode_images
+from sonarset.ingest.metadata import recording_meta
+from sonarset.ingest.target import ImportTarget, check_run_options, run_name_for
+from sonarset.store.run import Run
+
+
+@dataclass
+class BagRecording:
+    """A bag's runs, checked and in SonarSet conventions, ready to write."""
+
+    source: str
+    grid: SensorGrid
+    runs: dict[str, dict[str, np.ndarray]]
+    frame_interval_s: float
+    notes: list[str]
+    attrs: dict
+
+
+def load_bag(bag: str | os.PathLike, *, images: str | None = None, commands: str | None = None,
+             odometry: str | None = None, stamps: str = "header", command_offset_s: float = 0.0,
+             command_timeout_s: float = align.COMMAND_TIMEOUT_S, meta_path: str | os.PathLike | None = None,
+             name: str | None = None, grid: SensorGrid | None = None) -> tuple[BagRecording, object]:
+    """Read and check a bag into runs; InputValidationError listing every problem. Returns the runs
+    and the sidecar's metadata (``RecordingMeta``)."""
+    bag = Path(bag)
+    where = str(bag)
+    problems: list[str] = []
+    implausible: list[str] = []
+    if not np.isfinite(command_offset_s):
+        raise SonarSetError(f"command offset must be finite, got {command_offset_s}", parameter="command_offset_s")
+    if not (command_timeout_s > 0):
+        raise SonarSetError(f"command timeout must be > 0 s, got {command_timeout_s}", parameter="command_timeout_s")
+    meta = recording_meta(bag, meta_path, None, problems, implausible)
+    if meta is None:
+        raise InputValidationError(where, problems)
+    if meta.grid is not None:
+        try:
+            grid = grid_to_si(meta.grid, meta.units)
+        except ValidationError as exc:
+            raise InputValidationError(where, list(map(str, pydantic_problems(exc, "metadata.grid.")))) from None
+    streams = read_streams(bag, images=images, commands=commands, odometry=odometry, stamps=stamps, grid=grid)
+    base = run_name_for(bag, name, meta.name)
+    runs, notes, interval = _runs(streams, meta, base, command_offset_s, command_timeout_s, problems)
+    if problems:
+        raise InputValidationError(where, problems)
+    attrs = {"kind": "import-bag", "file": bag.name, "images_topic": streams.frames.topic,
+             "images_type": streams.frames.msgtype, "commands_topic": streams.commands.topic,
+             "commands_type": streams.commands.msgtype, "stamps": stamps, "command_offset_s": command_offset_s,
+             "command_timeout_s": command_timeout_s, "value_rule": _value_rule(streams, meta),
+             "frame_interval_s": interval, "first_stamp_ns": streams.origin_ns, "source": meta.source}
+    if streams.odometry is not None:
+        attrs["odometry_topic"] = streams.odometry.topic
+    return BagRecording(where, streams.grid, runs, interval, streams.notes + notes, attrs), meta
+
+
+def _runs(streams: BagStreams, meta, base: str, offset_s: float, timeout_s: float,
+          problems: list[str]) -> tuple[dict, list[str], float]:
+    times = streams.frames.times
+    images = _energyscape(streams, meta, problems)
+    cmd_t = streams.commands.times + offset_s
+    notes: list[str] = []
+    if len(times) < align.MIN_SEGMENT:
+        problems.append(f"topic {streams.frames.topic!r}: {len(times)} frame(s), a run needs at least "
+                        f"{align.MIN_SEGMENT}")
+        return {}, notes, 0.0
+    edges = align.frame_edges(times)
+    covered = align.command_coverage(cmd_t, edges, timeout_s) if cmd_t.size else np.zeros(len(times), bool)
+    if not covered.any():
+        problems.append(f"topic {streams.commands.topic!r}: no command reaches any frame interval (commands "
+                        f"{_span(cmd_t)}, frames {_span(times)}; a clock offset? command_offset_s shifts them)")
+        return {}, notes, 0.0
+    first = int(np.argmax(covered))
+    if first:
+        notes.append(f"frames 0..{first - 1} dropped: before the first command")
+    uncovered = np.flatnonzero(~covered[first:]) + first
+    if uncovered.size:
+        k = int(uncovered[0])
+        problems.append(f"topic {streams.commands.topic!r}: no command over frame {k}'s interval "
+                        f"({times[k - 1] - times[0] if k else 0:.3f}..{times[k] - times[0]:.3f} s after the first frame;"
+                        f" a command older than {timeout_s:g} s has stopped the robot)")
+        return {}, notes, 0.0
+    velocity = np.stack([align.held_mean(cmd_t, streams.commands.values[k], edges, timeout_s)
+                         for k in ("v", "omega")], axis=1).astype(np.float32)
+    pose = None
+    if streams.odometry is not None:
+        ot = streams.odometry.times
+        outside = (times < ot[0] - 0.5 * np.median(np.diff(times))) | (times > ot[-1] + 0.5 * np.median(np.diff(times)))
+        if outside[first:].any():
+            k = int(np.flatnonzero(outside[first:])[0]) + first
+            problems.append(f"topic {streams.odometry.topic!r}: odometry ({_span(ot)}) does not cover frame {k} "
+                            f"at {times[k]:.3f} s")
+        else:
+            pose = align.poses_at(times, ot, streams.odometry.values["pose"])
+    segments, split_notes = align.split_at_gaps(times[first:])
+    notes += split_notes
+    interval = float(np.median(np.diff(times[first:])))
+    runs: dict[str, dict[str, np.ndarray]] = {}
+    for i, seg in enumerate(segments):
+        a, b = seg.start + first, seg.stop + first
+        run = {"images": images[a:b] if images is not None else None, "velocity": velocity[a:b],
+               "time": times[a:b] - times[first]}
+        if pose is not None:
+            run["pose"] = pose[a:b]
+        runs[base if len(segments) == 1 else f"{base}_{i:03d}"] = run
+    if images is None:
+        return {}, notes, interval
+    return runs, notes, interval
+
+
+def _span(t: np.ndarray) -> str:
+    return f"{t[0]:.3f}..{t[-1]:.3f} s" if t.size else "none"
+
+
+def _energyscape(streams: BagStreams, meta, problems: list[str]) -> np.ndarray | None:
+    images = streams.frames.values["images"]
+    dtype = np.dtype(str(streams.frames.values["dtype"]) or "f4")
+    if dtype.kind in "iu":
+        full = float(np.iinfo(dtype).max)
+        images = np.clip(images / np.float32(full), 0.0, 1.0)
+    found: list[str] = []
+    out = _encode_images(images, meta, found)
+    problems += [f"topic {streams.frames.topic!r}: {p}" for p in found]
+    return out
+
+
+def _value_rule(streams: BagStreams, meta) -> str:
+    dtype = np.dtype(str(streams.frames.values["dtype"]) or "f4")
+    if dtype.kind in "iu":
+        return f"{dtype.name} / {np.iinfo(dtype).max} (full scale)"
+    if meta.image_encoding == "energyscape":
+        return "float, taken as an energyscape in [0, 1]"
+    return f"float {meta.image_encoding}, mapped over {meta.dynamic_range_db:g} dB"
+
+
+def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | None = None,
+               commands: str | None = None, odometry: str | None = None, stamps: str = "header",
+               command_offset_s: float = 0.0, command_timeout_s: float = align.COMMAND_TIMEOUT_S,
+               meta_path: str | os.PathLike | None = None, name: str | None = None, split: str | None = None,
+               overwrite: bool = False, note: Callable[[str], None] | None = None) -> list[Run]:
+    """Validate the bag ``bag`` completely, then write it as runs of the store ``out`` (one per
+    stretch without dropped pings: ``NAME``, or ``NAME_000``, ``NAME_001``... when it splits).
+
+    ``images``, ``commands``, ``odometry``: topic names (default: the one topic of an accepted type;
+    odometry is optional). ``stamps``: 'header' or 'bag'. ``command_offset_s`` is added to every
+    command time (a known clock offset). The sidecar (``meta_path``, default ``BAG.json``) gives
+    what ``import`` takes from one: name, split, grid (needed for ``sensor_msgs/Image``), rig,
+    processing, image encoding. A new store records the measured frame interval (in the sidecar's
+    rig, if it gives one); an existing one must have the same grid and frame rate. ``note``
+    receives what was done to fit the data (splits, dropped frames, resampling).
+    """
+    check_run_options(name, split)
+    target = ImportTarget.at(out)
+    have = target.existing
+    rec, meta = load_bag(bag, images=images, commands=commands, odometry=odometry, stamps=stamps,
+                         command_offset_s=command_offset_s, command_timeout_s=command_timeout_s,
+                         meta_path=meta_path, name=name, grid=have.grid if have is not None else None)
+    rig = meta.rig.model_copy(update={"frame_interval_s": rec.frame_interval_s}) if meta.rig is not None else None
+    if meta.rig is not None and abs(meta.rig.frame_interval_s - rec.frame_interval_s) > \
+            FRAME_INTERVAL_TOLERANCE * meta.rig.frame_interval_s:
+        rec.notes.append(f"the sidecar's rig says {meta.rig.frame_interval_s:g} s frames; the bag's are "
+                         f"{rec.frame_interval_s:.4g} s (median), which the store records")
+    if have is not None:
+        declared = 1.0 / have.attrs.frame_rate_hz
+        if abs(declared - rec.frame_interval_s) > FRAME_INTERVAL_TOLERANCE * declared:
+            raise InputValidationError(rec.source, [f"frames are {rec.frame_interval_s:.4g} s apart (median), the store "
+                                                    f"{have.location} declares {declared:g} s frames; import into "
+                                                    "another store"])
+        rig = None  # the store's own rig stands; the frame rate was checked above
+    problems = [f"run {n!r}: {p}" for n, arrays in rec.runs.items() for p in run_array_problems(rec.grid, arrays)]
+    if problems:
+        raise InputValidationError(rec.source, problems)
+    for line in rec.notes:
+        if note is not None:
+            note(f"{bag}: {line}")
+    run_split = split if split is not None else meta.split
+    processing = meta.processing or Processing(profile="unknown")
+    written = []
+    for run_name, arrays in rec.runs.items():
+        def write(store, replace: bool, run_name=run_name, arrays=arrays) -> None:
+            store.write_run(run_name, split=run_split, source=rec.attrs, overwrite=replace, consolidate=False,
+                            **arrays)
+
+        written.append(target.write(run_name, write, overwrite=overwrite, grid=rec.grid,
+                                    processing=meta.processing, rig=rig if have is None else None,
+                                    new_store={"frame_rate_hz": float(f"{1.0 / rec.frame_interval_s:.4g}"),
+                                               "processing": processing,
+                                               "description": f"imported from the ROS bag {Path(bag).name}"}))
+        target = ImportTarget.at(out)  # the first run may have created the store
+    return written

@@ -1,0 +1,211 @@
+"""Read a bag's sonar, command and odometry topics into arrays, every problem found one line.
+
+ROS 1 bags, ROS 2 bags (sqlite3 or MCAP, a directory with metadata.yaml) and bare ``.mcap`` files
+open through rosbags' ``AnyReader``, which registers the message types the bag defines. Topics are
+chosen by name, or by message type when exactly one topic has one of the accepted types.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from sonarset.errors import InputValidationError, one_line
+from sonarset.format.attrs import SensorGrid
+import sonarset.ingest.bag.messages as m
+
+STAMPS = ("header", "bag")
+
+
+@dataclass
+class Stream:
+    """One topic's messages: time stamps (integer ns as read; seconds since the first frame once
+    ``read_streams`` returns) and, per kind, the values."""
+
+    topic: str
+    msgtype: str
+    times: np.ndarray
+    values: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+@dataclass
+class BagStreams:
+    """What a bag holds for an import: frames on ``grid``, commands, and odometry if any."""
+
+    bag: str
+    frames: Stream
+    grid: SensorGrid
+    commands: Stream
+    odometry: Stream | None
+    #: what was done to fit the data to the store (azimuth order reversed, beams resampled...)
+    notes: list[str] = field(default_factory=list)
+    #: the first frame's stamp, ns since the epoch; every stream's ``times`` are seconds since it
+    origin_ns: int = 0
+
+
+def open_reader(bag: Path):
+    """An open AnyReader of ``bag``; InputValidationError naming the bag when it cannot be read."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    if not bag.exists():
+        raise InputValidationError(str(bag), ["no such file or directory"])
+    if not (bag.is_dir() or bag.is_file()):
+        raise InputValidationError(str(bag), ["not a regular file or a bag directory"])
+    store = get_typestore(Stores.ROS2_JAZZY)
+    try:
+        reader = AnyReader([bag], default_typestore=store)
+        reader.open()
+    except Exception as exc:  # rosbags raises its own reader errors for truncated or foreign files
+        raise InputValidationError(str(bag), [f"cannot read as a ROS bag or MCAP file: {one_line(exc)}"]) from None
+    missing = {name: t for name, t in m.shipped_types().items() if name not in reader.typestore.types}
+    if missing:  # a bag that does not define them (sqlite3 bags before Iron): the shipped definitions
+        reader.typestore.register(missing)
+    return reader
+
+
+def choose_topic(reader, wanted: str | None, types: tuple[str, ...], what: str, parameter: str,
+                 problems: list[str], required: bool = True):
+    """The connections of the topic named ``wanted``, else of the one topic with one of ``types``."""
+    topics = {name: info.msgtype for name, info in reader.topics.items()}
+    if wanted is not None:
+        if wanted not in topics:
+            problems.append(f"no topic {wanted!r} ({what}); the bag has {_listing(topics)}")
+            return None
+        if topics[wanted] not in types:
+            problems.append(f"topic {wanted!r} is {topics[wanted]}, not {' or '.join(types)} ({what})")
+            return None
+        return wanted
+    found = sorted(name for name, t in topics.items() if t in types)
+    if len(found) == 1:
+        return found[0]
+    if len(found) > 1:
+        problems.append(f"several {what} topics ({', '.join(found)}): name one ({parameter})")
+    elif required:
+        problems.append(f"no {what} topic ({' or '.join(types)}); the bag has {_listing(topics)}")
+    return None
+
+
+def _listing(topics: dict) -> str:
+    return ", ".join(f"{k} ({v})" for k, v in sorted(topics.items())) or "no topics"
+
+
+def read_streams(bag: str | Path, *, images: str | None = None, commands: str | None = None,
+                 odometry: str | None = None, stamps: str = "header", grid: SensorGrid | None = None) -> BagStreams:
+    """Decode the bag's topics; InputValidationError listing every problem.
+
+    ``stamps``: 'header' (the messages' own stamps; Twist has none and takes the bag's) or 'bag'
+    (when the bag recorded each message). ``grid``: the grid of ``sensor_msgs/Image`` frames (a
+    ProjectedSonarImage carries its own).
+    """
+    bag = Path(bag)
+    where = str(bag)
+    if stamps not in STAMPS:
+        raise InputValidationError(where, [f"stamps must be one of {', '.join(STAMPS)}, got {stamps!r}"],
+                                   parameter="stamps")
+    problems: list[str] = []
+    reader = open_reader(bag)
+    try:
+        image_topic = choose_topic(reader, images, m.IMAGE_TYPES, "sonar image", "images", problems)
+        command_topic = choose_topic(reader, commands, m.COMMAND_TYPES, "velocity command", "commands", problems)
+        odom_topic = choose_topic(reader, odometry, m.ODOMETRY_TYPES, "odometry", "odometry", problems,
+                                  required=False)
+        if problems:
+            raise InputValidationError(where, problems, parameter=("images", "commands", "odometry"))
+        frames, found_grid, notes = _read_frames(reader, image_topic, stamps, grid, problems)
+        frames_failed = bool(problems)  # a frame that cannot be decoded ends the topic: say that, not "empty"
+        cmds = _read_commands(reader, command_topic, stamps, problems)
+        odom = _read_odometry(reader, odom_topic, stamps, problems) if odom_topic else None
+    finally:
+        reader.close()
+    streams = [s for s in (frames, cmds, odom) if s is not None]
+    for stream in streams:
+        if not (stream is frames and frames_failed):
+            problems += _stamp_problems(stream, stamps)
+    if problems or found_grid is None:
+        raise InputValidationError(where, problems or ["no sensor grid"])
+    # Seconds since the first frame, from integer nanoseconds: float seconds since 1970 would
+    # keep only ~0.1 us, and frame intervals should come back as recorded.
+    origin = int(frames.times[0])
+    for stream in streams:
+        stream.times = (stream.times - origin) * 1e-9
+    return BagStreams(where, frames, found_grid, cmds, odom, notes, origin_ns=origin)
+
+
+def _messages(reader, topic: str, problems: list[str], stamps: str):
+    """(index, time, message) of ``topic``, in bag order; decoding errors become problems."""
+    conns = [c for c in reader.connections if c.topic == topic]
+    try:
+        for i, (conn, t_ns, raw) in enumerate(reader.messages(connections=conns)):
+            try:
+                msg = reader.deserialize(raw, conn.msgtype)
+            except Exception as exc:
+                problems.append(f"topic {topic!r}, message {i}: cannot decode {conn.msgtype}: {one_line(exc)}")
+                return
+            header = getattr(msg, "header", None)
+            yield i, m.stamp_ns(header.stamp) if stamps == "header" and header is not None else int(t_ns), msg
+    except InputValidationError:
+        raise
+    except Exception as exc:  # a bag cut short mid-chunk
+        problems.append(f"topic {topic!r}: the bag ends inside a message or is damaged: {one_line(exc)}")
+
+
+def _stamp_problems(stream: Stream, stamps: str) -> list[str]:
+    t = stream.times * 1e-9
+    if t.size == 0:
+        return [f"topic {stream.topic!r} has no messages"]
+    fix = " (stamps 'bag' uses the time the bag recorded each message)" if stamps == "header" else ""
+    if np.any(t <= 0):
+        k = int(np.flatnonzero(t <= 0)[0])
+        return [f"topic {stream.topic!r}, message {k}: time stamp {t[k]:g} s is zero or negative{fix}"]
+    back = np.flatnonzero(np.diff(t) < 0)
+    if back.size:
+        k = int(back[0]) + 1
+        return [f"topic {stream.topic!r}, message {k}: time stamps go backwards ({t[k - 1]:.6f} -> {t[k]:.6f} s){fix}"]
+    return []
+
+
+def _read_frames(reader, topic: str, stamps: str, grid: SensorGrid | None, problems: list[str]):
+    from sonarset.ingest.bag.frames import FrameDecoder
+
+    decoder = FrameDecoder(topic, grid)
+    times, frames = [], []
+    for i, t, msg in _messages(reader, topic, problems, stamps):
+        image = decoder.decode(i, msg, problems)
+        if image is None:
+            break
+        times.append(t)
+        frames.append(image)
+    stack = np.stack(frames) if frames else np.zeros((0, 1, 1), np.float32)
+    stream = Stream(topic, decoder.msgtype or "", np.asarray(times, np.int64), {"images": stack})
+    stream.values["dtype"] = np.array(decoder.dtype or "")
+    return stream, decoder.grid, decoder.notes
+
+
+def _read_commands(reader, topic: str, stamps: str, problems: list[str]) -> Stream:
+    times, v, w = [], [], []
+    msgtype = reader.topics[topic].msgtype
+    for i, t, msg in _messages(reader, topic, problems, stamps):
+        twist = msg.twist if msgtype == m.TWIST_STAMPED else msg
+        times.append(t)
+        v.append(twist.linear.x)
+        w.append(twist.angular.z)
+    out = Stream(topic, msgtype, np.asarray(times, np.int64), {"v": np.asarray(v, float), "omega": np.asarray(w, float)})
+    bad = np.flatnonzero(~np.isfinite(out.values["v"]) | ~np.isfinite(out.values["omega"]))
+    if bad.size:
+        problems.append(f"topic {topic!r}, message {int(bad[0])}: the command is not finite")
+    return out
+
+
+def _read_odometry(reader, topic: str, stamps: str, problems: list[str]) -> Stream:
+    times, pose = [], []
+    for i, t, msg in _messages(reader, topic, problems, stamps):
+        p = msg.pose.pose
+        times.append(t)
+        pose.append((p.position.x, p.position.y, m.yaw_of(p.orientation)))
+    out = Stream(topic, m.ODOMETRY, np.asarray(times, np.int64), {"pose": np.asarray(pose, float).reshape(-1, 3)})
+    if not np.isfinite(out.values["pose"]).all():
+        problems.append(f"topic {topic!r}: a pose is not finite")
+    return out

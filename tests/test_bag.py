@@ -1,0 +1,340 @@
+"""ROS bags in and out (sonarset.ingest.bag): bags built by an independent MCAP writer (mcap-ros2),
+by rosbags for ROS 2 sqlite3 and ROS 1, and by export_bag; no ROS install."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+pytest.importorskip("rosbags")
+mcap_writer = pytest.importorskip("mcap_ros2.writer")
+
+from sonarset import open_store  # noqa: E402
+from sonarset.cli.app import app  # noqa: E402
+from sonarset.errors import InputValidationError  # noqa: E402
+from sonarset.format.attrs import SensorGrid  # noqa: E402
+from sonarset.ingest.bag import export_bag, import_bag  # noqa: E402
+from sonarset.store.validate import validate_store  # noqa: E402
+
+BASE_NS = 1_700_000_000 * 10**9
+TIME = "builtin_interfaces/Time"
+DEFS = {
+    "builtin_interfaces/Time": "int32 sec\nuint32 nanosec",
+    "std_msgs/Header": "builtin_interfaces/Time stamp\nstring frame_id",
+    "geometry_msgs/Vector3": "float64 x\nfloat64 y\nfloat64 z",
+    "geometry_msgs/Twist": "geometry_msgs/Vector3 linear\ngeometry_msgs/Vector3 angular",
+    "geometry_msgs/Point": "float64 x\nfloat64 y\nfloat64 z",
+    "geometry_msgs/Quaternion": "float64 x\nfloat64 y\nfloat64 z\nfloat64 w",
+    "geometry_msgs/Pose": "geometry_msgs/Point position\ngeometry_msgs/Quaternion orientation",
+    "geometry_msgs/PoseWithCovariance": "geometry_msgs/Pose pose\nfloat64[36] covariance",
+    "geometry_msgs/TwistWithCovariance": "geometry_msgs/Twist twist\nfloat64[36] covariance",
+    "marine_acoustic_msgs/PingInfo": "float32 frequency\nfloat32 sound_speed\nfloat32[] tx_beamwidths\n"
+                                     "float32[] rx_beamwidths",
+    "marine_acoustic_msgs/SonarImageData": "bool is_bigendian\nuint32 dtype\nuint32 beam_count\nuint8[] data",
+}
+TOP = {
+    "marine_acoustic_msgs/msg/ProjectedSonarImage": (
+        "std_msgs/Header header\nmarine_acoustic_msgs/PingInfo ping_info\ngeometry_msgs/Vector3[] beam_directions\n"
+        "float32[] ranges\nmarine_acoustic_msgs/SonarImageData image",
+        ["std_msgs/Header", "builtin_interfaces/Time", "marine_acoustic_msgs/PingInfo", "geometry_msgs/Vector3",
+         "marine_acoustic_msgs/SonarImageData"]),
+    "geometry_msgs/msg/TwistStamped": ("std_msgs/Header header\ngeometry_msgs/Twist twist",
+                                       ["std_msgs/Header", "builtin_interfaces/Time", "geometry_msgs/Twist",
+                                        "geometry_msgs/Vector3"]),
+    "geometry_msgs/msg/Twist": (DEFS["geometry_msgs/Twist"], ["geometry_msgs/Vector3"]),
+    "nav_msgs/msg/Odometry": (
+        "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/PoseWithCovariance pose\n"
+        "geometry_msgs/TwistWithCovariance twist",
+        ["std_msgs/Header", "builtin_interfaces/Time", "geometry_msgs/PoseWithCovariance", "geometry_msgs/Pose",
+         "geometry_msgs/Point", "geometry_msgs/Quaternion", "geometry_msgs/TwistWithCovariance",
+         "geometry_msgs/Twist", "geometry_msgs/Vector3"]),
+}
+
+
+def msgdef(name: str) -> str:
+    text, deps = TOP[name]
+    return text + "".join(f"\n{'=' * 80}\nMSG: {d}\n{DEFS[d]}" for d in deps)
+
+
+def stamp(t_ns: int) -> dict:
+    return {"sec": t_ns // 10**9, "nanosec": t_ns % 10**9}
+
+
+def twist(v: float, w: float) -> dict:
+    return {"linear": {"x": v, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": w}}
+
+
+class Drive:
+    """A small drive: frames on a grid, commands at their own rate, odometry."""
+
+    def __init__(self, n_frames=30, hz=5.0, grid=None, command_hz=20.0, seed=0):
+        self.grid = grid or SensorGrid(range_min_m=0.5, range_max_m=3.0, n_range=20, azimuth_min_rad=-1.0,
+                                       azimuth_max_rad=1.0, n_azimuth=10)
+        rng = np.random.default_rng(seed)
+        self.frame_ns = BASE_NS + np.round(np.arange(n_frames) / hz * 1e9).astype(np.int64)
+        self.images = rng.integers(0, 256, (n_frames, *self.grid.shape), dtype=np.uint8)
+        t0, t1 = self.frame_ns[0] - 10**9, self.frame_ns[-1]
+        self.command_ns = np.arange(t0, t1 + 1, int(1e9 / command_hz), dtype=np.int64)
+        self.v = rng.uniform(0, 0.3, len(self.command_ns))
+        self.w = rng.uniform(-0.5, 0.5, len(self.command_ns))
+        self.odom_ns = np.arange(t0, t1 + 10**9, 10**8, dtype=np.int64)
+        tt = (self.odom_ns - BASE_NS) * 1e-9
+        self.odom = np.stack([0.1 * tt, 0.05 * tt, 0.3 * tt], axis=1)
+
+    def write(self, path: Path, *, beams_right_to_left=True, stamped=True, odometry=True, image_dtype=0,
+              edit=None) -> Path:
+        """An MCAP file by mcap-ros2's writer: beams in the messages' own order (right to left, as
+        Z forward X up makes them for increasing rotation about X... either way: the test says)."""
+        az = self.grid.azimuth_centres()
+        order = np.arange(len(az))[::-1] if beams_right_to_left else np.arange(len(az))
+        with open(path, "wb") as f:
+            w = mcap_writer.Writer(f)
+            s_img = w.register_msgdef("marine_acoustic_msgs/msg/ProjectedSonarImage",
+                                      msgdef("marine_acoustic_msgs/msg/ProjectedSonarImage"))
+            kind = "geometry_msgs/msg/TwistStamped" if stamped else "geometry_msgs/msg/Twist"
+            s_cmd = w.register_msgdef(kind, msgdef(kind))
+            s_odom = w.register_msgdef("nav_msgs/msg/Odometry", msgdef("nav_msgs/msg/Odometry"))
+            dtype = {0: np.uint8, 2: np.uint16, 8: np.float32}[image_dtype]
+            scale = {0: 1, 2: 257, 8: 1 / 255}[image_dtype]
+            for k, t in enumerate(self.frame_ns):
+                pixels = (self.images[k][:, order].astype(np.float64) * scale).astype(dtype)
+                msg = {"header": {"stamp": stamp(int(t)), "frame_id": "sonar"},
+                       "ping_info": {"frequency": 40e3, "sound_speed": 343.0, "tx_beamwidths": [], "rx_beamwidths": []},
+                       # Z forward, X up: a beam at azimuth a (left positive) points along (0, -sin a, cos a)
+                       "beam_directions": [{"x": 0.0, "y": -math.sin(az[j]), "z": math.cos(az[j])} for j in order],
+                       "ranges": self.grid.range_centres().tolist(),
+                       "image": {"is_bigendian": False, "dtype": image_dtype, "beam_count": len(az),
+                                 "data": pixels.tobytes()}}
+                if edit is not None:
+                    msg = edit(k, msg)
+                if msg is not None:
+                    w.write_message("/sonar/image", s_img, msg, log_time=int(t), publish_time=int(t))
+            for t, v, om in zip(self.command_ns, self.v, self.w):
+                body = {"header": {"stamp": stamp(int(t)), "frame_id": "base_link"}, "twist": twist(v, om)} \
+                    if stamped else twist(v, om)
+                w.write_message("/cmd_vel", s_cmd, body, log_time=int(t), publish_time=int(t))
+            if odometry:
+                for t, (x, y, yaw) in zip(self.odom_ns, self.odom):
+                    q = {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)}
+                    w.write_message("/odom", s_odom, {
+                        "header": {"stamp": stamp(int(t)), "frame_id": "odom"}, "child_frame_id": "base_link",
+                        "pose": {"pose": {"position": {"x": x, "y": y, "z": 0.0}, "orientation": q},
+                                 "covariance": [0.0] * 36},
+                        "twist": {"twist": twist(0, 0), "covariance": [0.0] * 36}}, log_time=int(t), publish_time=int(t))
+            w.finish()
+        return path
+
+    def expected_velocity(self, timeout_s=0.5) -> np.ndarray:
+        """velocity[k]: the held command's mean over (t[k-1], t[k]], by brute-force sampling."""
+        t = (self.frame_ns - BASE_NS) * 1e-9
+        c = (self.command_ns - BASE_NS) * 1e-9
+        edges = np.concatenate([[t[0] - (t[1] - t[0])], t])
+        out = []
+        for a, b in zip(edges[:-1], edges[1:]):
+            s = np.linspace(a, b, 20001)[1:]
+            j = np.searchsorted(c, s, side="right") - 1
+            live = (j >= 0) & (s - c[np.maximum(j, 0)] <= timeout_s)
+            out.append([np.where(live, self.v[j], 0).mean(), np.where(live, self.w[j], 0).mean()])
+        return np.array(out)
+
+
+def test_an_independently_written_mcap_imports_with_left_at_positive_azimuth(tmp_path):
+    drive = Drive()
+    bag = drive.write(tmp_path / "drive.mcap")
+    [run] = import_bag(bag, tmp_path / "s.zarr")
+    store = open_store(tmp_path / "s.zarr")
+    assert store.grid.matches(drive.grid, rtol=1e-5)
+    # the messages list beams right to left; the store holds them left-positive, as the spec says
+    np.testing.assert_allclose(run.read("images"), drive.images / 255.0, atol=1e-3)
+    np.testing.assert_allclose(run.read("velocity"), drive.expected_velocity(), atol=1e-3)
+    np.testing.assert_allclose(run.read("time"), np.arange(30) * 0.2, atol=1e-9)
+    np.testing.assert_allclose(run.read("pose")[:, :2], drive.odom[10:][::2][:30, :2], atol=1e-9)
+    assert abs(store.attrs.frame_rate_hz - 5.0) < 1e-6
+    assert run.attrs.source["value_rule"].startswith("uint8 / 255")
+    assert validate_store(tmp_path / "s.zarr") == []
+
+
+def test_a_target_on_the_left_lands_at_positive_azimuth(tmp_path):
+    drive = Drive()
+    drive.images[:] = 0
+    az = drive.grid.azimuth_centres()
+    left = int(np.argmax(az))  # the beam furthest left (largest rotation about the up axis)
+    drive.images[:, 5, left] = 255
+    [run] = import_bag(drive.write(tmp_path / "d.mcap", beams_right_to_left=True), tmp_path / "s.zarr")
+    image = run.read("images")[0]
+    assert np.unravel_index(np.argmax(image), image.shape) == (5, left) and az[left] > 0
+
+
+@pytest.mark.parametrize("dtype_code", [2, 8])
+def test_pixel_types_map_by_the_recorded_rule(tmp_path, dtype_code):
+    drive = Drive()
+    [run] = import_bag(drive.write(tmp_path / "d.mcap", image_dtype=dtype_code), tmp_path / "s.zarr")
+    np.testing.assert_allclose(run.read("images"), drive.images / 255.0, atol=1e-3)
+
+
+def test_twist_without_header_takes_bag_time_and_dropped_pings_split_the_run(tmp_path):
+    drive = Drive(n_frames=40)
+    keep = np.ones(40, bool)
+    keep[[15, 16]] = False  # two pings dropped
+    keep[37] = False  # and one near the end: the last 2 frames are too short for a run
+    drive.frame_ns, drive.images = drive.frame_ns[keep], drive.images[keep]
+    notes = []
+    runs = import_bag(drive.write(tmp_path / "d.mcap", stamped=False), tmp_path / "s.zarr", name="drive",
+                      note=notes.append)
+    assert [r.name for r in runs] == ["drive_000", "drive_001"]
+    assert [r.n_frames for r in runs] == [15, 20]
+    assert any("split at frame 15" in n and "2 ping(s) dropped" in n for n in notes), notes
+    assert any("dropped: 2 frame(s) between gaps" in n for n in notes), notes
+
+
+def test_export_then_import_gives_back_the_run_and_eval_runs_on_it(tmp_path):
+    from sonarset.sim import generate
+
+    grid = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=50, azimuth_min_rad=-math.pi / 2,
+                      azimuth_max_rad=math.pi / 2, n_azimuth=30)
+    generate(tmp_path / "sim.zarr", runs=1, test_runs=0, minutes=0.3, seed=4, grid=grid, workers=1)
+    src = open_store(tmp_path / "sim.zarr")
+    bag = export_bag(src, tmp_path / "run.mcap")
+    [run] = import_bag(bag, tmp_path / "back.zarr", split="test")
+    a = src.run("run_000")
+    images_a, images_b = a.read("images").astype(np.float64), run.read("images").astype(np.float64)
+    cc = np.corrcoef(images_a.ravel(), images_b.ravel())[0, 1]
+    assert cc >= 0.999
+    np.testing.assert_allclose(run.read("velocity"), a.read("velocity"), atol=1e-3)
+    np.testing.assert_allclose(run.read("time"), a.read("time"), atol=1e-6)
+    d = run.read("pose") - a.read("pose")
+    d[:, 2] = (d[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    assert np.abs(d).max() < 1e-6
+    res = CliRunner().invoke(app, ["eval", str(tmp_path / "back.zarr"), "--models", "naive,flow", "--samples", "10",
+                                   "--horizons", "1,3", "--no-figures", "--out", str(tmp_path / "ev")])
+    assert res.exit_code == 0, res.output
+
+
+def test_ros2_sqlite3_and_ros1_bags_import_too(tmp_path):
+    """Bags from rosbags' own writers, in both ROS 2 storages and ROS 1."""
+    from rosbags.rosbag1 import Writer as Writer1
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from sonarset.ingest.bag.messages import shipped_types
+
+    drive = Drive(n_frames=12)
+    for kind in ("sqlite3", "ros1"):
+        store = get_typestore(Stores.ROS1_NOETIC if kind == "ros1" else Stores.ROS2_HUMBLE)
+        store.register(shipped_types())
+        T = store.types
+        path = tmp_path / (f"{kind}.bag" if kind == "ros1" else kind)
+        writer = Writer1(path) if kind == "ros1" else Writer(path, version=9, storage_plugin=StoragePlugin.SQLITE3)
+        serialize = store.serialize_ros1 if kind == "ros1" else store.serialize_cdr
+        time_t = T["builtin_interfaces/msg/Time"]
+
+        def header(t):
+            kw = {"stamp": time_t(sec=int(t // 10**9), nanosec=int(t % 10**9)), "frame_id": "x"}
+            return T["std_msgs/msg/Header"](seq=0, **kw) if kind == "ros1" else T["std_msgs/msg/Header"](**kw)
+
+        vec = T["geometry_msgs/msg/Vector3"]
+        with writer as w:
+            ci = w.add_connection("/sonar", "marine_acoustic_msgs/msg/ProjectedSonarImage", typestore=store)
+            cc = w.add_connection("/cmd", "geometry_msgs/msg/TwistStamped", typestore=store)
+            az = drive.grid.azimuth_centres()
+            for k, t in enumerate(drive.frame_ns):
+                msg = T["marine_acoustic_msgs/msg/ProjectedSonarImage"](
+                    header=header(t), ping_info=T["marine_acoustic_msgs/msg/PingInfo"](
+                        frequency=0.0, sound_speed=343.0, tx_beamwidths=np.zeros(0, np.float32),
+                        rx_beamwidths=np.zeros(0, np.float32)),
+                    beam_directions=[vec(x=0.0, y=-math.sin(a), z=math.cos(a)) for a in az],
+                    ranges=drive.grid.range_centres().astype(np.float32),
+                    image=T["marine_acoustic_msgs/msg/SonarImageData"](is_bigendian=False, dtype=0,
+                                                                       beam_count=len(az),
+                                                                       data=drive.images[k].ravel()))
+                w.write(ci, int(t), serialize(msg, ci.msgtype))
+            for t, v, om in zip(drive.command_ns, drive.v, drive.w):
+                msg = T["geometry_msgs/msg/TwistStamped"](header=header(t), twist=T["geometry_msgs/msg/Twist"](
+                    linear=vec(x=v, y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=om)))
+                w.write(cc, int(t), serialize(msg, cc.msgtype))
+        [run] = import_bag(path, tmp_path / f"{kind}.zarr")
+        np.testing.assert_allclose(run.read("images"), drive.images / 255.0, atol=1e-3)
+        np.testing.assert_allclose(run.read("velocity"), drive.expected_velocity(), atol=1e-3)
+
+
+def _drop_data(k, msg):
+    msg["image"]["data"] = msg["image"]["data"][:-3]
+    return msg
+
+
+def _zero_stamp(k, msg):
+    if k == 3:
+        msg["header"]["stamp"] = {"sec": 0, "nanosec": 0}
+    return msg
+
+
+def _backwards(k, msg):
+    if k == 3:
+        msg["header"]["stamp"] = stamp(BASE_NS - 10**9)
+    return msg
+
+
+def _bad_dtype(k, msg):
+    msg["image"]["dtype"] = 12
+    return msg
+
+
+def _beam_count(k, msg):
+    msg["image"]["beam_count"] = 9
+    return msg
+
+
+def _grid_changes(k, msg):
+    if k == 5:
+        msg["ranges"] = [r * 1.1 for r in msg["ranges"]]
+    return msg
+
+
+MALFORMED = {
+    "truncated file": (lambda p: p.write_bytes(p.read_bytes()[: p.stat().st_size // 2]), [], "cannot read"),
+    "not a bag": (lambda p: p.write_bytes(b"\x89MCAP0\r\n" + b"garbage" * 100), [], "cannot read"),
+    "named topic missing": (None, ["--images", "/nope"], "no topic '/nope'"),
+    "topic of the wrong type": (None, ["--images", "/cmd_vel"], "is geometry_msgs/msg/TwistStamped, not"),
+    "image data cut short": (_drop_data, [], "image data has"),
+    "zero stamps": (_zero_stamp, [], "zero or negative"),
+    "stamps go backwards": (_backwards, [], "go backwards"),
+    "unknown pixel type": (_bad_dtype, [], "unknown SonarImageData dtype 12"),
+    "beam_count disagrees": (_beam_count, [], "beam directions for beam_count 9"),
+    "grid changes mid-run": (_grid_changes, [], "differ from the first message"),
+    "commands a minute late": (None, ["--cmd-offset", "60"], "no command reaches any frame interval"),
+    "command timeout of zero": (None, ["--cmd-timeout", "0"], "command timeout must be > 0"),
+}
+
+
+@pytest.mark.parametrize("case", list(MALFORMED))
+def test_malformed_bags_get_one_line_and_leave_nothing(tmp_path, case):
+    damage, args, says = MALFORMED[case]
+    drive = Drive(n_frames=10)
+    edit = damage if damage is not None and damage.__name__.startswith("_") else None
+    bag = drive.write(tmp_path / "d.mcap", edit=edit)
+    if damage is not None and edit is None:
+        damage(bag)
+    res = CliRunner().invoke(app, ["import-bag", str(bag), str(tmp_path / "s.zarr"), *args])
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert res.exit_code == 1 and len(lines) == 1 and lines[0].startswith("error:"), res.output
+    assert says in lines[0], lines[0]
+    assert "Traceback" not in res.output
+    assert not (tmp_path / "s.zarr").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["d.mcap"]
+
+
+def test_a_plain_image_topic_needs_the_sidecar_grid(tmp_path):
+    with pytest.raises(InputValidationError, match="no sonar image topic"):
+        import_bag(_only_commands(tmp_path / "c.mcap"), tmp_path / "s.zarr")
+
+
+def _only_commands(path: Path) -> Path:
+    with open(path, "wb") as f:
+        w = mcap_writer.Writer(f)
+        s = w.register_msgdef("geometry_msgs/msg/Twist", msgdef("geometry_msgs/msg/Twist"))
+        w.write_message("/cmd_vel", s, twist(0.1, 0.0), log_time=BASE_NS, publish_time=BASE_NS)
+        w.finish()
+    return path
