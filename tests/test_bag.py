@@ -338,3 +338,16 @@ def _only_commands(path: Path) -> Path:
         w.write_message("/cmd_vel", s, twist(0.1, 0.0), log_time=BASE_NS, publish_time=BASE_NS)
         w.finish()
     return path
+
+
+def test_eval_notes_a_model_trained_at_another_frame_rate():
+    """A real sensor's rate (7.1 Hz) against the pretrained model's 5 Hz frames: said, not hidden."""
+    import json
+
+    from sonarset.models.echopt.cards import card_processing, training_notices
+    from sonarset.models.echopt.checkpoint import PRETRAINED
+
+    card = json.loads(PRETRAINED.with_suffix(".json").read_text())
+    assert training_notices("echopt", card, card_processing(card), None, 0.2) == []
+    [note] = training_notices("echopt", card, card_processing(card), None, 1 / 7.1)
+    assert "trained on 0.2 s frames (5 Hz)" in note and "(7.1 Hz)" in note

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from sonarset.errors import SonarSetError
+from sonarset.format.arrays import FRAME_INTERVAL_TOLERANCE
 from sonarset.format.attrs import Processing, RobotRig
 from sonarset.store.atomic import atomic_text
 
@@ -65,7 +66,8 @@ def describe_images(p: Processing) -> str:
     return _quoted(p, " images")
 
 
-def training_notices(label: str, card: dict, processing: Processing, rig: RobotRig | None = None) -> list[str]:
+def training_notices(label: str, card: dict, processing: Processing, rig: RobotRig | None = None,
+                     frame_interval_s: float | None = None) -> list[str]:
     """One-line notes when a model meets images (or a robot) other than those it was trained on.
 
     Not errors: evaluating across processings is legitimate, but the scores then say nothing
@@ -85,6 +87,13 @@ def training_notices(label: str, card: dict, processing: Processing, rig: RobotR
     if trained_rig is not None and rig is not None and trained_rig != rig:
         notes.append(f"note: {label} was trained on a robot with {trained_rig.describe()}; this store's robot has "
                      f"{rig.describe()}: scores are not comparable to its training")
+    dt = (card.get("config") or {}).get("dt")
+    if not notes and isinstance(dt, (int, float)) and dt > 0 and frame_interval_s and \
+            abs(frame_interval_s - dt) > FRAME_INTERVAL_TOLERANCE * dt:
+        # a real sensor runs at its own rate (a bag import records it): one step of the model is not one frame
+        notes.append(f"note: {label} was trained on {dt:g} s frames ({1 / dt:.3g} Hz); this store's are "
+                     f"{frame_interval_s:.3g} s ({1 / frame_interval_s:.3g} Hz): it learned one step of its own "
+                     "frame interval, so scores are not comparable to its training")
     return notes
 
 

@@ -144,7 +144,8 @@ def _predictors(store: SonarStore, model_specs: list[str], rig: RobotRig, device
     notes = []
     for p in preds.values():
         if isinstance(getattr(p, "card", None), dict):
-            notes += training_notices(getattr(p, "label", p.name), p.card, store.processing, store.rig)
+            notes += training_notices(getattr(p, "label", p.name), p.card, store.processing, store.rig,
+                                      rig.frame_interval_s)
     if not preds:
         raise SonarSetError("no models to evaluate")
     return preds, notes
