@@ -351,3 +351,57 @@ def test_eval_notes_a_model_trained_at_another_frame_rate():
     assert training_notices("echopt", card, card_processing(card), None, 0.2) == []
     [note] = training_notices("echopt", card, card_processing(card), None, 1 / 7.1)
     assert "trained on 0.2 s frames (5 Hz)" in note and "(7.1 Hz)" in note
+
+
+def test_microphone_pings_in_a_bag_beamform_as_import_raw_does(tmp_path):
+    """A simulated run's scene rendered to microphone signals, once as import-raw's files and once
+    as MicrophoneArrayPing messages with TwistStamped commands: the same images either way."""
+    import json
+    import shutil
+
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from sonarset.ingest.bag.messages import writing_typestore
+    from sonarset.ingest.raw import import_raw
+    from sonarset.sim import generate
+    from sonarset.sim.reference import write_raw_recording
+
+    generate(tmp_path / "sim.zarr", runs=0, test_runs=1, minutes=0.02, seed=3, workers=1, snr_db=40.0)
+    rec_dir = write_raw_recording(open_store(tmp_path / "sim.zarr").run("test_000"), tmp_path / "raw", seed=1)
+    by_file = import_raw(rec_dir, tmp_path / "file.zarr")
+    signals = np.load(rec_dir / "signals.npy")
+    time_s, velocity = np.load(rec_dir / "time.npy"), np.load(rec_dir / "velocity.npy")
+    sidecar = json.loads((rec_dir / "recording.json").read_text())
+    ts = writing_typestore()
+    T = ts.types
+    bag = tmp_path / "pings"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        cp = w.add_connection("/ertis/pings", "sonarset_msgs/msg/MicrophoneArrayPing", typestore=ts)
+        cc = w.add_connection("/cmd_vel", "geometry_msgs/msg/TwistStamped", typestore=ts)
+        ns = BASE_NS + np.round((time_s - time_s[0]) * 1e9).astype(np.int64)
+        step = int(np.median(np.diff(ns)))
+
+        def header(t):
+            return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=int(t // 10**9),
+                                                                                   nanosec=int(t % 10**9)),
+                                            frame_id="ertis")
+
+        for k, t in enumerate(ns):
+            vec = T["geometry_msgs/msg/Vector3"]
+            cmd = T["geometry_msgs/msg/TwistStamped"](header=header(t - step), twist=T["geometry_msgs/msg/Twist"](
+                linear=vec(x=float(velocity[k, 0]), y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=float(velocity[k, 1]))))
+            w.write(cc, int(t - step), ts.serialize_cdr(cmd, cc.msgtype))
+            ping = T["sonarset_msgs/msg/MicrophoneArrayPing"](
+                header=header(t), sample_rate_hz=float(sidecar["sample_rate_hz"]), channel_count=signals.shape[1],
+                sample_count=signals.shape[2], samples=signals[k].ravel())
+            w.write(cp, int(t), ts.serialize_cdr(ping, cp.msgtype))
+    meta = tmp_path / "pings.json"
+    meta.write_text(json.dumps(sidecar))
+    for extra in rec_dir.iterdir():  # files the sidecar names (a microphone CSV) sit beside it
+        if extra.suffix == ".csv":
+            shutil.copy(extra, tmp_path / extra.name)
+    [by_bag] = import_bag(bag, tmp_path / "bag.zarr", meta_path=meta, name="test_000")
+    assert by_bag.attrs.source["kind"] == "import-bag" and by_bag.attrs.source["beamformer"] == "dmas3-cf"
+    np.testing.assert_array_equal(by_bag.read("images"), by_file.read("images"))
+    np.testing.assert_allclose(by_bag.read("velocity"), by_file.read("velocity"), atol=1e-6)
+    assert validate_store(tmp_path / "bag.zarr") == []

@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from sonarset.cli.choices import Stamps
+from sonarset.cli.choices import Beamformer, ProcessingProfile, Stamps, value
 from sonarset.cli.common import err, out, per_name_progress, progress_bar, user_errors
 from sonarset.cli.options import MetaPath, OutStore, Overwrite, RunName, RunSplit
 
@@ -22,6 +22,8 @@ def import_bag_(
     overwrite: Overwrite = False,
     images: Topic = typer.Option(None, "--images", help="Sonar image topic (ProjectedSonarImage or sensor_msgs/"
                                                         "Image); default: the only one."),
+    raw: Topic = typer.Option(None, "--raw", help="Microphone signal topic (sonarset_msgs/MicrophoneArrayPing) to "
+                                                  "beamform instead, with import-raw's sidecar."),
     cmd_vel: Topic = typer.Option(None, "--cmd-vel", help="Velocity command topic (Twist or TwistStamped); "
                                                           "default: the only one."),
     odom: Topic = typer.Option(None, "--odom", help="Odometry topic (nav_msgs/Odometry) for the poses; "
@@ -32,6 +34,9 @@ def import_bag_(
                                                                "clock offset to the sensor)."),
     cmd_timeout: float = typer.Option(0.5, "--cmd-timeout", help="Seconds a command holds without a new one "
                                                                  "(the controller's cmd_vel timeout)."),
+    processing: ProcessingProfile = typer.Option("ertis", "--processing", help="Energyscape profile (--raw)."),
+    beamformer: Optional[Beamformer] = typer.Option(None, "--beamformer", help="Default: the profile's (--raw)."),
+    workers: int = typer.Option(2, "--workers", min=1, help="Threads beamforming pings (--raw)."),
 ) -> None:
     """Import a ROS bag's sonar images, velocity commands and odometry as runs, split where pings were dropped."""
     from sonarset.ingest.bag import import_bag
@@ -39,9 +44,10 @@ def import_bag_(
     def note(line: str) -> None:
         err.print(f"[cyan]note:[/] {line}", highlight=False, soft_wrap=True)
 
-    runs = import_bag(bag, out_store, images=images, commands=cmd_vel, odometry=odom, stamps=stamps.value,
+    runs = import_bag(bag, out_store, images=images, raw=raw, commands=cmd_vel, odometry=odom, stamps=stamps.value,
                       command_offset_s=cmd_offset, command_timeout_s=cmd_timeout, meta_path=meta, name=name,
-                      split=split, overwrite=overwrite, note=note)
+                      split=split, overwrite=overwrite, processing=processing.value, beamformer=value(beamformer),
+                      workers=workers, note=note)
     frames = sum(r.n_frames for r in runs)
     out.print(f"imported {bag} -> {out_store}: {len(runs)} run(s) ({', '.join(r.name for r in runs)}), "
               f"{frames} frames, split {runs[0].split}", highlight=False)

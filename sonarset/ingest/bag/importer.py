@@ -14,7 +14,7 @@ scale) or 'linear' (energy), which map over ``dynamic_range_db`` as for ``import
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -27,6 +27,7 @@ from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.format.problems import pydantic_problems
 from sonarset.format.units import grid_to_si
 import sonarset.ingest.bag.align as align
+import sonarset.ingest.bag.messages as m
 from sonarset.ingest.bag.reader import BagStreams, read_streams
 from sonarset.ingest.images import _encode_images
 from sonarset.ingest.metadata import recording_meta
@@ -39,19 +40,24 @@ class BagRecording:
     """A bag's runs, checked and in SonarSet conventions, ready to write."""
 
     source: str
-    grid: SensorGrid
+    grid: SensorGrid | None  # None for microphone signals (beamformed onto the store's grid)
     runs: dict[str, dict[str, np.ndarray]]
     frame_interval_s: float
     notes: list[str]
     attrs: dict
+    #: each run's frames as message indices start..stop-1 of the frame topic
+    frames: dict[str, tuple[int, int]] = field(default_factory=dict)
+    streams: BagStreams | None = None
 
 
 def load_bag(bag: str | os.PathLike, *, images: str | None = None, commands: str | None = None,
              odometry: str | None = None, stamps: str = "header", command_offset_s: float = 0.0,
              command_timeout_s: float = align.COMMAND_TIMEOUT_S, meta_path: str | os.PathLike | None = None,
-             name: str | None = None, grid: SensorGrid | None = None) -> tuple[BagRecording, object]:
+             name: str | None = None, grid: SensorGrid | None = None, raw: str | None = None,
+             sidecar_meta=None) -> tuple[BagRecording, object]:
     """Read and check a bag into runs; InputValidationError listing every problem. Returns the runs
-    and the sidecar's metadata (``RecordingMeta``)."""
+    and the sidecar's metadata (``RecordingMeta``; for microphone signals, ``sidecar_meta``, the
+    raw sidecar already read)."""
     bag = Path(bag)
     where = str(bag)
     problems: list[str] = []
@@ -60,45 +66,47 @@ def load_bag(bag: str | os.PathLike, *, images: str | None = None, commands: str
         raise SonarSetError(f"command offset must be finite, got {command_offset_s}", parameter="command_offset_s")
     if not (command_timeout_s > 0):
         raise SonarSetError(f"command timeout must be > 0 s, got {command_timeout_s}", parameter="command_timeout_s")
-    meta = recording_meta(bag, meta_path, None, problems, implausible)
+    meta = sidecar_meta or recording_meta(bag, meta_path, None, problems, implausible)
     if meta is None:
         raise InputValidationError(where, problems)
-    if meta.grid is not None:
+    if meta.grid is not None and sidecar_meta is None:
         try:
             grid = grid_to_si(meta.grid, meta.units)
         except ValidationError as exc:
             raise InputValidationError(where, list(map(str, pydantic_problems(exc, "metadata.grid.")))) from None
-    streams = read_streams(bag, images=images, commands=commands, odometry=odometry, stamps=stamps, grid=grid)
+    streams = read_streams(bag, images=images, commands=commands, odometry=odometry, stamps=stamps, grid=grid,
+                           raw=raw)
     base = run_name_for(bag, name, meta.name)
-    runs, notes, interval = _runs(streams, meta, base, command_offset_s, command_timeout_s, problems)
+    runs, frames, notes, interval = _runs(streams, meta, base, command_offset_s, command_timeout_s, problems)
     if problems:
         raise InputValidationError(where, problems)
     attrs = {"kind": "import-bag", "file": bag.name, "images_topic": streams.frames.topic,
              "images_type": streams.frames.msgtype, "commands_topic": streams.commands.topic,
              "commands_type": streams.commands.msgtype, "stamps": stamps, "command_offset_s": command_offset_s,
-             "command_timeout_s": command_timeout_s, "value_rule": _value_rule(streams, meta),
-             "frame_interval_s": interval, "first_stamp_ns": streams.origin_ns, "source": meta.source}
+             "command_timeout_s": command_timeout_s, "frame_interval_s": interval, "first_stamp_ns": streams.origin_ns, "source": meta.source}
+    if streams.grid is not None:
+        attrs["value_rule"] = _value_rule(streams, meta)
     if streams.odometry is not None:
         attrs["odometry_topic"] = streams.odometry.topic
-    return BagRecording(where, streams.grid, runs, interval, streams.notes + notes, attrs), meta
+    return BagRecording(where, streams.grid, runs, interval, streams.notes + notes, attrs, frames, streams), meta
 
 
 def _runs(streams: BagStreams, meta, base: str, offset_s: float, timeout_s: float,
-          problems: list[str]) -> tuple[dict, list[str], float]:
+          problems: list[str]) -> tuple[dict, dict, list[str], float]:
     times = streams.frames.times
-    images = _energyscape(streams, meta, problems)
+    images = _energyscape(streams, meta, problems) if streams.grid is not None else None
     cmd_t = streams.commands.times + offset_s
     notes: list[str] = []
     if len(times) < align.MIN_SEGMENT:
         problems.append(f"topic {streams.frames.topic!r}: {len(times)} frame(s), a run needs at least "
                         f"{align.MIN_SEGMENT}")
-        return {}, notes, 0.0
+        return {}, {}, notes, 0.0
     edges = align.frame_edges(times)
     covered = align.command_coverage(cmd_t, edges, timeout_s) if cmd_t.size else np.zeros(len(times), bool)
     if not covered.any():
         problems.append(f"topic {streams.commands.topic!r}: no command reaches any frame interval (commands "
                         f"{_span(cmd_t)}, frames {_span(times)}; a clock offset? command_offset_s shifts them)")
-        return {}, notes, 0.0
+        return {}, {}, notes, 0.0
     first = int(np.argmax(covered))
     if first:
         notes.append(f"frames 0..{first - 1} dropped: before the first command")
@@ -108,7 +116,7 @@ def _runs(streams: BagStreams, meta, base: str, offset_s: float, timeout_s: floa
         problems.append(f"topic {streams.commands.topic!r}: no command over frame {k}'s interval "
                         f"({times[k - 1] - times[0] if k else 0:.3f}..{times[k] - times[0]:.3f} s after the first frame;"
                         f" a command older than {timeout_s:g} s has stopped the robot)")
-        return {}, notes, 0.0
+        return {}, {}, notes, 0.0
     velocity = np.stack([align.held_mean(cmd_t, streams.commands.values[k], edges, timeout_s)
                          for k in ("v", "omega")], axis=1).astype(np.float32)
     pose = None
@@ -125,16 +133,17 @@ def _runs(streams: BagStreams, meta, base: str, offset_s: float, timeout_s: floa
     notes += split_notes
     interval = float(np.median(np.diff(times[first:])))
     runs: dict[str, dict[str, np.ndarray]] = {}
+    frames: dict[str, tuple[int, int]] = {}
     for i, seg in enumerate(segments):
         a, b = seg.start + first, seg.stop + first
-        run = {"images": images[a:b] if images is not None else None, "velocity": velocity[a:b],
-               "time": times[a:b] - times[first]}
+        run = {"velocity": velocity[a:b], "time": times[a:b] - times[first]}
+        if images is not None:
+            run["images"] = images[a:b]
         if pose is not None:
             run["pose"] = pose[a:b]
-        runs[base if len(segments) == 1 else f"{base}_{i:03d}"] = run
-    if images is None:
-        return {}, notes, interval
-    return runs, notes, interval
+        name = base if len(segments) == 1 else f"{base}_{i:03d}"
+        runs[name], frames[name] = run, (a, b)
+    return runs, frames, notes, interval
 
 
 def _span(t: np.ndarray) -> str:
@@ -163,27 +172,52 @@ def _value_rule(streams: BagStreams, meta) -> str:
 
 
 def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | None = None,
-               commands: str | None = None, odometry: str | None = None, stamps: str = "header",
-               command_offset_s: float = 0.0, command_timeout_s: float = align.COMMAND_TIMEOUT_S,
-               meta_path: str | os.PathLike | None = None, name: str | None = None, split: str | None = None,
-               overwrite: bool = False, note: Callable[[str], None] | None = None) -> list[Run]:
+               raw: str | None = None, commands: str | None = None, odometry: str | None = None,
+               stamps: str = "header", command_offset_s: float = 0.0,
+               command_timeout_s: float = align.COMMAND_TIMEOUT_S, meta_path: str | os.PathLike | None = None,
+               name: str | None = None, split: str | None = None, overwrite: bool = False,
+               processing: str | Processing = "ertis", beamformer: str | None = None, workers: int = 2,
+               note: Callable[[str], None] | None = None,
+               progress: Callable[[int, int], None] | None = None) -> list[Run]:
     """Validate the bag ``bag`` completely, then write it as runs of the store ``out`` (one per
     stretch without dropped pings: ``NAME``, or ``NAME_000``, ``NAME_001``... when it splits).
 
     ``images``, ``commands``, ``odometry``: topic names (default: the one topic of an accepted type;
-    odometry is optional). ``stamps``: 'header' or 'bag'. ``command_offset_s`` is added to every
-    command time (a known clock offset). The sidecar (``meta_path``, default ``BAG.json``) gives
-    what ``import`` takes from one: name, split, grid (needed for ``sensor_msgs/Image``), rig,
-    processing, image encoding. A new store records the measured frame interval (in the sidecar's
-    rig, if it gives one); an existing one must have the same grid and frame rate. ``note``
-    receives what was done to fit the data (splits, dropped frames, resampling).
+    odometry is optional). ``raw``: a ``sonarset_msgs/MicrophoneArrayPing`` topic to beamform
+    instead (the default when the bag has no image topic and one such topic), with ``import-raw``'s
+    sidecar, ``processing`` and ``beamformer``, on ``workers`` threads. ``stamps``: 'header' or
+    'bag'. ``command_offset_s`` is added to every command time (a known clock offset). The sidecar
+    (``meta_path``, default ``BAG.json``) gives what ``import`` (or ``import-raw``) takes from one:
+    name, split, grid (needed for ``sensor_msgs/Image``), rig, processing, image encoding. A new
+    store records the measured frame interval (in the sidecar's rig, if it gives one); an existing
+    one must have the same grid and frame rate. ``note`` receives what was done to fit the data
+    (splits, dropped frames, resampling).
     """
+    from sonarset.ingest.bag.reader import open_reader
+    from sonarset.ingest.raw import resolve_processing
+
     check_run_options(name, split)
     target = ImportTarget.at(out)
     have = target.existing
+    bag = Path(bag)
+    if raw is None and images is None:  # the kind of frames decides which sidecar applies
+        reader = open_reader(bag)
+        try:
+            topics = {t: i.msgtype for t, i in reader.topics.items()}
+        finally:
+            reader.close()
+        pings = [t for t, kind in topics.items() if kind in m.RAW_TYPES]
+        if len(pings) == 1 and not any(kind in m.IMAGE_TYPES for kind in topics.values()):
+            raw = pings[0]
+    sidecar_meta = sidecar = None
+    if raw is not None:
+        from sonarset.ingest.bag.raw import raw_sidecar
+
+        sidecar_meta, sidecar = raw_sidecar(bag, meta_path)
     rec, meta = load_bag(bag, images=images, commands=commands, odometry=odometry, stamps=stamps,
                          command_offset_s=command_offset_s, command_timeout_s=command_timeout_s,
-                         meta_path=meta_path, name=name, grid=have.grid if have is not None else None)
+                         meta_path=meta_path, name=name, grid=have.grid if have is not None else None,
+                         raw=raw, sidecar_meta=sidecar_meta)
     rig = meta.rig.model_copy(update={"frame_interval_s": rec.frame_interval_s}) if meta.rig is not None else None
     if meta.rig is not None and abs(meta.rig.frame_interval_s - rec.frame_interval_s) > \
             FRAME_INTERVAL_TOLERANCE * meta.rig.frame_interval_s:
@@ -195,25 +229,39 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
             raise InputValidationError(rec.source, [f"frames are {rec.frame_interval_s:.4g} s apart (median), the store "
                                                     f"{have.location} declares {declared:g} s frames; import into "
                                                     "another store"])
-        rig = None  # the store's own rig stands; the frame rate was checked above
-    problems = [f"run {n!r}: {p}" for n, arrays in rec.runs.items() for p in run_array_problems(rec.grid, arrays)]
+    run_split = split if split is not None else meta.split
+    if raw is not None:
+        from sonarset.ingest.bag.raw import raw_runs
+
+        proc = processing if isinstance(processing, Processing) else resolve_processing(processing, beamformer)
+        grid, writers = raw_runs(rec, meta, sidecar, have.grid if have is not None else None, proc, run_split,
+                                 workers, progress)
+        description = f"imported from raw microphone signals in the ROS bag {bag.name}"
+    else:
+        proc, grid = meta.processing, rec.grid
+        writers = [(n, _image_writer(n, arrays, run_split, rec.attrs)) for n, arrays in rec.runs.items()]
+        description = f"imported from the ROS bag {bag.name}"
+    # images are checked here; beamformed ones as the run writer writes them
+    problems = [f"run {n!r}: {p}" for n, arrays in rec.runs.items() if raw is None
+                for p in run_array_problems(grid, arrays)]
     if problems:
         raise InputValidationError(rec.source, problems)
     for line in rec.notes:
         if note is not None:
             note(f"{bag}: {line}")
-    run_split = split if split is not None else meta.split
-    processing = meta.processing or Processing(profile="unknown")
     written = []
-    for run_name, arrays in rec.runs.items():
-        def write(store, replace: bool, run_name=run_name, arrays=arrays) -> None:
-            store.write_run(run_name, split=run_split, source=rec.attrs, overwrite=replace, consolidate=False,
-                            **arrays)
-
-        written.append(target.write(run_name, write, overwrite=overwrite, grid=rec.grid,
-                                    processing=meta.processing, rig=rig if have is None else None,
+    for run_name, write in writers:
+        written.append(target.write(run_name, write, overwrite=overwrite, grid=grid, processing=proc,
+                                    rig=rig if have is None else None,
                                     new_store={"frame_rate_hz": float(f"{1.0 / rec.frame_interval_s:.4g}"),
-                                               "processing": processing,
-                                               "description": f"imported from the ROS bag {Path(bag).name}"}))
+                                               "processing": proc or Processing(profile="unknown"),
+                                               "description": description}))
         target = ImportTarget.at(out)  # the first run may have created the store
     return written
+
+
+def _image_writer(run_name: str, arrays: dict, split: str, source: dict):
+    def write(store, replace: bool) -> None:
+        store.write_run(run_name, split=split, source=source, overwrite=replace, consolidate=False, **arrays)
+
+    return write

@@ -36,7 +36,7 @@ class BagStreams:
 
     bag: str
     frames: Stream
-    grid: SensorGrid
+    grid: SensorGrid | None  # None for microphone signals: beamformed onto the store's grid
     commands: Stream
     odometry: Stream | None
     #: what was done to fit the data to the store (azimuth order reversed, beams resampled...)
@@ -93,12 +93,15 @@ def _listing(topics: dict) -> str:
 
 
 def read_streams(bag: str | Path, *, images: str | None = None, commands: str | None = None,
-                 odometry: str | None = None, stamps: str = "header", grid: SensorGrid | None = None) -> BagStreams:
+                 odometry: str | None = None, stamps: str = "header", grid: SensorGrid | None = None,
+                 raw: str | None = None) -> BagStreams:
     """Decode the bag's topics; InputValidationError listing every problem.
 
     ``stamps``: 'header' (the messages' own stamps; Twist has none and takes the bag's) or 'bag'
     (when the bag recorded each message). ``grid``: the grid of ``sensor_msgs/Image`` frames (a
-    ProjectedSonarImage carries its own).
+    ProjectedSonarImage carries its own). ``raw``: a ``MicrophoneArrayPing`` topic to take the
+    frames from instead of images (the default when the bag has no image topic and one such
+    topic); its signals stay in the bag (``frames.values`` holds their shape) and ``grid`` is None.
     """
     bag = Path(bag)
     where = str(bag)
@@ -108,13 +111,23 @@ def read_streams(bag: str | Path, *, images: str | None = None, commands: str | 
     problems: list[str] = []
     reader = open_reader(bag)
     try:
-        image_topic = choose_topic(reader, images, m.IMAGE_TYPES, "sonar image", "images", problems)
+        if raw is None and images is None and not any(i.msgtype in m.IMAGE_TYPES for i in reader.topics.values()):
+            raw = choose_topic(reader, None, m.RAW_TYPES, "microphone signal", "raw", [], required=False)
+        if raw is not None and images is not None:
+            problems.append("give an image topic or a microphone signal topic, not both")
+        if raw is not None:
+            image_topic = choose_topic(reader, raw, m.RAW_TYPES, "microphone signal", "raw", problems)
+        else:
+            image_topic = choose_topic(reader, images, m.IMAGE_TYPES, "sonar image", "images", problems)
         command_topic = choose_topic(reader, commands, m.COMMAND_TYPES, "velocity command", "commands", problems)
         odom_topic = choose_topic(reader, odometry, m.ODOMETRY_TYPES, "odometry", "odometry", problems,
                                   required=False)
         if problems:
-            raise InputValidationError(where, problems, parameter=("images", "commands", "odometry"))
-        frames, found_grid, notes = _read_frames(reader, image_topic, stamps, grid, problems)
+            raise InputValidationError(where, problems, parameter=("images", "raw", "commands", "odometry"))
+        if raw is not None:
+            frames, found_grid, notes = _read_pings(reader, image_topic, stamps, problems), None, []
+        else:
+            frames, found_grid, notes = _read_frames(reader, image_topic, stamps, grid, problems)
         frames_failed = bool(problems)  # a frame that cannot be decoded ends the topic: say that, not "empty"
         cmds = _read_commands(reader, command_topic, stamps, problems)
         odom = _read_odometry(reader, odom_topic, stamps, problems) if odom_topic else None
@@ -124,7 +137,7 @@ def read_streams(bag: str | Path, *, images: str | None = None, commands: str | 
     for stream in streams:
         if not (stream is frames and frames_failed):
             problems += _stamp_problems(stream, stamps)
-    if problems or found_grid is None:
+    if problems or (found_grid is None and raw is None):
         raise InputValidationError(where, problems or ["no sensor grid"])
     # Seconds since the first frame, from integer nanoseconds: float seconds since 1970 would
     # keep only ~0.1 us, and frame intervals should come back as recorded.
@@ -209,3 +222,25 @@ def _read_odometry(reader, topic: str, stamps: str, problems: list[str]) -> Stre
     if not np.isfinite(out.values["pose"]).all():
         problems.append(f"topic {topic!r}: a pose is not finite")
     return out
+
+
+def _read_pings(reader, topic: str, stamps: str, problems: list[str]) -> Stream:
+    """Times and the common (channels, samples) shape and rate of a MicrophoneArrayPing topic, the
+    samples checked for size; the signals themselves are streamed later (``bag.raw``)."""
+    times, shape, rate = [], None, None
+    for i, t, msg in _messages(reader, topic, problems, stamps):
+        where = f"topic {topic!r}, message {i}"
+        here = (int(msg.channel_count), int(msg.sample_count))
+        if len(msg.samples) != here[0] * here[1]:
+            problems.append(f"{where}: {len(msg.samples)} samples, {here[0]} channels x {here[1]} need "
+                            f"{here[0] * here[1]}")
+            break
+        if shape is None:
+            shape, rate = here, float(msg.sample_rate_hz)
+        elif here != shape or float(msg.sample_rate_hz) != rate:
+            problems.append(f"{where}: {here[0]} channels x {here[1]} samples at {msg.sample_rate_hz:g} Hz, the "
+                            f"first ping had {shape[0]} x {shape[1]} at {rate:g} Hz")
+            break
+        times.append(t)
+    return Stream(topic, m.MICROPHONES, np.asarray(times, np.int64),
+                  {"shape": np.array(shape or (0, 0)), "sample_rate_hz": np.array(rate or 0.0)})
