@@ -213,6 +213,23 @@ def test_export_then_import_gives_back_the_run_and_eval_runs_on_it(tmp_path):
                                    "--horizons", "1,3", "--no-figures", "--out", str(tmp_path / "ev")])
     assert res.exit_code == 0, res.output
 
+    # the same run written by mcap-ros2-support, a writer that is not the importer's library
+    drive = Drive()
+    drive.grid, drive.images = grid, a.read("images").astype(np.float64) * 255.0
+    drive.frame_ns = BASE_NS + np.round((a.read("time") - a.read("time")[0]) * 1e9).astype(np.int64)
+    step = int(np.median(np.diff(drive.frame_ns)))
+    drive.command_ns = drive.frame_ns - step  # each command in force over the interval that ends at its frame
+    drive.v, drive.w = a.read("velocity")[:, 0].astype(float), a.read("velocity")[:, 1].astype(float)
+    drive.odom_ns, drive.odom = drive.frame_ns, a.read("pose").astype(float)
+    [other] = import_bag(drive.write(tmp_path / "other.mcap", image_dtype=8), tmp_path / "other.zarr",
+                         split="test")
+    images_c = other.read("images").astype(np.float64)
+    assert np.corrcoef(images_a.ravel(), images_c.ravel())[0, 1] >= 0.999
+    np.testing.assert_allclose(other.read("velocity"), a.read("velocity"), atol=1e-3)
+    res = CliRunner().invoke(app, ["eval", str(tmp_path / "other.zarr"), "--models", "naive,flow", "--samples",
+                                   "10", "--horizons", "1,3", "--no-figures", "--out", str(tmp_path / "ev2")])
+    assert res.exit_code == 0, res.output
+
 
 def test_ros2_sqlite3_and_ros1_bags_import_too(tmp_path):
     """Bags from rosbags' own writers, in both ROS 2 storages and ROS 1."""
