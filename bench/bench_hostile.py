@@ -8,7 +8,7 @@ Prints one markdown row per (case, command): exit code, seconds, peak RSS, stder
 verdict: clean when the exit code is the expected one, stderr is at most one line (validate: one
 line per problem, each a finding), no traceback or "internal error", within 30 s and 2 GB. The on-disk corruption
 table (60 kinds) is ``python bench/bench_readcheck.py --table``. Remote rows run with
-SONARSET_REMOTE_TIMEOUT=--remote-timeout (default 10 s; the product's default is 30 s).
+SONARSET_REMOTE_TIMEOUT=--remote-timeout (default 10 s; the product's default is 20 s).
 """
 
 from __future__ import annotations

@@ -6,8 +6,9 @@ holds a reader for as long as the TCP stack allows, and an HTTP 500 or a body cu
 as aiohttp's own exception. The limits apply per request, so a store of any size is bounded by
 its slowest request, not by its size:
 
-- ``SONARSET_REMOTE_TIMEOUT`` (seconds, default 30): the most one request may take, the answer
-  read in full. A request that runs out of time is not retried: a server that said nothing for
+- ``SONARSET_REMOTE_TIMEOUT`` (seconds, default 20): the most one request may take, the answer
+  read in full. 20 s is generous for a chunk (a few MB) from object storage, and keeps a command
+  that meets a dead server under 30 s with its start-up. A request that runs out of time is not retried: a server that said nothing for
   that long is not expected to answer the next time, and retrying would multiply the wait.
 - ``SONARSET_REMOTE_RETRIES`` (default 3): how many times a request that failed transiently
   (HTTP 5xx, 408, 429, a body shorter than its Content-Length, a dropped connection) is tried
@@ -37,7 +38,7 @@ RETRIES_VARIABLE = "SONARSET_REMOTE_RETRIES"
 class RemoteLimits:
     """Per-request time limit (s) and the number of retries of a transient failure."""
 
-    timeout_s: float = 30.0
+    timeout_s: float = 20.0
     retries: int = 3
     backoff_s: float = 0.5
 

@@ -155,7 +155,7 @@ def open_store(
     (default 512 MiB, ``0`` for none; ``sonarset.store.cache``), so chunks are fetched once, not once
     per window.
 
-    Every request to a URL ends within ``remote_limits.timeout_s`` (default 30 s, or
+    Every request to a URL ends within ``remote_limits.timeout_s`` (default 20 s, or
     ``SONARSET_REMOTE_TIMEOUT``) and transient server failures are retried with backoff
     (``sonarset.store.remote``); what still fails raises RemoteError naming the URL.
 
