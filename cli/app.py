@@ -14,7 +14,7 @@ import typer
 
 from sonarset import __version__
 
-from sonarset.cli.commands import bag, ingest, model, sim, store
+from sonarset.cli.commands import bag, ingest, model, sim, store, view
 from sonarset.cli.common import err, out
 from sonarset.cli.experiment import experiment_app
 
@@ -53,6 +53,7 @@ app.command("eval")(model.eval_)
 app.command()(model.train)
 app.command()(model.demo)
 app.command("export-onnx")(model.export_onnx_)
+app.command()(view.view)
 
 
 def main() -> None:

@@ -28,7 +28,7 @@ def fail(message: str, code: int = 1) -> None:
 #: Library parameter names that a command's option spells differently (the option's Python name).
 PARAMETER_OPTIONS = {"meta_path": "meta", "max_time_s": "max_time", "model_specs": "models", "commands": "cmd_vel",
                      "odometry": "odom", "command_offset_s": "cmd_offset", "command_timeout_s": "cmd_timeout",
-                     "runs": "run"}
+                     "runs": "run", "run_name": "run"}
 
 
 def _option_infos(hint) -> list[OptionInfo]:

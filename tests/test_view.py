@@ -1,0 +1,72 @@
+"""sonarset view: the recording Rerun's own tools read back (rerun rrd verify / print)."""
+
+from __future__ import annotations
+
+import math
+import re
+import subprocess
+import sys
+from collections import Counter
+
+import pytest
+from typer.testing import CliRunner
+
+pytest.importorskip("rerun")
+
+from sonarset import open_store  # noqa: E402
+from sonarset.cli.app import app  # noqa: E402
+from sonarset.format.attrs import SensorGrid  # noqa: E402
+from sonarset.models.view import record_run  # noqa: E402
+
+GRID = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=50, azimuth_min_rad=-math.pi / 2,
+                  azimuth_max_rad=math.pi / 2, n_azimuth=30)
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    from sonarset.sim import generate
+
+    where = tmp_path_factory.mktemp("view") / "sim.zarr"
+    generate(where, runs=0, test_runs=1, minutes=0.3, seed=2, grid=GRID, workers=1)
+    return open_store(where)
+
+
+def rerun_tool(*args) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "rerun", "rrd", *map(str, args)], capture_output=True, text=True,
+                          timeout=120)
+
+
+def rows_per_entity(path) -> Counter:
+    """Rows of every entity, summed over the chunks ``rerun rrd print`` lists."""
+    rows: Counter = Counter()
+    for m in re.finditer(r"with (\d+) rows .*? - (/\S+) - data columns", rerun_tool("print", path).stdout):
+        rows[m[2]] += int(m[1])
+    return rows
+
+
+def test_a_recording_rerun_verifies_with_every_frame_and_the_predictions(sim, tmp_path):
+    out = record_run(sim, "test_000", tmp_path / "v.rrd", models=["naive", "flow"], horizon=3, block=32)
+    verified = rerun_tool("verify", out)
+    assert verified.returncode == 0, verified.stderr
+    rows = rows_per_entity(out)
+    n = sim.run("test_000").n_frames
+    for entity in ("/sonar/image", "/sonar/fan", "/commands/v", "/commands/omega", "/map/robot", "/map/fov",
+                   "/signal/snr_db", "/robot/slip"):
+        assert rows[entity] == n, (entity, rows)
+    for method in ("naive", "flow"):  # every frame with 3 frames of context 3 steps before it
+        assert rows[f"/predictions/{method}/image"] == rows[f"/predictions/{method}/error"] == n - 5
+    assert rows["/map/world/walls"] + rows["/map/world/circles"] >= 1 and rows["/map/path"] == 1
+
+
+def test_view_cli_records_a_frame_range_and_says_how_to_open_it(sim, tmp_path):
+    out = tmp_path / "part.rrd"
+    res = CliRunner().invoke(app, ["view", sim.location, "--model", "naive", "--horizon", "2", "--frames", "10:40",
+                                   "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "open it with: rerun" in res.output
+    rows = rows_per_entity(out)
+    assert rows["/sonar/image"] == 30 and rows["/predictions/naive/image"] == 30
+    bad = CliRunner().invoke(app, ["view", sim.location, "--frames", "ten", "--out", str(tmp_path / "x.rrd")])
+    assert bad.exit_code == 1 and "--frames must be A:B" in bad.output
+    missing = CliRunner().invoke(app, ["view", sim.location, "--run", "nope", "--out", str(tmp_path / "y.rrd")])
+    assert missing.exit_code == 1 and "no complete run 'nope'" in missing.output
