@@ -111,6 +111,12 @@ def test_report_files(result, tmp_path):
     assert "| AR-3 | echo_f1 | persistence | naive |" in report  # echo metrics get paired tests too
     for fig in ("fig_prediction.png", "fig_autoregressive.png", "fig_horizon.png"):
         assert (tmp_path / fig).stat().st_size > 5_000
+    from PIL import Image, ImageSequence
+
+    with Image.open(tmp_path / "rollout.gif") as gif:  # one frame per step of the longest horizon
+        frames = [np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(gif)]
+    assert len(frames) == 10 and not np.array_equal(frames[0], frames[-1])
+    assert "![rollout](rollout.gif)" in report
 
 
 def test_eval_cli(stores, tmp_path):

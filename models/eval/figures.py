@@ -31,7 +31,8 @@ def write_figures(res, out: Path) -> list[str]:
     paths = [prediction_figure(res, grid, out / "fig_prediction.png"),
              autoregressive_figure(res, out / "fig_autoregressive.png"),
              horizon_figure(res, out / "fig_horizon.png"),
-             fade_figure(res, out / "fade.png")]
+             fade_figure(res, out / "fade.png"),
+             rollout_animation(res, out / "rollout.gif")]
     return [str(p) for p in paths if p is not None]
 
 
@@ -94,6 +95,46 @@ def autoregressive_figure(res, path: Path) -> Path:
         a.set_yticks([])
     save_figure(fig, path, dpi=90)
     return path
+
+
+def rollout_animation(res, path: Path, fps: float = 2.0) -> Path | None:
+    """One rollout moving: the measured frames of the example window beside each method's
+    auto-regressive predictions, one GIF frame per step of the horizon (Pillow, through matplotlib's
+    canvas); None when the result holds no example."""
+    from PIL import Image
+
+    from sonarset.store.atomic import atomic_write
+
+    ex = res.examples
+    if not ex or "targets" not in ex or not ex.get("methods"):
+        return None
+    plt = pyplot()
+    target, methods = ex["targets"], list(ex["methods"])
+    cols = 1 + len(methods)
+    fig, axes = plt.subplots(1, cols, figsize=(2.2 * cols, 2.6), squeeze=False, dpi=72,
+                             gridspec_kw=dict(left=0.02, right=0.98, bottom=0.02, top=0.82, wspace=0.06))
+    axes = axes[0]
+    shown = [axes[0].imshow(target[0], origin="lower", aspect="auto", vmin=0, vmax=1)]
+    axes[0].set_title("measured", fontsize=9)
+    for ax, m in zip(axes[1:], methods):
+        shown.append(ax.imshow(ex["methods"][m][0], origin="lower", aspect="auto", vmin=0, vmax=1))
+        ax.set_title(m, fontsize=9)
+    for ax in axes:
+        ax.set_xticks([])
+        ax.set_yticks([])
+    title = fig.suptitle("", fontsize=10)
+    pictures = []
+    for h in range(target.shape[0]):
+        shown[0].set_data(target[h])
+        for im, m in zip(shown[1:], methods):
+            im.set_data(ex["methods"][m][h])
+        title.set_text(f"window {ex.get('window', '')}: step t+{h + 1} of {target.shape[0]}")
+        fig.canvas.draw()
+        pictures.append(Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3]).convert(
+            "P", palette=Image.Palette.ADAPTIVE))
+    plt.close(fig)
+    return atomic_write(path, lambda p: pictures[0].save(p, format="GIF", save_all=True, append_images=pictures[1:],
+                                                         duration=int(1000 / fps), loop=0))
 
 
 def horizon_figure(res, path: Path) -> Path:
