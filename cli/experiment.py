@@ -42,6 +42,8 @@ def experiment_slip(
     processing: ExperimentProcessing = None,
     device: ModelDevice = Device("cpu"),
     precision: ModelPrecision = Precision("auto"),
+    record: Path = typer.Option(None, "--record", help="Also write the paper trajectory (path, slip factors, "
+                                                       "signals) as a Rerun recording (.rrd)."),
 ) -> None:
     """Wheel-slip detection (paper Fig. 5) and its ROC AUC over random trajectories."""
     from sonarset.models.experiments.slip import run_slip_experiment
@@ -53,6 +55,10 @@ def experiment_slip(
                                   processing=value(processing), precision=precision.value,
                                   progress=_count_progress(bar, "trajectories"))
     write_slip_report(res, out_dir)
+    if record is not None:
+        from sonarset.models.experiments.record import record_slip
+
+        out.print(f"recording: {record_slip(res, record)}")
     table = Table("predictor", "horizon", "AUC both (eps)", "AUC one (eps)", "AUC both (ratio)", "AUC one (ratio)")
     by = {(x["predictor"], x["horizon"], x["kind"], x["detector"]): x["auc_mean"] for x in res.summary}
     for name in res.names:
@@ -77,6 +83,8 @@ def experiment_control(
     processing: ExperimentProcessing = None,
     device: ModelDevice = Device("cpu"),
     precision: ModelPrecision = Precision("auto"),
+    record: Path = typer.Option(None, "--record", help="Also write every episode (paths, SNR, bursts, bridged "
+                                                       "frames) as a Rerun recording (.rrd)."),
 ) -> None:
     """Corridor control through noise bursts (paper Fig. 6): clean, bursts, bursts bridged by EchoPT."""
     from sonarset.models.experiments.control import run_control_experiment
@@ -88,6 +96,10 @@ def experiment_control(
                                      processing=value(processing), max_time_s=max_time, precision=precision.value,
                                      progress=_count_progress(bar, "runs"))
     write_control_report(res, out_dir)
+    if record is not None:
+        from sonarset.models.experiments.record import record_control
+
+        out.print(f"recording: {record_control(res, record)}")
     table = Table("condition", "success", "collision", "timeout", "travel time [s]", "midline dev. [m]")
     for c, x in res.summary.items():
         table.add_row(c, str(x["success"]), str(x["collision"]), str(x["timeout"]),

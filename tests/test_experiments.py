@@ -133,6 +133,13 @@ def test_slip_experiment_end_to_end_with_a_tiny_echopt(tmp_path):
     assert {(a["predictor"], a["detector"]) for a in doc["auc"]} >= {("echopt", "eps"), ("flow", "ratio")}
     assert (tmp_path / "out" / "fig5_slip.png").stat().st_size > 10_000
     assert "| echopt | AR-5 |" in (tmp_path / "out" / "report.md").read_text()
+    if _rerun():
+        from sonarset.models.experiments.record import record_slip
+
+        path = record_slip(res, tmp_path / "slip.rrd")
+        assert _rrd("verify", path).returncode == 0
+        listed = _rrd("print", path).stdout
+        assert "/slip/factor/left" in listed and "/slip/signal/echopt/H5/eps" in listed
     from sonarset.models.echopt.precision import resolve_precision
 
     assert doc["precision"] == {"echopt": resolve_precision("auto", "cpu")}  # what auto chose, as it ran
@@ -197,8 +204,17 @@ def test_control_experiment_cli_with_a_tiny_echopt(tmp_path):
     ckpt = save_checkpoint(tmp_path / "tiny", EchoPT(make_config("tiny", *GRID.shape, max_tokens=256)),
                            {"grid": GRID.model_dump(), "preset": "tiny"})
     r = CliRunner().invoke(app, ["experiment", "control", "--model", str(ckpt), "--runs", "2", "--max-time", "8",
-                                 "--workers", "1", "--out", str(tmp_path / "out")])
+                                 "--workers", "1", "--out", str(tmp_path / "out"),
+                                 *(["--record", str(tmp_path / "episodes.rrd")] if _rerun() else [])])
     assert r.exit_code == 0, r.output
+    if _rerun():  # every episode of every condition, readable by Rerun's own tools
+        from sonarset.models.experiments.record import entity_name
+
+        listed = _rrd("print", tmp_path / "episodes.rrd").stdout
+        assert _rrd("verify", tmp_path / "episodes.rrd").returncode == 0
+        for condition in ("clean", "bursts", f"bursts+echopt:{ckpt}", "bursts+flow"):
+            for i in range(2):
+                assert f"/control/{entity_name(condition)}/run_{i:03d}/bridged" in listed
     doc = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert list(doc["summary"]) == ["clean", "bursts", f"bursts+echopt:{ckpt}", "bursts+flow"]
     assert all(s["runs"] == 2 for s in doc["summary"].values())
@@ -248,3 +264,17 @@ def test_experiments_simulate_the_images_their_models_were_trained_on(tmp_path):
                                  "--out", str(tmp_path / "refused")])
     assert r.exit_code == 1 and "not ertis" in r.output and "Traceback" not in r.output
     assert not (tmp_path / "refused").exists()
+
+
+def _rerun() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("rerun") is not None
+
+
+def _rrd(*args):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "rerun", "rrd", *map(str, args)], capture_output=True, text=True,
+                          timeout=120)
