@@ -222,6 +222,10 @@ def test_control_experiment_cli_with_a_tiny_echopt(tmp_path):
     assert set(doc["precision"]) == {f"echopt:{ckpt}"} and doc["precision"][f"echopt:{ckpt}"] in ("fp32", "bf16")
     report = (tmp_path / "out" / "report.md").read_text()
     assert (tmp_path / "out" / "fig6_control.png").exists() and "Fig. 6" in report
+    from PIL import Image
+
+    with Image.open(tmp_path / "out" / "episodes.gif") as gif:  # the episodes moving, decoded back
+        assert gif.n_frames > 1 and "![episodes](episodes.gif)" in report
     # 8 s is too short for a robot to arrive: no travel time, said in words, never nan
     assert "n/a (no robot arrived)" in report and not re.search(r"\bnan\b", report, flags=re.I)
     bad = CliRunner().invoke(app, ["experiment", "control", "--model", str(tmp_path / "missing"), "--runs", "1",

@@ -117,12 +117,15 @@ def mean_ci(x: np.ndarray, seed: int = 0) -> tuple[float, float, float]:
     return (float(x.mean()), *bootstrap_ci(x, seed=seed))
 
 
-def write_outputs(out: str | os.PathLike, metrics: dict, figure, figure_name: str, report: list[str]) -> Path:
-    """An experiment's outputs in ``out`` (created): metrics.json (NaNs as null), the figure, and
-    report.md from the report's lines."""
+def write_outputs(out: str | os.PathLike, metrics: dict, figure, figure_name: str, report: list[str],
+                  extra: Callable[[Path], object] | None = None) -> Path:
+    """An experiment's outputs in ``out`` (created): metrics.json (NaNs as null), the figure,
+    whatever ``extra(folder)`` writes (an animation), and report.md from the report's lines."""
     def write(folder: Path) -> None:
         atomic_text(folder / "metrics.json", json.dumps(finite_or_none(metrics), indent=2) + "\n")
         save_figure(figure, folder / figure_name)
+        if extra is not None:
+            extra(folder)
         atomic_text(folder / "report.md", "\n".join(report) + "\n")
 
     return publish_files(out, write, last="report.md")

@@ -26,9 +26,52 @@ PER_RUN_KEYS = ("index", "condition", "outcome", "travel_time_s", "midline_devia
 def write_control_report(res: ControlResult, out: str | os.PathLike) -> Path:
     """metrics.json, fig6_control.png and report.md in ``out`` (created)."""
     lines = [*outcome_table(res), *tests_table(res), *detector_and_gains(res),
-             "", f"![Fig. 6]({FIGURE})", "", f"{res.seconds:.0f} s in all"
+             "", f"![Fig. 6]({FIGURE})", "", f"![episodes]({ANIMATION}) — the first run of each condition "
+             "moving: red while a noise burst is on, green where a prediction bridged the frame.",
+             "", f"{res.seconds:.0f} s in all"
              + "".join(f"; {m} computed in {p}" for m, p in res.precision.items()) + "."]
-    return write_outputs(out, control_metrics(res), fig6(res), FIGURE, lines)
+    return write_outputs(out, control_metrics(res), fig6(res), FIGURE, lines,
+                         extra=lambda folder: episodes_animation(res, folder / ANIMATION))
+
+
+ANIMATION = "episodes.gif"
+
+
+def episodes_animation(res: ControlResult, path: Path, steps: int = 48, fps: float = 6.0) -> Path:
+    """The first episode of each condition moving along its path, one panel per condition, in at
+    most ``steps`` GIF frames (Pillow through matplotlib's canvas)."""
+    import numpy as np
+    from PIL import Image
+
+    from sonarset.report.plots import pyplot
+    from sonarset.store.atomic import atomic_write
+
+    plt = pyplot()
+    shown = [(c, eps[0]) for c, eps in res.episodes.items() if eps]
+    fig, axes = plt.subplots(1, len(shown), figsize=(2.6 * len(shown), 2.8), squeeze=False, dpi=72,
+                             gridspec_kw=dict(left=0.03, right=0.98, bottom=0.05, top=0.85, wspace=0.1))
+    markers, longest = [], max(len(ep["pose"]) for _, ep in shown)
+    for ax, (condition, ep) in zip(axes[0], shown):
+        pose = np.asarray(ep["pose"])
+        ax.plot(pose[:, 0], pose[:, 1], color="0.75", lw=1)
+        ax.set_title(f"{condition}\n{ep['outcome']}", fontsize=8)
+        ax.set_aspect("equal")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        markers.append(ax.plot([], [], "o", ms=6)[0])
+    pictures = []
+    for k in np.unique(np.linspace(0, longest - 1, min(steps, longest)).round().astype(int)):
+        for marker, (_, ep) in zip(markers, shown):
+            i = min(k, len(ep["pose"]) - 1)
+            j = min(i, len(ep["burst"]) - 1)
+            marker.set_data([ep["pose"][i][0]], [ep["pose"][i][1]])
+            marker.set_color("tab:green" if ep["predicted"][j] else "tab:red" if ep["burst"][j] else "tab:blue")
+        fig.canvas.draw()
+        pictures.append(Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3]).convert(
+            "P", palette=Image.Palette.ADAPTIVE))
+    plt.close(fig)
+    return atomic_write(path, lambda p: pictures[0].save(p, format="GIF", save_all=True, append_images=pictures[1:],
+                                                         duration=int(1000 / fps), loop=0))
 
 
 def control_metrics(res: ControlResult) -> dict:
