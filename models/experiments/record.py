@@ -1,4 +1,4 @@
-"""``experiment control|slip --record FILE.rrd``: the episodes as a Rerun recording.
+"""The experiments recorded for Rerun (the record option of `experiment control|slip`): the episodes.
 
 Control: every episode under ``control/CONDITION/run_NNN`` on a ``step`` and a ``time`` timeline:
 the robot's position (and its whole path, static), the SNR of each frame, whether a noise burst
