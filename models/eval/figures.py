@@ -101,9 +101,7 @@ def rollout_animation(res, path: Path, fps: float = 2.0) -> Path | None:
     """One rollout moving: the measured frames of the example window beside each method's
     auto-regressive predictions, one GIF frame per step of the horizon (Pillow, through matplotlib's
     canvas); None when the result holds no example."""
-    from PIL import Image
-
-    from sonarset.store.atomic import atomic_write
+    from sonarset.report.plots import save_animation
 
     ex = res.examples
     if not ex or "targets" not in ex or not ex.get("methods"):
@@ -123,18 +121,14 @@ def rollout_animation(res, path: Path, fps: float = 2.0) -> Path | None:
         ax.set_xticks([])
         ax.set_yticks([])
     title = fig.suptitle("", fontsize=10)
-    pictures = []
-    for h in range(target.shape[0]):
+
+    def step(h: int) -> None:
         shown[0].set_data(target[h])
         for im, m in zip(shown[1:], methods):
             im.set_data(ex["methods"][m][h])
         title.set_text(f"window {ex.get('window', '')}: step t+{h + 1} of {target.shape[0]}")
-        fig.canvas.draw()
-        pictures.append(Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3]).convert(
-            "P", palette=Image.Palette.ADAPTIVE))
-    plt.close(fig)
-    return atomic_write(path, lambda p: pictures[0].save(p, format="GIF", save_all=True, append_images=pictures[1:],
-                                                         duration=int(1000 / fps), loop=0))
+
+    return save_animation(fig, step, range(target.shape[0]), path, fps)
 
 
 def horizon_figure(res, path: Path) -> Path:

@@ -41,10 +41,8 @@ def episodes_animation(res: ControlResult, path: Path, steps: int = 48, fps: flo
     """The first episode of each condition moving along its path, one panel per condition, in at
     most ``steps`` GIF frames (Pillow through matplotlib's canvas)."""
     import numpy as np
-    from PIL import Image
 
-    from sonarset.report.plots import pyplot
-    from sonarset.store.atomic import atomic_write
+    from sonarset.report.plots import pyplot, save_animation
 
     plt = pyplot()
     shown = [(c, eps[0]) for c, eps in res.episodes.items() if eps]
@@ -59,19 +57,15 @@ def episodes_animation(res: ControlResult, path: Path, steps: int = 48, fps: flo
         ax.set_xticks([])
         ax.set_yticks([])
         markers.append(ax.plot([], [], "o", ms=6)[0])
-    pictures = []
-    for k in np.unique(np.linspace(0, longest - 1, min(steps, longest)).round().astype(int)):
+    def step(k: int) -> None:
         for marker, (_, ep) in zip(markers, shown):
             i = min(k, len(ep["pose"]) - 1)
             j = min(i, len(ep["burst"]) - 1)
             marker.set_data([ep["pose"][i][0]], [ep["pose"][i][1]])
             marker.set_color("tab:green" if ep["predicted"][j] else "tab:red" if ep["burst"][j] else "tab:blue")
-        fig.canvas.draw()
-        pictures.append(Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3]).convert(
-            "P", palette=Image.Palette.ADAPTIVE))
-    plt.close(fig)
-    return atomic_write(path, lambda p: pictures[0].save(p, format="GIF", save_all=True, append_images=pictures[1:],
-                                                         duration=int(1000 / fps), loop=0))
+
+    steps_shown = np.unique(np.linspace(0, longest - 1, min(steps, longest)).round().astype(int))
+    return save_animation(fig, step, steps_shown, path, fps)
 
 
 def control_metrics(res: ControlResult) -> dict:

@@ -96,3 +96,23 @@ def show_run(store, run_name: str, frame: int, out: str | os.PathLike, world=Non
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return os.fspath(out)
+
+
+def save_animation(fig, update, steps, path: str | os.PathLike, fps: float):
+    """A GIF of ``fig`` drawn after ``update(step)`` for each of ``steps``, one frame each
+    (Pillow through matplotlib's canvas), written atomically; the figure is closed."""
+    from PIL import Image
+
+    from sonarset.store.atomic import atomic_write
+
+    pictures = []
+    try:
+        for step in steps:
+            update(step)
+            fig.canvas.draw()
+            pictures.append(Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3]).convert(
+                "P", palette=Image.Palette.ADAPTIVE))
+    finally:
+        pyplot().close(fig)
+    return atomic_write(path, lambda p: pictures[0].save(p, format="GIF", save_all=True, append_images=pictures[1:],
+                                                         duration=int(1000 / fps), loop=0))
