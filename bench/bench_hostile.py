@@ -28,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from sonarset.testing import serve_directory  # noqa: E402
+from sonarset.testing import pool_workers, running, serve_directory  # noqa: E402
 
 LIMIT_S, LIMIT_MB = 30.0, 2048
 CLI = [sys.executable, "-m", "sonarset.cli"]
@@ -181,43 +181,18 @@ def signal_cases(work: Path) -> None:
         workers: set[int] = set()
         while len(workers) < 2 and time.perf_counter() - t0 < 60:
             time.sleep(0.1)
-            workers = {c for c in _children(proc.pid) if b"spawn_main" in _cmdline(c)}
+            workers = pool_workers(proc.pid)
         time.sleep(2)
         (os.killpg if sig == signal.SIGINT else os.kill)(proc.pid, sig)
         stderr = proc.communicate(timeout=60)[1]
         t1 = time.perf_counter()
-        while any(map(_alive, workers)) and time.perf_counter() - t1 < 20:
+        while any(map(running, workers)) and time.perf_counter() - t1 < 20:
             time.sleep(0.1)
-        left = sum(map(_alive, workers))
+        left = sum(map(running, workers))
         result = {"rc": proc.returncode, "s": time.perf_counter() - t1, "mb": 0,
                   "stderr": stderr + (f"\n{left} worker(s) still running" if left else "")}
         row(f"generate --workers 2, {how}", f"workers gone ({len(workers)} seen)", result,
             expect={signal.SIGINT: 130, signal.SIGTERM: 143, signal.SIGKILL: -9}[sig])
-
-
-def _children(pid: int) -> set[int]:
-    out = set()
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == pid:
-                out.add(int(stat.parent.name))
-        except (OSError, ValueError, IndexError):
-            pass
-    return out
-
-
-def _cmdline(pid: int) -> bytes:
-    try:
-        return Path(f"/proc/{pid}/cmdline").read_bytes()
-    except OSError:
-        return b""
-
-
-def _alive(pid: int) -> bool:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
 
 
 def concurrent_cases(work: Path, repeats: int) -> None:

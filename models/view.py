@@ -13,6 +13,7 @@ the file, so memory does not grow with the run. Needs the ``view`` extra (rerun-
 
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
 from typing import Callable
@@ -26,12 +27,16 @@ from sonarset.store.store import SonarStore
 FAN_PIXELS = 256  # the metric fan's width and height
 
 
-def _colour(images: np.ndarray) -> np.ndarray:
-    """(..., H, W) in [0, 1] -> uint8 RGB through viridis (the colour map of the static figures)."""
+@functools.cache
+def _viridis() -> np.ndarray:
     from matplotlib import colormaps
 
-    lut = (colormaps["viridis"](np.linspace(0, 1, 256))[:, :3] * 255).astype(np.uint8)
-    return lut[np.clip(np.nan_to_num(images) * 255, 0, 255).astype(np.uint8)]
+    return (colormaps["viridis"](np.linspace(0, 1, 256))[:, :3] * 255).astype(np.uint8)
+
+
+def _colour(images: np.ndarray) -> np.ndarray:
+    """(..., H, W) in [0, 1] -> uint8 RGB through viridis (the colour map of the static figures)."""
+    return _viridis()[np.clip(np.nan_to_num(images) * 255, 0, 255).astype(np.uint8)]
 
 
 def _as_picture(image: np.ndarray) -> np.ndarray:

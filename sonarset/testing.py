@@ -1,5 +1,5 @@
-"""Helpers for tests and benchmarks of remote stores: a read-only HTTP server on loopback, which
-can also misbehave the ways real servers do (``FAULTS``)."""
+"""Helpers for tests and benchmarks: a read-only HTTP server on loopback, which can also misbehave
+the ways real servers do (``FAULTS``), and a look at the process table (Linux ``/proc``)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import functools
 import http.server
 import threading
 import time
+from pathlib import Path
 from typing import Iterator
 
 
@@ -81,3 +82,35 @@ def serve_directory(directory: str, fault: str | None = None,
     finally:
         server.shutdown()
         server.server_close()
+
+
+def child_pids(pid: int) -> set[int]:
+    """The processes whose parent is ``pid``."""
+    out = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                out.add(int(stat.parent.name))
+        except (OSError, ValueError, IndexError):
+            pass
+    return out
+
+
+def pool_workers(pid: int) -> set[int]:
+    """The children of ``pid`` that multiprocessing spawned (its resource tracker is a child too)."""
+    found = set()
+    for child in child_pids(pid):
+        try:
+            if b"spawn_main" in Path(f"/proc/{child}/cmdline").read_bytes():
+                found.add(child)
+        except OSError:
+            pass
+    return found
+
+
+def running(pid: int) -> bool:
+    """Whether ``pid`` is alive (a zombie is not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False

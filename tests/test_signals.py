@@ -9,27 +9,9 @@ from pathlib import Path
 
 import pytest
 
+from sonarset.testing import pool_workers, running
+
 pytestmark = pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table in /proc")
-
-
-def children(pid: int) -> set[int]:
-    out = set()
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[1]) == pid:
-            out.add(int(stat.parent.name))
-    return out
-
-
-def alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
 
 
 def generating(tmp_path) -> tuple[subprocess.Popen, set[int]]:
@@ -41,8 +23,7 @@ def generating(tmp_path) -> tuple[subprocess.Popen, set[int]]:
     workers: set[int] = set()
     while len(workers) < 2 and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.1)
-        # the resource tracker is a child too; workers are the ones the pool started
-        workers = {c for c in children(proc.pid) if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()}
+        workers = pool_workers(proc.pid)
     assert len(workers) >= 2, "the pool never started"
     return proc, workers
 
@@ -64,9 +45,9 @@ def test_no_worker_outlives_a_signalled_generate(tmp_path, how, code, says):
         os.kill(proc.pid, sig)
     _, stderr = proc.communicate(timeout=30)
     deadline = time.monotonic() + 10
-    while any(map(alive, workers)) and time.monotonic() < deadline:
+    while any(map(running, workers)) and time.monotonic() < deadline:
         time.sleep(0.1)
-    assert not any(map(alive, workers)), f"{how}: workers still running"
+    assert not any(map(running, workers)), f"{how}: workers still running"
     assert proc.returncode == code, stderr
     assert "Traceback" not in stderr, stderr
     if says is not None:

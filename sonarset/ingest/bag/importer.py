@@ -27,7 +27,6 @@ from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.format.problems import pydantic_problems
 from sonarset.format.units import grid_to_si
 import sonarset.ingest.bag.align as align
-import sonarset.ingest.bag.messages as m
 from sonarset.ingest.bag.reader import BagStreams, read_streams
 from sonarset.ingest.images import _encode_images
 from sonarset.ingest.metadata import recording_meta
@@ -121,8 +120,8 @@ def _runs(streams: BagStreams, meta, base: str, offset_s: float, timeout_s: floa
                          for k in ("v", "omega")], axis=1).astype(np.float32)
     pose = None
     if streams.odometry is not None:
-        ot = streams.odometry.times
-        outside = (times < ot[0] - 0.5 * np.median(np.diff(times))) | (times > ot[-1] + 0.5 * np.median(np.diff(times)))
+        ot, half = streams.odometry.times, 0.5 * float(np.median(np.diff(times)))
+        outside = (times < ot[0] - half) | (times > ot[-1] + half)
         if outside[first:].any():
             k = int(np.flatnonzero(outside[first:])[0]) + first
             problems.append(f"topic {streams.odometry.topic!r}: odometry ({_span(ot)}) does not cover frame {k} "
@@ -193,7 +192,7 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
     one must have the same grid and frame rate. ``note`` receives what was done to fit the data
     (splits, dropped frames, resampling).
     """
-    from sonarset.ingest.bag.reader import open_reader
+    from sonarset.ingest.bag.reader import default_raw_topic
     from sonarset.ingest.raw import resolve_processing
 
     check_run_options(name, split)
@@ -201,14 +200,7 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
     have = target.existing
     bag = Path(bag)
     if raw is None and images is None:  # the kind of frames decides which sidecar applies
-        reader = open_reader(bag)
-        try:
-            topics = {t: i.msgtype for t, i in reader.topics.items()}
-        finally:
-            reader.close()
-        pings = [t for t, kind in topics.items() if kind in m.RAW_TYPES]
-        if len(pings) == 1 and not any(kind in m.IMAGE_TYPES for kind in topics.values()):
-            raw = pings[0]
+        raw = default_raw_topic(bag)
     sidecar_meta = sidecar = None
     if raw is not None:
         from sonarset.ingest.bag.raw import raw_sidecar

@@ -88,6 +88,18 @@ def choose_topic(reader, wanted: str | None, types: tuple[str, ...], what: str, 
     return None
 
 
+def default_raw_topic(bag: Path) -> str | None:
+    """The microphone signal topic a bag's frames come from when none is named: its one
+    MicrophoneArrayPing topic, if it has no image topic."""
+    reader = open_reader(bag)
+    try:
+        kinds = {t: i.msgtype for t, i in reader.topics.items()}
+    finally:
+        reader.close()
+    pings = [t for t, kind in kinds.items() if kind in m.RAW_TYPES]
+    return pings[0] if len(pings) == 1 and not any(k in m.IMAGE_TYPES for k in kinds.values()) else None
+
+
 def _listing(topics: dict) -> str:
     return ", ".join(f"{k} ({v})" for k, v in sorted(topics.items())) or "no topics"
 
@@ -100,8 +112,8 @@ def read_streams(bag: str | Path, *, images: str | None = None, commands: str | 
     ``stamps``: 'header' (the messages' own stamps; Twist has none and takes the bag's) or 'bag'
     (when the bag recorded each message). ``grid``: the grid of ``sensor_msgs/Image`` frames (a
     ProjectedSonarImage carries its own). ``raw``: a ``MicrophoneArrayPing`` topic to take the
-    frames from instead of images (the default when the bag has no image topic and one such
-    topic); its signals stay in the bag (``frames.values`` holds their shape) and ``grid`` is None.
+    frames from instead of images (``default_raw_topic``); its signals stay in the bag
+    (``frames.values`` holds their shape) and ``grid`` is None.
     """
     bag = Path(bag)
     where = str(bag)
@@ -111,8 +123,6 @@ def read_streams(bag: str | Path, *, images: str | None = None, commands: str | 
     problems: list[str] = []
     reader = open_reader(bag)
     try:
-        if raw is None and images is None and not any(i.msgtype in m.IMAGE_TYPES for i in reader.topics.values()):
-            raw = choose_topic(reader, None, m.RAW_TYPES, "microphone signal", "raw", [], required=False)
         if raw is not None and images is not None:
             problems.append("give an image topic or a microphone signal topic, not both")
         if raw is not None:
@@ -159,8 +169,6 @@ def _messages(reader, topic: str, problems: list[str], stamps: str):
                 return
             header = getattr(msg, "header", None)
             yield i, m.stamp_ns(header.stamp) if stamps == "header" and header is not None else int(t_ns), msg
-    except InputValidationError:
-        raise
     except Exception as exc:  # a bag cut short mid-chunk
         problems.append(f"topic {topic!r}: the bag ends inside a message or is damaged: {one_line(exc)}")
 
