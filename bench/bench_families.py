@@ -1,6 +1,7 @@
 """The generalisation table: EchoPT models against flow on the held-out test run of every world family.
 
     python bench/bench_families.py STORE [STORE ...] --models echopt:A,echopt:B [--samples 1000] [--out DIR]
+        [--families lab,orchard] [--device cuda]
 
 For each world family that has test runs in the store(s) (``source.world``), evaluates flow and
 every model on the same seeded windows of that family (``eval --worlds F --ceiling``) and prints,
@@ -21,6 +22,7 @@ from pathlib import Path
 
 from sonarset import open_store
 from sonarset.models.eval.report import write_report
+from sonarset.models.echopt.precision import resolve_device
 from sonarset.models.eval.evaluate import evaluate
 from sonarset.report.numbers import horizon_name
 
@@ -63,16 +65,20 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="families-out")
+    ap.add_argument("--families", default="", help="only these families (default: every family with test runs)")
+    ap.add_argument("--device", default="auto", help="device of the learned models (auto, cpu, cuda)")
     args = ap.parse_args()
+    only = {f.strip() for f in args.families.split(",") if f.strip()}
     specs = [m.strip() for m in args.models.split(",") if m.strip()]
     print(f"# bench_families  {platform.node()}  {os.cpu_count()} cores  python {platform.python_version()}")
     print("# per family and horizon: flow -> model (model - flow, Holm p) for CC | NRMSD | echo F1")
     table = {}
     for location in args.store:
         store = open_store(location, check=True)
-        for family in sorted(store.worlds("test")):
+        for family in sorted(f for f in store.worlds("test") if not only or f in only):
             t0 = time.perf_counter()
-            res = evaluate(store, ["flow", *specs], samples=args.samples, seed=args.seed, worlds=[family], ceiling=True)
+            res = evaluate(store, ["flow", *specs], samples=args.samples, seed=args.seed, worlds=[family], ceiling=True,
+                           device=resolve_device(args.device))
             write_report(res, Path(args.out) / family, figures=False)
             models = [m for m in res.predictors if m != "flow"]
             lines, doc = family_rows(res, models)

@@ -1,11 +1,11 @@
 """EchoPT training throughput (samples/s) per preset, on CPU and on a GPU when there is one.
 
-    python bench/bench_train.py [--presets small,paper] [--steps 5]
+    python bench/bench_train.py [--presets small,paper] [--steps 5] [--devices cpu,cuda]
 
 Times full optimizer steps (forward, backward, Adam) on batch 64 of the default 200 x 90 grid
 with data already in memory, in fp32 and in bf16 autocast (the precision ``--precision auto`` picks
-where the CPU has bf16 units), in interleaved rounds. On CUDA it also times bf16 autocast +
-torch.compile against plain fp32 in the same run.
+where the CPU has bf16 units), in interleaved rounds. On CUDA it times fp32, bf16 autocast and
+bf16 autocast + torch.compile in the same run, at each of ``--cuda-batches``.
 """
 
 from __future__ import annotations
@@ -62,26 +62,40 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--devices", default="cpu,cuda", help="cpu, cuda or both (cuda only where there is one)")
+    ap.add_argument("--cuda-batches", default="64,256")
     args = ap.parse_args()
+    devices = args.devices.split(",")
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "none"
     print(f"# bench_train  {platform.node()}  {os.cpu_count()} cores  torch {torch.__version__}  "
           f"{torch.get_num_threads()} threads  GPU: {gpu}")
     print(f"# CPU bf16 flags: {', '.join(cpu_bf16_flags()) or 'none'} (--precision auto -> {resolve_precision('auto', 'cpu')})")
     for preset in args.presets.split(","):
         n = EchoPT(make_config(preset)).n_params()
-        # interleaved rounds, median: a noisy machine slows both alike, so the ratio holds
-        fp32, bf16 = [], []
-        for _ in range(args.rounds):
-            fp32.append(rate(preset, "cpu", args.steps, args.batch))
-            bf16.append(rate(preset, "cpu", args.steps, args.batch, bf16=True))
-        f, b = statistics.median(fp32), statistics.median(bf16)
-        print(f"{preset:6s} ({n / 1e6:.2f} M params) batch {args.batch} cpu fp32: {f:8.1f} samples/s   "
-              f"bf16 autocast: {b:8.1f} samples/s ({b / f:.2f}x)")
-        if torch.cuda.is_available():
-            plain = rate(preset, "cuda", args.steps * 20, 256)
-            fast = rate(preset, "cuda", args.steps * 20, 256, bf16=True, compile_=True)
-            print(f"{preset:6s} cuda fp32: {plain:10.0f} samples/s   bf16+compile: {fast:10.0f} samples/s "
-                  f"({fast / plain:.2f}x)")
+        if "cpu" in devices:
+            # interleaved rounds, median: a noisy machine slows both alike, so the ratio holds
+            fp32, bf16 = [], []
+            for _ in range(args.rounds):
+                fp32.append(rate(preset, "cpu", args.steps, args.batch))
+                bf16.append(rate(preset, "cpu", args.steps, args.batch, bf16=True))
+            f, b = statistics.median(fp32), statistics.median(bf16)
+            print(f"{preset:6s} ({n / 1e6:.2f} M params) batch {args.batch} cpu fp32: {f:8.1f} samples/s   "
+                  f"bf16 autocast: {b:8.1f} samples/s ({b / f:.2f}x)", flush=True)
+        if "cuda" in devices and torch.cuda.is_available():
+            torch.backends.cuda.matmul.allow_tf32 = False  # fp32 means fp32 (the CPU's arithmetic)
+            torch.backends.cudnn.allow_tf32 = False
+            for batch in (int(b) for b in args.cuda_batches.split(",")):
+                steps = max(args.steps * 4, 4096 // batch)
+                plain = rate(preset, "cuda", steps, batch)
+                half = rate(preset, "cuda", steps, batch, bf16=True)
+                try:
+                    fast = rate(preset, "cuda", steps, batch, bf16=True, compile_=True)
+                except Exception as exc:  # a compiler failure is a finding to print, not the end of the bench
+                    print(f"# torch.compile failed: {type(exc).__name__}: {str(exc)[:200]}")
+                    fast = float("nan")
+                print(f"{preset:6s} ({n / 1e6:.2f} M params) batch {batch} cuda fp32: {plain:8.0f} samples/s   "
+                      f"bf16 autocast: {half:8.0f} ({half / plain:.2f}x)   bf16 + compile: {fast:8.0f} "
+                      f"({fast / plain:.2f}x)", flush=True)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,103 @@
+#!/usr/bin/env bash
+# One GPU session, end to end (issues 22 and 23): the paper preset's training throughput (fp32, bf16,
+# bf16 + compile), a five-family store generated on the machine's cores, the paper preset trained on
+# it in bf16, and the trained model scored beside the shipped small model and flow on every family's
+# held-out test run and on the demo's fresh lab run. Everything it measures comes back in $OUT as
+# split pieces of one tarball: cat $OUT/gpu-paper.tgz.part-* | tar xzf -
+#
+#   bash bench/gpu_paper.sh                       # on a GPU machine, from the repository root
+#   LOCAL=1 DEVICE=cpu WORLDS=lab:1,rooms:1 GEN_MINUTES=1 MAX_STEPS=4 BATCH=8 SAMPLES=20 \
+#     DEMO_MINUTES=1 BUDGET=400 OUT=/tmp/gpu-out bash bench/gpu_paper.sh   # a dry run of every stage here
+#
+# Where the image lacks zarr/pydantic, .whl/ holds their wheels and sonarset's own
+# (bash ../shared/tools/device-wheels.sh; pip wheel --no-deps -w .whl .). Every stage has a deadline
+# inside BUDGET seconds, so the tarball is written whatever a stage does.
+set -u
+T0=$(date +%s)
+BUDGET=${BUDGET:-540}
+OUT=${OUT:-/tmp/gpu-out}
+DEVICE=${DEVICE:-cuda}
+PRESET=${PRESET:-paper}
+WORLDS=${WORLDS:-lab:8,corridor:6,orchard:6,warehouse:6,rooms:6}
+GEN_MINUTES=${GEN_MINUTES:-10}
+SEED=${SEED:-2027}
+BATCH=${BATCH:-64}
+SAMPLES=${SAMPLES:-1000}
+DEMO_MINUTES=${DEMO_MINUTES:-25}
+N_VAL=${N_VAL:-512}
+EVAL_S=${EVAL_S:-170}  # reserved for the evaluations at the end
+REPO=$(pwd)
+W=/tmp/gpu-work
+R=$OUT/r
+rm -rf "$W" && mkdir -p "$W" "$R"
+log() { echo "[$(( $(date +%s) - T0 )) s] $*" | tee -a "$R/session.log"; }
+left() { echo $(( BUDGET - ($(date +%s) - T0) )); }
+
+pack() {
+  cp "$W"/paper/model.json "$W"/paper/metrics.jsonl "$R"/ 2>/dev/null
+  mkdir -p "$W/ship" && cp "$W"/paper/model.safetensors "$W/ship/" 2>/dev/null
+  tar czf - -C "$OUT" r -C "$W" ship | split -b 15m - "$OUT/gpu-paper.tgz.part-"
+  rm -rf "$R"
+  ls -la "$OUT"
+}
+trap pack EXIT
+
+if [ -z "${LOCAL:-}" ]; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl || exit 1
+  export PYTHONPATH=/tmp/site
+fi
+# not in the repository root: its sonarset/ lacks models/ and cli/, which the wheel installs inside it
+cd "$W"
+SS="python3 -m sonarset.cli"
+{ nvidia-smi; python3 -c "import torch, sonarset; print('torch', torch.__version__, 'sonarset', sonarset.__file__)"; \
+  lscpu | head -20; } > "$R/machine.txt" 2>&1
+log "machine: $(head -c 300 "$R/machine.txt" | tr '\n' ' ')"
+python3 -c "import zarr, numba, sonarset.sim, sonarset.models.echopt.train" > "$R/imports.txt" 2>&1 \
+  || { log "imports failed: $(tail -3 "$R/imports.txt")"; exit 1; }
+
+# 1. the store, on all but two cores, while the GPU is benchmarked
+workers=$(( $(nproc) > 4 ? $(nproc) - 2 : 2 ))
+( $SS generate "$W/multi.zarr" --world "$WORLDS" --minutes "$GEN_MINUTES" --test-runs 1 \
+    --seed "$SEED" --workers "$workers" > "$R/generate.log" 2>&1 ) &
+gen=$!
+if [ "$DEVICE" = cuda ]; then
+  timeout 150 python3 "$REPO/bench/bench_train.py" --presets "$PRESET" --devices cuda --cuda-batches "$BATCH" \
+    > "$R/bench_train.txt" 2>&1
+  log "bench_train: $(grep samples "$R/bench_train.txt" | tr '\n' ' ')"
+fi
+wait $gen
+log "generate: $(grep -E 'wrote|error' "$R/generate.log" | tr '\n' ' ')"
+grep -q wrote "$R/generate.log" || { log "no store: $(tail -5 "$R/generate.log")"; exit 1; }
+
+# 2. training: steps sized from the measured bf16 rate so that the cosine schedule ends in the time left
+#    (a k-step rollout costs ~k one-step passes; the curriculum averages k = 5.6), --max-minutes as a guard
+train_s=$(( $(left) - EVAL_S - 30 ))
+rate=$(grep -E "^$PRESET .*cuda" "$R/bench_train.txt" 2>/dev/null | sed -E 's/.*bf16 autocast: *([0-9]+).*/\1/' | head -1)
+rate=${rate:-1000}
+steps=${MAX_STEPS:-$(( rate * (train_s - 40) * 10 / (BATCH * 56 * 11 / 10) ))}
+[ "$steps" -lt 10 ] && steps=10
+curriculum="0:2,$(( steps * 3 / 10 )):5,$(( steps * 7 / 10 )):10"
+log "train: $train_s s, $steps steps at $rate samples/s measured, curriculum $curriculum"
+timeout "$train_s" $SS train "$W/multi.zarr" --preset "$PRESET" --prior flow --out "$W/paper" \
+  --batch-size "$BATCH" --lr 2e-4 --optimizer adamw --schedule cosine --curriculum "$curriculum" \
+  --loss cc=1,w1=100,energy=2 --context-noise 0.01 --val-horizon 10 --n-val "$N_VAL" \
+  --eval-every $(( steps / 12 > 1 ? steps / 12 : 1 )) --max-steps "$steps" --max-minutes "$(( (train_s - 45) / 60 ))" \
+  --test-samples 0 --seed 0 --device "$DEVICE" --precision auto > "$R/train.log" 2>&1
+log "train exit $?: $(tail -c 400 "$R/train.log" | tr '\n' ' ')"
+
+# 3. scores: flow, the shipped small model and the new one on every family's test run, and the demo
+if [ -f "$W/paper/model.safetensors" ]; then
+  ev=$(( $(left) - 25 ))
+  export OMP_NUM_THREADS=2 NUMBA_NUM_THREADS=2 MKL_NUM_THREADS=2
+  for fam in $(echo "$WORLDS" | tr ',' '\n' | cut -d: -f1); do
+    timeout "$ev" python3 "$REPO/bench/bench_families.py" "$W/multi.zarr" --families "$fam" \
+      --models echopt:pretrained,echopt:"$W/paper/model.safetensors" --samples "$SAMPLES" \
+      --out "$R/families-$fam" --device "$DEVICE" > "$R/families-$fam.txt" 2>&1 &
+  done
+  timeout "$ev" $SS demo --out "$W/demo" --model "$W/paper/model.safetensors" --minutes "$DEMO_MINUTES" \
+    --samples "$SAMPLES" --device "$DEVICE" > "$R/demo.txt" 2>&1 &
+  wait
+  cp "$W"/demo/report.md "$R/demo-report.md" 2>/dev/null; cp "$W"/demo/metrics.json "$R/demo-metrics.json" 2>/dev/null
+  log "scores done"
+fi
+log "end, $(left) s of the budget left"
