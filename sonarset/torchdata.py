@@ -7,13 +7,17 @@ The trainer (frames held on its device) and the DataLoader both batch through th
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 import torch
-from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler, SequentialSampler
+from torch.utils.data import BatchSampler, DataLoader, Dataset, IterableDataset, RandomSampler, SequentialSampler
+from torch.utils.data import get_worker_info
 
-from sonarset.windows import FrameBank, WindowBatcher, WindowIndex
+from sonarset.errors import SonarSetError
+from sonarset.stream import (DEFAULT_SHUFFLE_BUFFER, DEFAULT_SLAB_FRAMES, RunLayout, ShardPlan, Slab, WindowStream,
+                             canonical_order, consumed_per_shard, make_slabs, shard_sizes)
+from sonarset.windows import N_IN, FrameBank, WindowBatcher, WindowIndex
 
 
 @dataclass(frozen=True)
@@ -90,3 +94,166 @@ def make_loader(dataset: SonarWindowDataset, batch_size: int = 64, *, shuffle: b
     sampler = BatchSampler(base, batch_size=batch_size, drop_last=drop_last)
     # batch_size=None turns off automatic batching: each sampled *list* goes to __getitem__.
     return DataLoader(dataset, sampler=sampler, batch_size=None, num_workers=num_workers)
+
+
+class StreamingWindowDataset(IterableDataset):
+    """Windows streamed from a store (``sonarset.stream``), batched: for stores bigger than memory.
+
+    Each iteration is one epoch of one shard: the (DDP rank, DataLoader worker) it runs in picks
+    its shard, opens the store itself (so DataLoader workers must be started by spawn; a zarr
+    store opened before a fork is not safe to use after it), and yields dicts of tensors:
+    ``frames`` (B, n_in, R, A), ``commands`` (B, n_in + H, 2), ``targets`` (B, H, R, A) as ``dtype``,
+    ``starts`` (B,) the windows' global start frames, and ``shard`` and ``batch`` (its number in
+    the shard) for :class:`StreamingLoader`'s order. Shards are disjoint and together hold every
+    window once per epoch (with ``drop_last``: all but fewer than ``batch_size`` per shard).
+
+    ``state_dict()`` is the epoch and the batches of each shard handed out so far;
+    ``load_state_dict`` makes the next iteration continue there exactly (the skipped batches cost
+    no I/O). ``rank`` and ``world_size`` default to torch.distributed's when it is initialised.
+    """
+
+    def __init__(self, layout: RunLayout, starts: np.ndarray, *, n_in: int = N_IN, horizon: int = 1,
+                 batch_size: int = 64, seed: int = 0, shuffle_buffer: int = DEFAULT_SHUFFLE_BUFFER,
+                 slab_frames: int | None = None, drop_last: bool = False, rank: int | None = None,
+                 world_size: int | None = None, dtype: torch.dtype = torch.float32,
+                 storage_options: dict | None = None, cache_bytes: int = 0):
+        if batch_size < 1 or shuffle_buffer < 1:
+            raise SonarSetError("batch_size and shuffle_buffer must be >= 1")
+        self.layout, self.starts = layout, np.sort(np.asarray(starts, dtype=np.int64))
+        self.n_in, self.horizon, self.batch_size, self.seed = n_in, horizon, batch_size, seed
+        self.shuffle_buffer, self.drop_last, self.dtype = shuffle_buffer, drop_last, dtype
+        self.slab_frames, self.storage_options, self.cache_bytes = slab_frames, storage_options, cache_bytes
+        self.rank, self.world_size = rank, world_size
+        self.epoch = 0
+        self.consumed: dict[int, int] = {}  # shard -> batches handed out this epoch
+        self._slabs: list[Slab] | None = None
+
+    @classmethod
+    def from_store(cls, location: str, split: str | None = "train", worlds: Sequence[str] | None = None, *,
+                   n_in: int = N_IN, horizon: int = 1, **kwargs) -> "StreamingWindowDataset":
+        """Every window of ``split`` (of ``worlds``) of the store at ``location`` (a path or URL)."""
+        from sonarset.store.store import open_store
+
+        store = open_store(location, storage_options=kwargs.get("storage_options"), cache_bytes=0)
+        layout = RunLayout.of(store, split=split, worlds=worlds)
+        return cls(layout, layout.index(n_in, horizon).starts, n_in=n_in, horizon=horizon, **kwargs)
+
+    # -- where this process stands -------------------------------------------------------------
+    def _rank_world(self) -> tuple[int, int]:
+        if self.rank is not None:
+            return self.rank, self.world_size or 1
+        import torch.distributed as dist
+
+        if dist.is_available() and dist.is_initialized():
+            return dist.get_rank(), dist.get_world_size()
+        return 0, 1
+
+    def slabs(self) -> list[Slab]:
+        if self._slabs is None:
+            frames = self.slab_frames or DEFAULT_SLAB_FRAMES
+            self._slabs = make_slabs(self.layout, self.starts, self.n_in + self.horizon, frames)
+        return self._slabs
+
+    def shard_batches(self, workers: int) -> list[int]:
+        """Batches of each of this rank's shards per epoch, with ``workers`` DataLoader workers."""
+        rank, world = self._rank_world()
+        per = max(1, workers)
+        sizes = shard_sizes(len(self.starts), world * per)[rank * per:(rank + 1) * per]
+        B = self.batch_size
+        return [s // B if self.drop_last else -(-s // B) for s in sizes]
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch, self.consumed = int(epoch), {}
+
+    def state_dict(self) -> dict:
+        return {"epoch": self.epoch, "consumed": {str(k): v for k, v in self.consumed.items()}}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.epoch = int(state["epoch"])
+        self.consumed = {int(k): int(v) for k, v in state.get("consumed", {}).items()}
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_slabs": None}  # rebuilt in each worker: cheap, and smaller to send
+
+    def __iter__(self) -> Iterator[dict]:
+        from sonarset.store.store import open_store
+
+        info = get_worker_info()
+        workers, worker = (info.num_workers, info.id) if info is not None else (1, 0)
+        rank, world = self._rank_world()
+        shard, n_shards = rank * workers + worker, world * workers
+        store = open_store(self.layout.location, storage_options=self.storage_options, cache_bytes=self.cache_bytes)
+        plan = ShardPlan.make(self.slabs(), self.epoch, self.seed, shard, n_shards, self.shuffle_buffer)
+        skip = self.consumed.get(shard, 0)
+        stream = WindowStream(store, self.layout, self.slabs(), self.n_in, self.horizon, self.batch_size, plan,
+                              skip_batches=skip, drop_last=self.drop_last)
+        for number, b in enumerate(stream, start=skip):
+            self.consumed[shard] = number + 1  # this process's copy (the loader keeps the main one)
+            yield {"frames": _As(self.dtype)(b.frames), "commands": _As(self.dtype)(b.commands),
+                   "targets": _As(self.dtype)(b.targets), "starts": torch.from_numpy(b.starts),
+                   "shard": shard, "batch": number}
+
+
+class StreamingLoader:
+    """A DataLoader over a :class:`StreamingWindowDataset` that hands out one epoch per iteration
+    in a fixed order, and can be stopped and resumed exactly.
+
+    With ``num_workers`` > 0 the workers are started by spawn (each opens the store itself) and
+    read their shards in parallel; batches are handed out round robin over this rank's shards
+    (``sonarset.stream.canonical_order``), the order an in-order DataLoader gives, which a resumed
+    epoch keeps too. ``state_dict()`` / ``load_state_dict()`` are the dataset's: the epoch and each
+    shard's batches handed out. An epoch iterated to its end moves the dataset to the next one.
+    """
+
+    def __init__(self, dataset: StreamingWindowDataset, num_workers: int = 0, prefetch_factor: int = 2,
+                 max_batches: int | None = None):
+        self.dataset, self.num_workers, self.prefetch_factor = dataset, int(num_workers), prefetch_factor
+        self.max_batches = max_batches  # per epoch (DDP: every rank the same)
+
+    def _order(self) -> list[tuple[int, int]]:
+        counts = self.dataset.shard_batches(self.num_workers)
+        order = canonical_order(counts)
+        return order if self.max_batches is None else order[:self.max_batches]
+
+    def __len__(self) -> int:
+        """Batches left in this epoch."""
+        rank, _ = self.dataset._rank_world()
+        first = rank * max(1, self.num_workers)
+        return sum(1 for w, r in self._order() if r >= self.dataset.consumed.get(first + w, 0))
+
+    def state_dict(self) -> dict:
+        return self.dataset.state_dict()
+
+    def load_state_dict(self, state: dict) -> None:
+        self.dataset.load_state_dict(state)
+
+    def skip_to(self, epoch: int, taken: int) -> None:
+        """Position the loader at batch ``taken`` of ``epoch`` (its canonical order): what a
+        training step count says, without a saved loader state."""
+        rank, _ = self.dataset._rank_world()
+        first = rank * max(1, self.num_workers)
+        done = consumed_per_shard(self.dataset.shard_batches(self.num_workers), taken)
+        self.dataset.load_state_dict({"epoch": epoch, "consumed": {first + w: n for w, n in enumerate(done)}})
+
+    def __iter__(self) -> Iterator[dict]:
+        ds = self.dataset
+        rank, _ = ds._rank_world()
+        first = rank * max(1, self.num_workers)
+        todo = [(first + w, r) for w, r in self._order() if r >= ds.consumed.get(first + w, 0)]
+        if self.num_workers:
+            loader = DataLoader(ds, batch_size=None, num_workers=self.num_workers, multiprocessing_context="spawn",
+                                prefetch_factor=self.prefetch_factor)
+        else:
+            loader = DataLoader(ds, batch_size=None)
+        held: dict[tuple[int, int], dict] = {}
+        it = iter(loader)
+        try:
+            for key in todo:
+                while key not in held:
+                    b = next(it)
+                    held[(int(b["shard"]), int(b["batch"]))] = b
+                ds.consumed[key[0]] = key[1] + 1
+                yield held.pop(key)
+        finally:
+            del it  # stops the workers, also when the consumer leaves early
+        ds.set_epoch(ds.epoch + 1)

@@ -31,6 +31,22 @@ from sonarset.store.store import SonarStore
 N_IN = 3
 
 
+def select_runs(store: SonarStore, runs: Sequence[str] | None = None, split: str | None = None,
+                worlds: Sequence[str] | None = None) -> list[str]:
+    """The runs named, or every complete run of ``split`` (of the world families ``worlds`` if
+    given); none is an error naming what the store has."""
+    names = list(runs) if runs is not None else store.runs(split, worlds=worlds)
+    if not names:
+        what = f"split {split!r}" if split else "the store"
+        if worlds is not None:
+            have = sorted(store.worlds(split))
+            raise SonarSetError(f"{store.location}: no complete runs of world {', '.join(worlds)} in {what} "
+                                f"(worlds: {', '.join(have) or 'none recorded'})")
+        raise SonarSetError(f"{store.location}: no complete runs in {what} (splits: "
+                            f"{', '.join(sorted(store.splits())) or 'none'})")
+    return names
+
+
 @dataclass
 class FrameBank:
     """All frames and commands of some runs, concatenated (N frames in total)."""
@@ -55,15 +71,7 @@ class FrameBank:
     ) -> "FrameBank":
         """Load runs (by name, or every complete run of ``split``, of the world families ``worlds``
         if given) into memory, each chunk decoded once."""
-        names = list(runs) if runs is not None else store.runs(split, worlds=worlds)
-        if not names:
-            what = f"split {split!r}" if split else "the store"
-            if worlds is not None:
-                have = sorted(store.worlds(split))
-                raise SonarSetError(f"{store.location}: no complete runs of world {', '.join(worlds)} in {what} "
-                                    f"(worlds: {', '.join(have) or 'none recorded'})")
-            raise SonarSetError(f"{store.location}: no complete runs in {what} (splits: "
-                                f"{', '.join(sorted(store.splits())) or 'none'})")
+        names = select_runs(store, runs, split, worlds)
         run_objs = [store.run(n) for n in names]
         sizes = [r.n_frames for r in run_objs]
         offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
