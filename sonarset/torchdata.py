@@ -15,7 +15,7 @@ from torch.utils.data import BatchSampler, DataLoader, Dataset, IterableDataset,
 from torch.utils.data import get_worker_info
 
 from sonarset.errors import SonarSetError
-from sonarset.stream import (DEFAULT_SHUFFLE_BUFFER, DEFAULT_SLAB_FRAMES, RunLayout, ShardPlan, Slab, WindowStream,
+from sonarset.stream import (DEFAULT_SHUFFLE_BUFFER, DEFAULT_SLAB_FRAMES, HeldFrames, RunLayout, ShardPlan, Slab, WindowStream,
                              canonical_order, consumed_per_shard, make_slabs, shard_sizes)
 from sonarset.windows import N_IN, FrameBank, WindowBatcher, WindowIndex
 
@@ -29,6 +29,18 @@ class _RowsOn:
 
     def __call__(self, rows: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(rows, device=self.device)
+
+
+@dataclass(frozen=True)
+class _HeldRows:
+    """Global frame rows as positions among a bank's held frames (a tensor on ``device``)."""
+
+    rows: np.ndarray
+    device: torch.device | None
+
+    def __call__(self, rows: np.ndarray):
+        pos = np.searchsorted(self.rows, rows)
+        return pos if self.device is None else torch.as_tensor(pos, device=self.device)
 
 
 @dataclass(frozen=True)
@@ -50,6 +62,13 @@ def torch_batcher(bank: FrameBank, device: str | torch.device = "cpu",
     (faster than torch indexing) and the block becomes a tensor without a copy.
     """
     device = torch.device(device)
+    if isinstance(bank.images, HeldFrames):  # some frames only (sonarset.stream.window_bank)
+        held = bank.images
+        images, velocity = held.held, np.ascontiguousarray(bank.velocity[held.rows])
+        if device.type != "cpu":
+            images, velocity = torch.from_numpy(images).to(device), torch.from_numpy(velocity).to(device)
+        rows = _HeldRows(held.rows, None if device.type == "cpu" else device)
+        return WindowBatcher(images, velocity, to_rows=rows, images_as=_As(dtype), commands_as=_As(dtype))
     if device.type == "cpu":
         return WindowBatcher(bank.images, bank.velocity, images_as=_As(dtype), commands_as=_As(dtype))
     images = torch.from_numpy(bank.images).to(device)
@@ -124,6 +143,8 @@ class StreamingWindowDataset(IterableDataset):
         self.shuffle_buffer, self.drop_last, self.dtype = shuffle_buffer, drop_last, dtype
         self.slab_frames, self.storage_options, self.cache_bytes = slab_frames, storage_options, cache_bytes
         self.rank, self.world_size = rank, world_size
+        # fixed here, in the process that has joined the job: DataLoader workers have not
+        self.rank, self.world_size = self._rank_world()
         self.epoch = 0
         self.consumed: dict[int, int] = {}  # shard -> batches handed out this epoch
         self._slabs: list[Slab] | None = None

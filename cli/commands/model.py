@@ -52,6 +52,8 @@ def eval_(
                                       "independent noise: how much of a frame is predictable at all) and the "
                                       "observable ceiling (re-rendered from only the reflectors the window's context "
                                       "heard: how much the context could know)."),
+    stream: bool = typer.Option(False, "--stream", help="Read only the frames of the drawn windows, not every frame "
+                                                         "of the split: memory bounded by --samples, not the store."),
 ) -> None:
     """Evaluate predictors on the same windows: the paper's table, statistics and figures."""
     from sonarset.store.store import open_store
@@ -64,7 +66,8 @@ def eval_(
         progress = per_name_progress(bar)
         res = evaluate(s, specs, horizons=tuple(_int_list(horizons, "--horizons")), samples=samples,
                        split=split, seed=seed, device=device.value, precision=precision.value, progress=progress,
-                       ceiling=ceiling, worlds=[w.strip() for w in worlds.split(",") if w.strip()] or None)
+                       ceiling=ceiling, worlds=[w.strip() for w in worlds.split(",") if w.strip()] or None,
+                       stream=stream)
     write_report(res, out_dir, figures=figures)
     _print_notes(res.notes)
     out.print(results_table(res, with_paper=False))
@@ -154,6 +157,14 @@ def train(
                                                               "training run)."),
     n_in: int = typer.Option(TRAIN.n_in, "--n-in", min=0, help="Input frames per window (0: the preset's, the "
                                                                "paper's 3)."),
+    stream: bool = typer.Option(TRAIN.stream, "--stream",
+                                help="Stream windows from the store instead of loading all its frames: for stores "
+                                     "bigger than memory, or behind a URL (docs/scaling.md)."),
+    shuffle_buffer: int = typer.Option(TRAIN.shuffle_buffer, "--shuffle-buffer", min=1,
+                                       help="With --stream: windows mixed at once (memory: ~9 MB per 1000 on the "
+                                            "default grid)."),
+    workers: int = typer.Option(TRAIN.loader_workers, "--workers", min=0,
+                                help="With --stream: DataLoader worker processes reading the store (0: this one)."),
 ) -> None:
     """Train EchoPT; the best validation weights are kept as OUT/model.safetensors with a model card.
 
@@ -168,7 +179,8 @@ def train(
                       max_steps=max_steps, max_minutes=max_minutes, compile=compile_, test_samples=test_samples,
                       n_val=n_val, prior=value(prior) or "", loss=loss, curriculum=curriculum, pushforward=pushforward,
                       optimizer=optimizer.value, context_noise=context_noise, val_horizon=val_horizon, init=init,
-                      precision=precision.value, worlds=worlds, n_in=n_in)
+                      precision=precision.value, worlds=worlds, n_in=n_in, stream=stream,
+                      shuffle_buffer=shuffle_buffer, loader_workers=workers)
     main = int(os.environ.get("RANK", "0")) == 0  # under torchrun only rank 0 reports
     with _training_bar(main) as progress:
         res = run_training(s, out_dir, cfg, resume=resume, progress=progress)

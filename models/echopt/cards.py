@@ -106,7 +106,7 @@ def add_test_metrics(out_dir: str | os.PathLike, store: SonarStore, cfg: TrainCo
 
     path = Path(out_dir) / "model.safetensors"
     res = evaluate(store, [*BASELINES, f"echopt:{path}"], samples=cfg.test_samples, seed=seed, device=cfg.device,
-                   precision=cfg.precision)
+                   precision=cfg.precision, stream=cfg.stream)
     card_path = path.with_suffix(".json")
     card = json.loads(card_path.read_text())
     card["test"] = {"store": store.location, "split": "test", "windows": len(res.window_ids), "seed": seed,

@@ -38,7 +38,7 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 import torch
@@ -46,7 +46,8 @@ import torch
 from sonarset import __version__
 from sonarset.errors import SonarSetError
 from sonarset.store.store import SonarStore
-from sonarset.torchdata import torch_batcher
+from sonarset.stream import RunLayout, batches_per_rank, window_bank
+from sonarset.torchdata import StreamingLoader, StreamingWindowDataset, torch_batcher
 from sonarset.windows import FrameBank, WindowBatcher, WindowIndex
 
 from sonarset.models.echopt.checkpoint import load_checkpoint, save_checkpoint
@@ -145,8 +146,9 @@ class _Plan:
     eval_every: int
 
     @classmethod
-    def of(cls, cfg: TrainConfig, n_train: int, location: str) -> "_Plan":
-        steps_per_epoch = n_train // cfg.batch_size  # drop the last partial batch
+    def of(cls, cfg: TrainConfig, n_train: int, location: str, steps_per_epoch: int | None = None) -> "_Plan":
+        if steps_per_epoch is None:
+            steps_per_epoch = n_train // cfg.batch_size  # drop the last partial batch
         if steps_per_epoch == 0:
             raise SonarSetError(f"{location}: {n_train} training windows, fewer than one batch", parameter="batch_size")
         total_steps = cfg.epochs * steps_per_epoch
@@ -183,7 +185,7 @@ def _forward(model: EchoPT, cfg: TrainConfig, dist: Dist, device: str):
     return fwd
 
 
-def _card_base(store: SonarStore, cfg: TrainConfig, bank: FrameBank, n_train: int, n_val: int,
+def _card_base(store: SonarStore, cfg: TrainConfig, run_names: list[str], n_train: int, n_val: int,
                steps_per_epoch: int, precision: str) -> dict:
     """What every checkpoint's card says about the model's data and training."""
     return {
@@ -191,7 +193,7 @@ def _card_base(store: SonarStore, cfg: TrainConfig, bank: FrameBank, n_train: in
         # what the model knows: the images' processing and the robot (models/echopt/cards.py reads them)
         "processing": store.processing.model_dump(mode="json"),
         "rig": store.rig.model_dump(mode="json") if store.rig is not None else None,
-        "training": {"store": store.location, "runs": bank.run_names, "worlds": _run_worlds(store, bank.run_names),
+        "training": {"store": store.location, "runs": run_names, "worlds": _run_worlds(store, run_names),
                      "command": cfg.command,
                      "sonarset": __version__, "config": asdict(cfg), "windows_train": n_train,
                      "windows_val": n_val, "steps_per_epoch": steps_per_epoch, "precision": precision},
@@ -229,9 +231,7 @@ class _Run:
     fwd: Callable
     opt: torch.optim.Optimizer
     terms: dict[str, float]
-    batcher: WindowBatcher
-    train_idx: WindowIndex
-    val_idx: WindowIndex
+    data: "_MemoryWindows | _StreamedWindows"
     plan: _Plan
     val_horizon: int
     precision: str  # resolved: fp32 | bf16
@@ -239,20 +239,19 @@ class _Run:
     progress: Callable[[dict], None] | None
     t_start: float = field(default_factory=time.perf_counter)
 
-    def batch(self, step: int, which: np.ndarray, k: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Input frames, commands and ``k`` rollout targets of the training windows ``which``."""
-        b = self.batcher.gather(self.train_idx, which, k)
-        frames = b.frames
+    def batch(self, step: int, windows: Callable[[int], tuple], k: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Input frames, commands and ``k`` rollout targets of a batch of training windows."""
+        frames, commands, targets = windows(k)
         if self.cfg.context_noise:
             # drawn from (seed, step): a resumed run adds the same noise
             gen = torch.Generator().manual_seed(self.cfg.seed * 1_000_003 + step)
             noise = torch.randn(frames.shape, generator=gen) * self.cfg.context_noise
             frames = (frames + noise.to(frames.device)).clamp_(0, 1)
-        return frames, b.commands, b.targets
+        return frames, commands, targets
 
-    def optimizer_step(self, step: int, which: np.ndarray, k: int) -> torch.Tensor:
-        """One step on the windows ``which`` with a ``k``-step rollout; returns its loss."""
-        frames, cmds, targets = self.batch(step, which, k)
+    def optimizer_step(self, step: int, windows: Callable[[int], tuple], k: int) -> torch.Tensor:
+        """One step on a batch of windows with a ``k``-step rollout; returns its loss."""
+        frames, cmds, targets = self.batch(step, windows, k)
         for g in self.opt.param_groups:
             g["lr"] = self.cfg.lr_at(step, self.plan.total_steps)
         losses = rollout_losses(self.fwd, frames, cmds, targets, self.terms, self.cfg.pushforward, self.precision)
@@ -272,8 +271,8 @@ class _Run:
     def validate(self, step: int, k: int, tally: _Tally, history: list[dict], best: float) -> float:
         """Validate, append to ``history``, save (rank 0) and report; returns the best loss so far."""
         dist = self.dist
-        val = validation_loss(self.model, self.batcher, self.val_idx, self.val_horizon, dist=dist, terms=self.terms,
-                              precision=self.precision)
+        val = validation_loss(self.model, self.data.val_batcher, self.data.val_idx, self.val_horizon, dist=dist,
+                              terms=self.terms, precision=self.precision)
         run_loss, run_n = dist.all_sum(tally.loss, tally.n)
         rate = tally.samples / (time.perf_counter() - tally.t0)
         rec = {"step": step, "epoch": step / self.plan.steps_per_epoch, "train_loss": run_loss / max(run_n, 1),
@@ -308,45 +307,128 @@ def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progres
     precision = resolve_precision(cfg.precision, device)
     terms = parse_loss(cfg.loss)
     val_horizon = cfg.val_horizon or cfg.k_max
-    bank = FrameBank.from_store(store, split="train", worlds=cfg.world_list())
     # a window holds the model's input frames and the longest rollout's targets
-    index = WindowIndex.build(bank, model.cfg.n_in, max(cfg.k_max, val_horizon))
-    train_idx, val_idx = index.split(cfg.n_val, seed=cfg.seed)
+    horizon = max(cfg.k_max, val_horizon)
+    data = (_StreamedWindows if cfg.stream else _MemoryWindows).make(store, cfg, model.cfg.n_in, horizon, dist, device)
     if dist.main:
         out.mkdir(parents=True, exist_ok=True)
-    batcher = torch_batcher(bank, device)
-    plan = _Plan.of(cfg, len(train_idx), store.location)
+    plan = _Plan.of(cfg, data.n_train, store.location, data.steps_per_epoch)
     step, best, history = 0, float("inf"), []
     if resume and (out / STATE).is_file():
         step, best, history = _resumed(out, model, opt, cfg, dist)
-    run = _Run(cfg, out, dist, model, _forward(model, cfg, dist, device), opt, terms, batcher, train_idx, val_idx,
-               plan, val_horizon, precision,
-               _card_base(store, cfg, bank, len(train_idx), len(val_idx), plan.steps_per_epoch, precision), progress)
+    run = _Run(cfg, out, dist, model, _forward(model, cfg, dist, device), opt, terms, data, plan, val_horizon, precision,
+               _card_base(store, cfg, data.run_names, data.n_train, len(data.val_idx), plan.steps_per_epoch, precision),
+               progress)
     step, best = _steps(run, step, best, history)
     dist.barrier()  # rank 0's last checkpoint is on disk before any process returns
     return TrainResult(out, step, step / plan.steps_per_epoch, best, history)
 
 
+@dataclass
+class _MemoryWindows:
+    """Every frame of the training runs in memory (on the training device), each batch one gather:
+    every process draws the same global batch order from (seed, epoch) and takes its slice."""
+
+    run_names: list[str]
+    batcher: WindowBatcher
+    train_idx: WindowIndex
+    val_idx: WindowIndex
+    batch_size: int
+    seed: int
+    dist: Dist
+
+    @classmethod
+    def make(cls, store: SonarStore, cfg: TrainConfig, n_in: int, horizon: int, dist: Dist,
+             device: str) -> "_MemoryWindows":
+        bank = FrameBank.from_store(store, split="train", worlds=cfg.world_list())
+        train_idx, val_idx = WindowIndex.build(bank, n_in, horizon).split(cfg.n_val, seed=cfg.seed)
+        return cls(bank.run_names, torch_batcher(bank, device), train_idx, val_idx, cfg.batch_size, cfg.seed, dist)
+
+    @property
+    def n_train(self) -> int:
+        return len(self.train_idx)
+
+    steps_per_epoch = None  # whole batches of the training windows
+
+    @property
+    def val_batcher(self) -> WindowBatcher:
+        return self.batcher
+
+    def epoch(self, epoch: int, start: int, steps: int) -> Iterator[Callable[[int], tuple]]:
+        """Batches ``start .. steps-1`` of ``epoch``, each a function of the rollout length k."""
+        order = np.random.default_rng([self.seed, epoch]).permutation(len(self.train_idx))
+        local = self.batch_size // self.dist.world  # this process's slice of each global batch
+        for b in range(start, steps):
+            which = order[b * self.batch_size:(b + 1) * self.batch_size][self.dist.rank * local:(self.dist.rank + 1) * local]
+
+            def windows(k: int, which=which) -> tuple:
+                g = self.batcher.gather(self.train_idx, which, k)
+                return g.frames, g.commands, g.targets
+            yield windows
+
+
+@dataclass
+class _StreamedWindows:
+    """Training windows streamed from the store (``--stream``, sonarset.stream): each process reads
+    its own shards, slab by slab through a shuffle buffer, so memory is bounded by the buffer, not
+    the store. The validation windows (the same purged split as in memory) are read once."""
+
+    run_names: list[str]
+    loader: StreamingLoader
+    val_bank: FrameBank
+    val_batcher: WindowBatcher
+    val_idx: WindowIndex
+    n_train: int
+    steps_per_epoch: int
+    n_in: int
+    device: str
+
+    @classmethod
+    def make(cls, store: SonarStore, cfg: TrainConfig, n_in: int, horizon: int, dist: Dist,
+             device: str) -> "_StreamedWindows":
+        layout = RunLayout.of(store, split="train", worlds=cfg.world_list())
+        train_idx, val_idx = layout.index(n_in, horizon).split(cfg.n_val, seed=cfg.seed)
+        val_bank = window_bank(store, layout, val_idx)
+        local = cfg.batch_size // dist.world
+        ds = StreamingWindowDataset(layout, train_idx.starts, n_in=n_in, horizon=horizon, batch_size=local,
+                                    seed=cfg.seed, shuffle_buffer=cfg.shuffle_buffer, drop_last=True, rank=dist.rank,
+                                    world_size=dist.world, storage_options=getattr(store, "storage_options", None))
+        steps = batches_per_rank(len(train_idx), dist.world, cfg.loader_workers, local)
+        if steps == 0:
+            raise SonarSetError(f"{store.location}: {len(train_idx)} training windows, fewer than one batch per "
+                                f"process and loader worker", parameter="batch_size")
+        loader = StreamingLoader(ds, cfg.loader_workers, max_batches=steps)
+        return cls(layout.run_names, loader, val_bank, torch_batcher(val_bank, device), val_idx, len(train_idx), steps,
+                   n_in, device)
+
+    def epoch(self, epoch: int, start: int, steps: int) -> Iterator[Callable[[int], tuple]]:
+        self.loader.skip_to(epoch, start)
+        for b in self.loader:
+            def windows(k: int, b=b) -> tuple:
+                to = self.device
+                return (b["frames"].to(to), b["commands"][:, :self.n_in + k].to(to), b["targets"][:, :k].to(to))
+            yield windows
+
+
 def _steps(run: _Run, step: int, best: float, history: list[dict]) -> tuple[int, float]:
     """Train from ``step`` to the plan's end or ``max_minutes``; returns (step reached, best loss).
 
-    Each epoch's window order is drawn from (seed, epoch), and each process takes its slice of
-    every global batch: a resumed run replays the steps an uninterrupted one would have taken.
+    Each epoch's window order is drawn from (seed, epoch) (in memory: each process takes its slice
+    of every global batch; streamed: each reads its own shards, positioned by the step count), so a
+    resumed run replays the steps an uninterrupted one would have taken.
     """
     cfg, plan, dist = run.cfg, run.plan, run.dist
-    local = cfg.batch_size // dist.world  # this process's slice of each global batch
+    local = cfg.batch_size // dist.world  # this process's share of each batch
     run.model.train()
     tally = _Tally()
     while step < plan.total_steps:
         epoch, pos = divmod(step, plan.steps_per_epoch)
-        order = np.random.default_rng([cfg.seed, epoch]).permutation(len(run.train_idx))
-        for b in range(pos, plan.steps_per_epoch):
-            which = order[b * cfg.batch_size:(b + 1) * cfg.batch_size][dist.rank * local:(dist.rank + 1) * local]
+        for windows in run.data.epoch(epoch, pos, plan.steps_per_epoch):
             k = cfg.k_at(step)
-            loss = run.optimizer_step(step, which, k)
+            loss = run.optimizer_step(step, windows, k)
             step += 1
-            tally.loss += loss.item() * len(which)
-            tally.n += len(which)
+            tally.loss += loss.item() * local
+            tally.n += local
             tally.samples += cfg.batch_size
             out_of_time = run.out_of_time()
             if step % plan.eval_every == 0 or step == plan.total_steps or out_of_time:

@@ -11,6 +11,7 @@ import sys
 from dataclasses import dataclass, field
 
 from sonarset.errors import SonarSetError
+from sonarset.stream import DEFAULT_SHUFFLE_BUFFER
 
 from sonarset.models.echopt.config import PRIORS
 
@@ -49,6 +50,11 @@ class TrainConfig:
     init: str = ""  # fine-tune: start from this checkpoint's weights (same preset, prior, grid, images)
     worlds: str = ""  # comma-separated world families to train on ("" = every training run)
     n_in: int = 0  # input frames per window (0 = the preset's: the paper's 3)
+    # stream windows from the store instead of loading it (sonarset.stream): memory bounded by the
+    # shuffle buffer (windows mixed at once) and the DataLoader workers' read-ahead, not the store
+    stream: bool = False
+    shuffle_buffer: int = DEFAULT_SHUFFLE_BUFFER
+    loader_workers: int = 0  # DataLoader worker processes reading the stream (0: in this process)
     command: str = field(default_factory=lambda: " ".join(shlex.quote(a) for a in sys.argv))
 
     def stages(self) -> list[tuple[int, int]]:
@@ -69,6 +75,9 @@ class TrainConfig:
     def check(self) -> None:
         """SonarSetError naming the first setting no run can have (the loss terms: losses.parse_loss)."""
         self.stages()
+        if self.shuffle_buffer < 1 or self.loader_workers < 0:
+            raise SonarSetError(f"shuffle_buffer must be >= 1 and loader_workers >= 0, got {self.shuffle_buffer} "
+                                f"and {self.loader_workers}", parameter="shuffle_buffer")
         for name, allowed in (("prior", PRIORS), ("optimizer", OPTIMIZERS), ("schedule", SCHEDULES)):
             value = getattr(self, name)
             if (value or name != "prior") and value not in allowed:
@@ -100,4 +109,4 @@ class TrainConfig:
 #: Settings that must not change when a run is resumed.
 RESUME_KEYS = ("preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps", "prior", "loss",
                "curriculum", "pushforward", "context_noise", "val_horizon", "optimizer", "weight_decay", "init",
-               "worlds", "n_in")
+               "worlds", "n_in", "stream", "shuffle_buffer", "loader_workers")

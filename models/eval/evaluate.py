@@ -20,6 +20,7 @@ from sonarset.format.attrs import RobotRig
 from sonarset.scoring.echoes import EchoMatching
 from sonarset.scoring.stats import Comparison, compare, holm
 from sonarset.store.store import SonarStore
+from sonarset.stream import RunLayout, window_bank
 from sonarset.windows import N_IN, FrameBank, WindowBatcher, WindowIndex
 
 from sonarset.models.baselines import Predictor
@@ -28,7 +29,7 @@ from sonarset.models.eval.result import METRICS, EvalResult, undefined_notes
 from sonarset.models.eval.scores import Scores, score_ceilings
 
 
-def baseline_rig(store: SonarStore, bank: FrameBank) -> tuple[RobotRig, str | None]:
+def baseline_rig(store: SonarStore, bank: FrameBank | RunLayout) -> tuple[RobotRig, str | None]:
     """The robot the baselines turn commands into image motion with, and a note when it is assumed.
 
     Its frame interval is the median spacing of the evaluated runs' time stamps, which the spec
@@ -68,6 +69,7 @@ def evaluate(
     ceiling: bool = False,
     worlds: list[str] | None = None,
     echo_matching: EchoMatching | None = None,
+    stream: bool = False,
 ) -> EvalResult:
     """Evaluate every model on the same ``samples`` windows of ``split``, for every horizon.
 
@@ -85,17 +87,26 @@ def evaluate(
 
     Every method is also scored on the echoes it draws (``echo_matching``, default
     ``EchoMatching()``): detection precision, recall and F1, and the position error of matched echoes.
+
+    With ``stream``, only the frames of the drawn windows are read (``sonarset.stream.window_bank``)
+    instead of every frame of the split: the same windows and numbers, in memory bounded by
+    ``samples``, not by the store.
     """
     horizons = tuple(sorted(set(int(h) for h in horizons)))
     if not horizons or horizons[0] < 1:
         raise SonarSetError("horizons must be positive integers", parameter="horizons")
     echo_matching = echo_matching or EchoMatching()
-    bank = FrameBank.from_store(store, split=split, image_dtype=np.float32, worlds=worlds)
+    # images as float32 (the metrics' precision): every frame of the split, or (stream) only the
+    # frames of the windows drawn below
+    bank = (RunLayout.of(store, split=split, worlds=worlds) if stream
+            else FrameBank.from_store(store, split=split, image_dtype=np.float32, worlds=worlds))
     rig, note = baseline_rig(store, bank)
     notes = [note] if note else []
     preds, model_notes = _predictors(store, model_specs, rig, device, precision, predictors)
     notes += model_notes
     index = _windows(store, bank, split, window_frames(preds), horizons[-1], samples, seed)
+    if stream:
+        bank = window_bank(store, bank, index, np.float32)
     ids = [(bank.run_names[j], k) for j, k in (index.locate(i) for i in range(len(index)))]
     scores = Scores.of(preds, len(index), horizons, store.grid, echo_matching)
     skipped: dict[str, str] = {}
@@ -163,7 +174,7 @@ def window_frames(preds: dict[str, Predictor]) -> int:
     return counts.pop()
 
 
-def _windows(store: SonarStore, bank: FrameBank, split: str, n_in: int, horizon: int, samples: int,
+def _windows(store: SonarStore, bank: FrameBank | RunLayout, split: str, n_in: int, horizon: int, samples: int,
              seed: int) -> WindowIndex:
     """``samples`` windows (seeded) among those with room for ``horizon`` targets."""
     index = WindowIndex.build(bank, n_in, horizon)
