@@ -375,7 +375,6 @@ class _StreamedWindows:
 
     run_names: list[str]
     loader: StreamingLoader
-    val_bank: FrameBank
     val_batcher: WindowBatcher
     val_idx: WindowIndex
     n_train: int
@@ -398,8 +397,8 @@ class _StreamedWindows:
             raise SonarSetError(f"{store.location}: {len(train_idx)} training windows, fewer than one batch per "
                                 f"process and loader worker", parameter="batch_size")
         loader = StreamingLoader(ds, cfg.loader_workers, max_batches=steps)
-        return cls(layout.run_names, loader, val_bank, torch_batcher(val_bank, device), val_idx, len(train_idx), steps,
-                   n_in, device)
+        return cls(layout.run_names, loader, torch_batcher(val_bank, device), val_idx, len(train_idx), steps, n_in,
+                   device)
 
     def epoch(self, epoch: int, start: int, steps: int) -> Iterator[Callable[[int], tuple]]:
         self.loader.skip_to(epoch, start)
