@@ -1,4 +1,4 @@
-"""Windows streamed from a store, for stores bigger than memory (``train --stream``, ``eval --stream``).
+"""Windows streamed from a store, for stores bigger than memory (training and evaluation with ``stream``).
 
 The in-memory path (:class:`~sonarset.windows.FrameBank`) decodes every frame of a split first. Here
 only the metadata is read up front (:class:`RunLayout`: each run's length, numbered as a FrameBank

@@ -38,17 +38,13 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable
 
-import numpy as np
 import torch
 
 from sonarset import __version__
 from sonarset.errors import SonarSetError
 from sonarset.store.store import SonarStore
-from sonarset.stream import RunLayout, batches_per_rank, window_bank
-from sonarset.torchdata import StreamingLoader, StreamingWindowDataset, torch_batcher
-from sonarset.windows import FrameBank, WindowBatcher, WindowIndex
 
 from sonarset.models.echopt.checkpoint import load_checkpoint, save_checkpoint
 from sonarset.models.echopt.config import grid_and_rig, make_config
@@ -57,6 +53,7 @@ from sonarset.models.echopt.losses import parse_loss, rollout_losses, validation
 from sonarset.models.echopt.model import EchoPT
 from sonarset.models.echopt.precision import resolve_device, resolve_precision
 from sonarset.models.echopt.train_config import RESUME_KEYS, TrainConfig
+from sonarset.models.echopt.train_data import MemoryWindows, StreamedWindows
 from sonarset.models.echopt.train_state import STATE, load_state, save_state, write_metrics
 
 #: Called with a phase name after each write of a checkpoint (tests kill training there).
@@ -231,7 +228,7 @@ class _Run:
     fwd: Callable
     opt: torch.optim.Optimizer
     terms: dict[str, float]
-    data: "_MemoryWindows | _StreamedWindows"
+    data: MemoryWindows | StreamedWindows
     plan: _Plan
     val_horizon: int
     precision: str  # resolved: fp32 | bf16
@@ -309,7 +306,7 @@ def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progres
     val_horizon = cfg.val_horizon or cfg.k_max
     # a window holds the model's input frames and the longest rollout's targets
     horizon = max(cfg.k_max, val_horizon)
-    data = (_StreamedWindows if cfg.stream else _MemoryWindows).make(store, cfg, model.cfg.n_in, horizon, dist, device)
+    data = (StreamedWindows if cfg.stream else MemoryWindows).make(store, cfg, model.cfg.n_in, horizon, dist, device)
     if dist.main:
         out.mkdir(parents=True, exist_ok=True)
     plan = _Plan.of(cfg, data.n_train, store.location, data.steps_per_epoch)
@@ -322,91 +319,6 @@ def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progres
     step, best = _steps(run, step, best, history)
     dist.barrier()  # rank 0's last checkpoint is on disk before any process returns
     return TrainResult(out, step, step / plan.steps_per_epoch, best, history)
-
-
-@dataclass
-class _MemoryWindows:
-    """Every frame of the training runs in memory (on the training device), each batch one gather:
-    every process draws the same global batch order from (seed, epoch) and takes its slice."""
-
-    run_names: list[str]
-    batcher: WindowBatcher
-    train_idx: WindowIndex
-    val_idx: WindowIndex
-    batch_size: int
-    seed: int
-    dist: Dist
-
-    @classmethod
-    def make(cls, store: SonarStore, cfg: TrainConfig, n_in: int, horizon: int, dist: Dist,
-             device: str) -> "_MemoryWindows":
-        bank = FrameBank.from_store(store, split="train", worlds=cfg.world_list())
-        train_idx, val_idx = WindowIndex.build(bank, n_in, horizon).split(cfg.n_val, seed=cfg.seed)
-        return cls(bank.run_names, torch_batcher(bank, device), train_idx, val_idx, cfg.batch_size, cfg.seed, dist)
-
-    @property
-    def n_train(self) -> int:
-        return len(self.train_idx)
-
-    steps_per_epoch = None  # whole batches of the training windows
-
-    @property
-    def val_batcher(self) -> WindowBatcher:
-        return self.batcher
-
-    def epoch(self, epoch: int, start: int, steps: int) -> Iterator[Callable[[int], tuple]]:
-        """Batches ``start .. steps-1`` of ``epoch``, each a function of the rollout length k."""
-        order = np.random.default_rng([self.seed, epoch]).permutation(len(self.train_idx))
-        local = self.batch_size // self.dist.world  # this process's slice of each global batch
-        for b in range(start, steps):
-            which = order[b * self.batch_size:(b + 1) * self.batch_size][self.dist.rank * local:(self.dist.rank + 1) * local]
-
-            def windows(k: int, which=which) -> tuple:
-                g = self.batcher.gather(self.train_idx, which, k)
-                return g.frames, g.commands, g.targets
-            yield windows
-
-
-@dataclass
-class _StreamedWindows:
-    """Training windows streamed from the store (``--stream``, sonarset.stream): each process reads
-    its own shards, slab by slab through a shuffle buffer, so memory is bounded by the buffer, not
-    the store. The validation windows (the same purged split as in memory) are read once."""
-
-    run_names: list[str]
-    loader: StreamingLoader
-    val_batcher: WindowBatcher
-    val_idx: WindowIndex
-    n_train: int
-    steps_per_epoch: int
-    n_in: int
-    device: str
-
-    @classmethod
-    def make(cls, store: SonarStore, cfg: TrainConfig, n_in: int, horizon: int, dist: Dist,
-             device: str) -> "_StreamedWindows":
-        layout = RunLayout.of(store, split="train", worlds=cfg.world_list())
-        train_idx, val_idx = layout.index(n_in, horizon).split(cfg.n_val, seed=cfg.seed)
-        val_bank = window_bank(store, layout, val_idx)
-        local = cfg.batch_size // dist.world
-        ds = StreamingWindowDataset(layout, train_idx.starts, n_in=n_in, horizon=horizon, batch_size=local,
-                                    seed=cfg.seed, shuffle_buffer=cfg.shuffle_buffer, drop_last=True, rank=dist.rank,
-                                    world_size=dist.world, storage_options=getattr(store, "storage_options", None))
-        steps = batches_per_rank(len(train_idx), dist.world, cfg.loader_workers, local)
-        if steps == 0:
-            raise SonarSetError(f"{store.location}: {len(train_idx)} training windows, fewer than one batch per "
-                                f"process and loader worker", parameter="batch_size")
-        loader = StreamingLoader(ds, cfg.loader_workers, max_batches=steps)
-        return cls(layout.run_names, loader, torch_batcher(val_bank, device), val_idx, len(train_idx), steps, n_in,
-                   device)
-
-    def epoch(self, epoch: int, start: int, steps: int) -> Iterator[Callable[[int], tuple]]:
-        self.loader.skip_to(epoch, start)
-        for b in self.loader:
-            def windows(k: int, b=b) -> tuple:
-                to = self.device
-                return (b["frames"].to(to), b["commands"][:, :self.n_in + k].to(to), b["targets"][:, :k].to(to))
-            yield windows
 
 
 def _steps(run: _Run, step: int, best: float, history: list[dict]) -> tuple[int, float]:

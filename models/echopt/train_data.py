@@ -1,0 +1,106 @@
+"""Where training's windows come from: every frame in memory (``MemoryWindows``), or streamed from
+the store (``StreamedWindows``, ``TrainConfig.stream``). Both give the trainer the same things: the
+training windows batch by batch (each a function of the rollout length k), the validation windows
+and their batcher, and the epoch's length in steps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Iterator
+
+import numpy as np
+
+from sonarset.errors import SonarSetError
+from sonarset.store.store import SonarStore
+from sonarset.stream import RunLayout, batches_per_rank, window_bank
+from sonarset.torchdata import StreamingLoader, StreamingWindowDataset, torch_batcher
+from sonarset.windows import FrameBank, WindowBatcher, WindowIndex
+
+from sonarset.models.echopt.distributed import Dist
+from sonarset.models.echopt.train_config import TrainConfig
+
+
+@dataclass
+class MemoryWindows:
+    """Every frame of the training runs in memory (on the training device), each batch one gather:
+    every process draws the same global batch order from (seed, epoch) and takes its slice."""
+
+    run_names: list[str]
+    batcher: WindowBatcher
+    train_idx: WindowIndex
+    val_idx: WindowIndex
+    batch_size: int
+    seed: int
+    dist: Dist
+
+    @classmethod
+    def make(cls, store: SonarStore, cfg: TrainConfig, n_in: int, horizon: int, dist: Dist,
+             device: str) -> "MemoryWindows":
+        bank = FrameBank.from_store(store, split="train", worlds=cfg.world_list())
+        train_idx, val_idx = WindowIndex.build(bank, n_in, horizon).split(cfg.n_val, seed=cfg.seed)
+        return cls(bank.run_names, torch_batcher(bank, device), train_idx, val_idx, cfg.batch_size, cfg.seed, dist)
+
+    @property
+    def n_train(self) -> int:
+        return len(self.train_idx)
+
+    steps_per_epoch = None  # whole batches of the training windows
+
+    @property
+    def val_batcher(self) -> WindowBatcher:
+        return self.batcher
+
+    def epoch(self, epoch: int, start: int, steps: int) -> Iterator[Callable[[int], tuple]]:
+        """Batches ``start .. steps-1`` of ``epoch``, each a function of the rollout length k."""
+        order = np.random.default_rng([self.seed, epoch]).permutation(len(self.train_idx))
+        local = self.batch_size // self.dist.world  # this process's slice of each global batch
+        for b in range(start, steps):
+            which = order[b * self.batch_size:(b + 1) * self.batch_size][self.dist.rank * local:(self.dist.rank + 1) * local]
+
+            def windows(k: int, which=which) -> tuple:
+                g = self.batcher.gather(self.train_idx, which, k)
+                return g.frames, g.commands, g.targets
+            yield windows
+
+
+@dataclass
+class StreamedWindows:
+    """Training windows streamed from the store (``TrainConfig.stream``, sonarset.stream): each process reads
+    its own shards, slab by slab through a shuffle buffer, so memory is bounded by the buffer, not
+    the store. The validation windows (the same purged split as in memory) are read once."""
+
+    run_names: list[str]
+    loader: StreamingLoader
+    val_batcher: WindowBatcher
+    val_idx: WindowIndex
+    n_train: int
+    steps_per_epoch: int
+    n_in: int
+    device: str
+
+    @classmethod
+    def make(cls, store: SonarStore, cfg: TrainConfig, n_in: int, horizon: int, dist: Dist,
+             device: str) -> "StreamedWindows":
+        layout = RunLayout.of(store, split="train", worlds=cfg.world_list())
+        train_idx, val_idx = layout.index(n_in, horizon).split(cfg.n_val, seed=cfg.seed)
+        val_bank = window_bank(store, layout, val_idx)
+        local = cfg.batch_size // dist.world
+        ds = StreamingWindowDataset(layout, train_idx.starts, n_in=n_in, horizon=horizon, batch_size=local,
+                                    seed=cfg.seed, shuffle_buffer=cfg.shuffle_buffer, drop_last=True, rank=dist.rank,
+                                    world_size=dist.world, storage_options=getattr(store, "storage_options", None))
+        steps = batches_per_rank(len(train_idx), dist.world, cfg.loader_workers, local)
+        if steps == 0:
+            raise SonarSetError(f"{store.location}: {len(train_idx)} training windows, fewer than one batch per "
+                                f"process and loader worker", parameter="batch_size")
+        loader = StreamingLoader(ds, cfg.loader_workers, max_batches=steps)
+        return cls(layout.run_names, loader, torch_batcher(val_bank, device), val_idx, len(train_idx), steps, n_in,
+                   device)
+
+    def epoch(self, epoch: int, start: int, steps: int) -> Iterator[Callable[[int], tuple]]:
+        self.loader.skip_to(epoch, start)
+        for b in self.loader:
+            def windows(k: int, b=b) -> tuple:
+                to = self.device
+                return (b["frames"].to(to), b["commands"][:, :self.n_in + k].to(to), b["targets"][:, :k].to(to))
+            yield windows
