@@ -78,14 +78,14 @@ def run_child(args: list[str]) -> tuple[dict | None, float]:
     return (json.loads(line[-1]) if line else None), usage.ru_maxrss / 1024
 
 
-def training(store: str, steps: int, stream: bool, workers: int) -> tuple[float, float, float]:
+def training(store: str, steps: int, stream: bool, workers: int, buffer: int = 0) -> tuple[float, float, float]:
     """(samples/s of the steps, wall s, peak RSS MB) of ``sonarset train`` on ``store``."""
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [sys.executable, "-m", "sonarset.cli", "train", store, "--preset", "small", "--out", f"{tmp}/run",
                "--max-steps", str(steps), "--eval-every", str(steps), "--n-val", "256", "--batch-size", str(BATCH),
                "--test-samples", "0", "--device", "cpu"]
         if stream:
-            cmd += ["--stream", "--workers", str(workers)]
+            cmd += ["--stream", "--workers", str(workers)] + (["--shuffle-buffer", str(buffer)] if buffer else [])
         t0 = time.perf_counter()
         _, rss = run_child(cmd)
         wall = time.perf_counter() - t0
@@ -100,6 +100,7 @@ def main() -> None:
     ap.add_argument("--train-steps", type=int, default=40)
     ap.add_argument("--http", action="store_true", help="also read the store over HTTP on loopback")
     ap.add_argument("--skip-training", action="store_true")
+    ap.add_argument("--buffers", default="", help="also train with these --shuffle-buffer sizes, e.g. 1024,8192")
     ap.add_argument("--child", nargs=3, metavar=("MODE", "WORKERS", "LOCATION"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -147,8 +148,10 @@ def main() -> None:
     print(f"\n| training (small, batch {BATCH}, {args.train_steps} steps) | samples/s | ratio | wall | peak RSS, largest process |")
     print("|---|---:|---:|---:|---:|")
     base_rate = None
-    for label, stream, workers in (("in memory", False, 0), ("--stream", True, 0), ("--stream --workers 2", True, 2)):
-        rate, wall, rss = training(args.store, args.train_steps, stream, workers)
+    rows = [("in memory", False, 0, 0), ("--stream", True, 0, 0), ("--stream --workers 2", True, 2, 0)]
+    rows += [(f"--stream --shuffle-buffer {b}", True, 0, int(b)) for b in args.buffers.split(",") if b]
+    for label, stream, workers, buffer in rows:
+        rate, wall, rss = training(args.store, args.train_steps, stream, workers, buffer)
         base_rate = base_rate or rate
         print(f"| {label} | {rate:.1f} | {rate / base_rate:.2f}x | {wall:.0f} s | {rss:.0f} MB |", flush=True)
 

@@ -161,7 +161,7 @@ def train(
                                 help="Stream windows from the store instead of loading all its frames: for stores "
                                      "bigger than memory, or behind a URL (docs/scaling.md)."),
     shuffle_buffer: int = typer.Option(TRAIN.shuffle_buffer, "--shuffle-buffer", min=1,
-                                       help="With --stream: windows mixed at once (memory: ~9 MB per 1000 on the "
+                                       help="With --stream: windows mixed at once (memory: ~36 MB per 1000 on the "
                                             "default grid)."),
     workers: int = typer.Option(TRAIN.loader_workers, "--workers", min=0,
                                 help="With --stream: DataLoader worker processes reading the store (0: this one)."),

@@ -1,9 +1,11 @@
 """Training EchoPT on a SonarSet store (``sonarset train``).
 
 Paper defaults: Adam, lr 5e-5, batch 64, L2 1e-4, 1600 random validation windows, best validation
-loss kept. All frames of the training runs are held in memory (on the GPU when there is one), and
-each batch is one gather from them (sonarset.torchdata.torch_batcher), so the loader never starves
-the model.
+loss kept. By default all frames of the training runs are held in memory (on the GPU when there is
+one), and each batch is one gather from them (sonarset.torchdata.torch_batcher), so the loader never
+starves the model; with ``stream`` the windows are read from the store as they are needed, each
+process and DataLoader worker its own shards, in memory bounded by the shuffle buffer
+(models/echopt/train_data.py, sonarset.stream).
 
 For auto-regressive use (beyond the paper): an unrolled loss over k steps, each step fed the
 model's own previous predictions, with a curriculum on k (``curriculum="0:1,400:2,800:4"``: from
