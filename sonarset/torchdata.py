@@ -147,6 +147,7 @@ class StreamingWindowDataset(IterableDataset):
         self.rank, self.world_size = self._rank_world()
         self.epoch = 0
         self.consumed: dict[int, int] = {}  # shard -> batches handed out this epoch
+        self.images_dtype_in_worker = True  # False: DataLoader workers yield images as stored
         self._slabs: list[Slab] | None = None
 
     @classmethod
@@ -208,10 +209,13 @@ class StreamingWindowDataset(IterableDataset):
         skip = self.consumed.get(shard, 0)
         stream = WindowStream(store, self.layout, self.slabs(), self.n_in, self.horizon, self.batch_size, plan,
                               skip_batches=skip, drop_last=self.drop_last)
+        # a StreamingLoader's workers send the images as stored (float16: half the bytes between
+        # processes) and the loader converts them
+        images_as = _As(self.dtype) if self.images_dtype_in_worker or info is None else torch.from_numpy
         for number, b in enumerate(stream, start=skip):
             self.consumed[shard] = number + 1  # this process's copy (the loader keeps the main one)
-            yield {"frames": _As(self.dtype)(b.frames), "commands": _As(self.dtype)(b.commands),
-                   "targets": _As(self.dtype)(b.targets), "starts": torch.from_numpy(b.starts),
+            yield {"frames": images_as(b.frames), "commands": _As(self.dtype)(b.commands),
+                   "targets": images_as(b.targets), "starts": torch.from_numpy(b.starts),
                    "shard": shard, "batch": number}
 
 
@@ -219,17 +223,20 @@ class StreamingLoader:
     """A DataLoader over a :class:`StreamingWindowDataset` that hands out one epoch per iteration
     in a fixed order, and can be stopped and resumed exactly.
 
-    With ``num_workers`` > 0 the workers are started by spawn (each opens the store itself) and
-    read their shards in parallel; batches are handed out round robin over this rank's shards
+    With ``num_workers`` > 0 the workers are started by spawn (each opens the store itself), read
+    their shards in parallel and send the images as stored (``convert=False`` hands them out so); batches are handed out round robin over this rank's shards
     (``sonarset.stream.canonical_order``), the order an in-order DataLoader gives, which a resumed
     epoch keeps too. ``state_dict()`` / ``load_state_dict()`` are the dataset's: the epoch and each
     shard's batches handed out. An epoch iterated to its end moves the dataset to the next one.
     """
 
     def __init__(self, dataset: StreamingWindowDataset, num_workers: int = 0, prefetch_factor: int = 2,
-                 max_batches: int | None = None):
+                 max_batches: int | None = None, convert: bool = True):
         self.dataset, self.num_workers, self.prefetch_factor = dataset, int(num_workers), prefetch_factor
         self.max_batches = max_batches  # per epoch (DDP: every rank the same)
+        # with workers, images cross processes as stored (float16: half the bytes); ``convert=False``
+        # hands them out so (a trainer converts them on its device), else they become dataset.dtype here
+        self.convert = convert
 
     def _order(self) -> list[tuple[int, int]]:
         counts = self.dataset.shard_batches(self.num_workers)
@@ -264,17 +271,24 @@ class StreamingLoader:
         if self.num_workers:
             loader = DataLoader(ds, batch_size=None, num_workers=self.num_workers, multiprocessing_context="spawn",
                                 prefetch_factor=self.prefetch_factor)
+            ds.images_dtype_in_worker = False  # pickled so into the workers as they start; converted below
+            try:
+                it = iter(loader)
+            finally:
+                ds.images_dtype_in_worker = True
         else:
-            loader = DataLoader(ds, batch_size=None)
+            it = iter(DataLoader(ds, batch_size=None))
         held: dict[tuple[int, int], dict] = {}
-        it = iter(loader)
         try:
             for key in todo:
                 while key not in held:
                     b = next(it)
                     held[(int(b["shard"]), int(b["batch"]))] = b
                 ds.consumed[key[0]] = key[1] + 1
-                yield held.pop(key)
+                b = held.pop(key)
+                if self.convert:
+                    b = {**b, "frames": b["frames"].to(ds.dtype), "targets": b["targets"].to(ds.dtype)}
+                yield b
         finally:
             del it  # stops the workers, also when the consumer leaves early
         ds.set_epoch(ds.epoch + 1)

@@ -93,7 +93,7 @@ class StreamedWindows:
         if steps == 0:
             raise SonarSetError(f"{store.location}: {len(train_idx)} training windows, fewer than one batch per "
                                 f"process and loader worker", parameter="batch_size")
-        loader = StreamingLoader(ds, cfg.loader_workers, max_batches=steps)
+        loader = StreamingLoader(ds, cfg.loader_workers, max_batches=steps, convert=False)
         return cls(layout.run_names, loader, torch_batcher(val_bank, device), val_idx, len(train_idx), steps, n_in,
                    device)
 
@@ -102,5 +102,7 @@ class StreamedWindows:
         for b in self.loader:
             def windows(k: int, b=b) -> tuple:
                 to = self.device
-                return (b["frames"].to(to), b["commands"][:, :self.n_in + k].to(to), b["targets"][:, :k].to(to))
+                # images as stored (float16) to the device, float32 there
+                return (b["frames"].to(to).float(), b["commands"][:, :self.n_in + k].to(to),
+                        b["targets"][:, :k].to(to).float())
             yield windows
