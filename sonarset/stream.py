@@ -257,7 +257,8 @@ class WindowStream:
         needed = [p for p in np.argsort(first, kind="stable") if last[p] >= self.skip_batches and first[p] < n_batches]
         loaded: dict[int, cf.Future] = {}
         offsets = self.layout.run_offsets
-        with cf.ThreadPoolExecutor(1) as reader:
+        reader = cf.ThreadPoolExecutor(1)
+        try:
             ptr = 0
             for b in range(self.skip_batches, n_batches):
                 # every piece this batch draws from, and up to ``prefetch`` later ones, read ahead
@@ -281,6 +282,8 @@ class WindowStream:
                     if last[p] == b:
                         del loaded[p]  # no later batch draws from it: let it go
                 yield WindowBatch(frames[:, :self.n_in], commands, frames[:, self.n_in:], starts)
+        finally:  # a consumer that stops early does not wait for the reads ahead
+            reader.shutdown(wait=False, cancel_futures=True)
 
 
 def window_bank(store, layout: RunLayout, index: WindowIndex, image_dtype: str | np.dtype | None = None) -> FrameBank:
@@ -299,10 +302,11 @@ def window_bank(store, layout: RunLayout, index: WindowIndex, image_dtype: str |
         mine = rows[run_of == j] - offsets[j]
         if not mine.size:
             continue
-        # contiguous stretches of needed frames, each one read
-        cuts = np.flatnonzero(np.diff(mine) > 1) + 1
+        # stretches of needed frames less than a chunk apart, each one read (a chunk decoded once)
+        gap = max(1, run.array("images").chunks[0])
+        cuts = np.flatnonzero(np.diff(mine) > gap) + 1
         for part in np.split(mine, cuts):
-            block = run.read("images", int(part[0]), int(part[-1]) + 1)
+            block = run.read("images", int(part[0]), int(part[-1]) + 1)[part - part[0]]
             if held is None:
                 held = np.empty((rows.size, *block.shape[1:]), dtype=dtype or block.dtype)
             at = np.searchsorted(rows, part[0] + offsets[j])
@@ -335,7 +339,10 @@ class HeldFrames:
         return int(self.held.nbytes)
 
     def __getitem__(self, at):
-        at_arr = np.asarray(at, dtype=np.int64)
+        at_arr = np.asarray(at)
+        if at_arr.dtype.kind not in "iu":  # a mask, a float or a slice would quietly pick other frames
+            raise TypeError(f"frames are indexed by integer rows, got {at_arr.dtype} ({at!r:.60})")
+        at_arr = np.where(at_arr < 0, at_arr + self.n_frames, at_arr).astype(np.int64)
         pos = np.searchsorted(self.rows, at_arr)
         if np.any(pos >= self.rows.size) or np.any(self.rows[np.minimum(pos, self.rows.size - 1)] != at_arr):
             raise IndexError("a frame outside the windows this bank was read for")

@@ -44,6 +44,15 @@ class _HeldRows:
 
 
 @dataclass(frozen=True)
+class _Stored:
+    """A view as its own tensor in the stored dtype: a worker sends a tensor's whole storage, so
+    the inputs and targets, views of one block, are copied apart first."""
+
+    def __call__(self, block: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(block))
+
+
+@dataclass(frozen=True)
 class _As:
     """A gathered block as a tensor of ``dtype`` (NumPy blocks without a copy)."""
 
@@ -128,7 +137,10 @@ class StreamingWindowDataset(IterableDataset):
 
     ``state_dict()`` is the epoch and the batches of each shard handed out so far;
     ``load_state_dict`` makes the next iteration continue there exactly (the skipped batches cost
-    no I/O). ``rank`` and ``world_size`` default to torch.distributed's when it is initialised.
+    no I/O). With DataLoader workers only :class:`StreamingLoader` keeps that count (a plain
+    DataLoader's workers count in their own copies), and moves to the next epoch. ``rank`` and
+    ``world_size`` default to torch.distributed's when it is initialised (when iterated or sent to
+    workers, so the process group may be set up after the dataset is made).
     """
 
     def __init__(self, layout: RunLayout, starts: np.ndarray, *, n_in: int = N_IN, horizon: int = 1,
@@ -143,8 +155,7 @@ class StreamingWindowDataset(IterableDataset):
         self.shuffle_buffer, self.drop_last, self.dtype = shuffle_buffer, drop_last, dtype
         self.slab_frames, self.storage_options, self.cache_bytes = slab_frames, storage_options, cache_bytes
         self.rank, self.world_size = rank, world_size
-        # fixed here, in the process that has joined the job: DataLoader workers have not
-        self.rank, self.world_size = self._rank_world()
+        self._rank_world()  # a rank given must be one of the world's
         self.epoch = 0
         self.consumed: dict[int, int] = {}  # shard -> batches handed out this epoch
         self.images_dtype_in_worker = True  # False: DataLoader workers yield images as stored
@@ -162,8 +173,12 @@ class StreamingWindowDataset(IterableDataset):
 
     # -- where this process stands -------------------------------------------------------------
     def _rank_world(self) -> tuple[int, int]:
+        """(rank, world size): as given, else torch.distributed's where it is initialised, else (0, 1)."""
         if self.rank is not None:
-            return self.rank, self.world_size or 1
+            world = self.world_size if self.world_size is not None else 1
+            if not 0 <= self.rank < world:
+                raise SonarSetError(f"rank {self.rank} is not one of a world of {world} processes (give world_size)")
+            return self.rank, world
         import torch.distributed as dist
 
         if dist.is_available() and dist.is_initialized():
@@ -195,7 +210,10 @@ class StreamingWindowDataset(IterableDataset):
         self.consumed = {int(k): int(v) for k, v in state.get("consumed", {}).items()}
 
     def __getstate__(self) -> dict:
-        return {**self.__dict__, "_slabs": None}  # rebuilt in each worker: cheap, and smaller to send
+        # pickled in the process that joined the job, for DataLoader workers, which have not: the
+        # rank goes with them; the slabs are rebuilt there (cheap, and smaller to send)
+        rank, world = self._rank_world()
+        return {**self.__dict__, "_slabs": None, "rank": rank, "world_size": world}
 
     def __iter__(self) -> Iterator[dict]:
         from sonarset.store.store import open_store
@@ -211,7 +229,7 @@ class StreamingWindowDataset(IterableDataset):
                               skip_batches=skip, drop_last=self.drop_last)
         # a StreamingLoader's workers send the images as stored (float16: half the bytes between
         # processes) and the loader converts them
-        images_as = _As(self.dtype) if self.images_dtype_in_worker or info is None else torch.from_numpy
+        images_as = _As(self.dtype) if self.images_dtype_in_worker or info is None else _Stored()
         for number, b in enumerate(stream, start=skip):
             self.consumed[shard] = number + 1  # this process's copy (the loader keeps the main one)
             yield {"frames": images_as(b.frames), "commands": _As(self.dtype)(b.commands),

@@ -105,16 +105,25 @@ def test_shards_are_disjoint_equal_and_bounded_in_memory(store):
     assert not np.array_equal(plans[0].starts, np.sort(plans[0].starts))
     # held slabs stay within the shuffle buffer's open slabs plus the read-ahead
     stream = WindowStream(store, layout, slabs, 3, 2, 8, plans[0])
-    held = []
+    held, alive, most = [], set(), [0]
     orig = stream._read
+
+    class Slab(np.ndarray):  # a slab that says when the stream lets it go
+        def __del__(self):
+            alive.discard(id(self))
 
     def counting(piece):
         held.append(piece)
-        return orig(piece)
+        block = orig(piece).view(Slab)
+        alive.add(id(block))
+        most[0] = max(most[0], len(alive))
+        return block
     stream._read = counting
     assert sum(len(b) for b in stream) == sizes[0]
     n_open = math.ceil(40 / (sizes[0] / len(plans[0].pieces)))
-    assert len(set(held)) == len(plans[0].pieces) and n_open >= 1
+    assert len(set(held)) == len(plans[0].pieces)  # each slab read once
+    # slabs held at once: the open ones, those read ahead, and one opened within a batch
+    assert most[0] <= n_open + stream.prefetch + 2, (most[0], n_open)
     assert batches_per_rank(len(index), 2, 2, 16) == min(
         sum(s // 16 for s in [(k + 1) * len(index) // 4 - k * len(index) // 4 for k in r]) for r in ((0, 1), (2, 3)))
 
@@ -141,6 +150,12 @@ def test_window_bank_reads_only_the_windows_and_gives_the_same_numbers(store):
     np.testing.assert_array_equal(a.targets, b.targets)
     with pytest.raises(IndexError, match="outside the windows"):
         held.images[np.setdiff1d(np.arange(whole.n_frames), index.rows())[:1]]
+    last = int(index.rows().max())
+    if last == whole.n_frames - 1:
+        np.testing.assert_array_equal(held.images[-1], whole.images[-1])  # negative rows count from the end
+    for bad in (np.ones(whole.n_frames, dtype=bool), 1.5, slice(0, 2)):
+        with pytest.raises(TypeError, match="integer rows"):
+            held.images[bad]
     kw = dict(horizons=(1, 3), samples=40, split="train", ceiling=True)
     streamed, loaded = evaluate(store, ["flow", "naive"], stream=True, **kw), evaluate(store, ["flow", "naive"], **kw)
     assert streamed.window_ids == loaded.window_ids
@@ -175,6 +190,19 @@ def test_train_stream_resumes_to_the_uninterrupted_result(store, tmp_path):
     assert card["training"]["config"]["stream"] is True
     with pytest.raises(SonarSetError, match="resume with shuffle_buffer"):
         train(store, tmp_path / "full", cfg(shuffle_buffer=80), resume=True)
+    # in memory, how a stream would be read does not matter
+    train(store, tmp_path / "mem", cfg(stream=False, max_minutes=1e-9))
+    assert train(store, tmp_path / "mem", cfg(stream=False, shuffle_buffer=80), resume=True).steps == 9
+
+
+def test_a_rank_outside_the_world_is_refused(store):
+    from sonarset.errors import SonarSetError
+
+    with pytest.raises(SonarSetError, match="rank 1 is not one of a world of 1"):
+        _dataset(store, rank=1)
+    assert _dataset(store, rank=1, world_size=2).shard_batches(0) == [math.ceil(
+        (len(RunLayout.of(store, split="train").index(3, 2)) - len(RunLayout.of(store, split="train").index(3, 2)) // 2)
+        / 16)]
 
 
 def test_train_and_eval_stream_on_the_command_line(store, tmp_path):

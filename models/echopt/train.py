@@ -23,15 +23,18 @@ Crash-safe and resumable: the whole training state (weights, Adam moments, step,
 metrics history) is one file, ``state.safetensors`` (models/echopt/train_state.py), replaced
 atomically every ``eval_every`` steps; a kill at any point leaves either the previous state or the
 new one. ``metrics.jsonl`` and the best model are derived from it and rewritten on resume. The
-batch order and the augmentation noise are pure functions of (seed, epoch, step), so a resumed
-run replays exactly the steps an uninterrupted one would have taken.
+batch order (streamed: of the seed, epoch, processes and workers) and the augmentation noise are
+pure functions of (seed, epoch, step), so a resumed run replays exactly the steps an uninterrupted
+one would have taken.
 
 Distributed (models/echopt/distributed.py): started by ``torchrun`` (WORLD_SIZE > 1), every process
 draws the same global batch order and trains on its own contiguous slice of each global batch of
-``batch_size`` windows, under DistributedDataParallel (NCCL on GPUs, gloo on CPUs). DDP averages
-the gradients of the slices, which is the gradient of the global batch's mean loss: the same
-optimizer steps as one process with that batch, up to floating-point summation order. Validation
-is sharded and all-reduced; only rank 0 writes checkpoints, logs and reports progress.
+``batch_size`` windows (streamed: each process reads its own shards, ``batch_size / processes``
+windows a step, the same number of steps an epoch), under DistributedDataParallel (NCCL on GPUs,
+gloo on CPUs). DDP averages the gradients of the slices, which is the gradient of the global
+batch's mean loss: the same optimizer steps as one process with that batch, up to floating-point
+summation order. Validation is sharded and all-reduced; only rank 0 writes checkpoints, logs and
+reports progress.
 """
 
 from __future__ import annotations
@@ -54,7 +57,7 @@ from sonarset.models.echopt.distributed import Dist, destroy_process_group, init
 from sonarset.models.echopt.losses import parse_loss, rollout_losses, validation_loss
 from sonarset.models.echopt.model import EchoPT
 from sonarset.models.echopt.precision import resolve_device, resolve_precision
-from sonarset.models.echopt.train_config import RESUME_KEYS, TrainConfig
+from sonarset.models.echopt.train_config import RESUME_KEYS, STREAM_KEYS, TrainConfig
 from sonarset.models.echopt.train_data import MemoryWindows, StreamedWindows
 from sonarset.models.echopt.train_state import STATE, load_state, save_state, write_metrics
 
@@ -163,9 +166,15 @@ def _resumed(out: Path, model: EchoPT, opt: torch.optim.Optimizer, cfg: TrainCon
     meta = load_state(out, model, opt)
     saved = meta["train_config"]
     for key in RESUME_KEYS:
+        if key in STREAM_KEYS and not cfg.stream:
+            continue  # how a stream is read matters only to a streamed run
         if saved.get(key, getattr(TrainConfig, key, None)) != getattr(cfg, key):
             raise SonarSetError(f"{out}: resume with {key}={getattr(cfg, key)!r}, but the run used {saved.get(key)!r}",
                                 parameter=key)
+    if cfg.stream and int(meta.get("processes", dist.world)) != dist.world:
+        # each process streams its own shards: another count cuts the epoch into other shards
+        raise SonarSetError(f"{out}: resume a streamed run on {meta['processes']} processes, as it was started "
+                            f"(not {dist.world})", parameter="stream")
     if dist.main:  # derived from the state: whatever a kill left behind, rewrite it
         write_metrics(out, list(meta["history"]))
     return int(meta["step"]), float(meta["best_val_loss"]), list(meta["history"])
@@ -294,7 +303,8 @@ class _Run:
                 "val_horizon": self.val_horizon, "processes": self.dist.world}, after_weights=_written)
             _written("best")
         save_state(self.out, self.model, self.opt, {"step": step, "best_val_loss": min(best, val),
-                                                    "train_config": asdict(self.cfg), "history": history})
+                                                    "train_config": asdict(self.cfg), "history": history,
+                                                    "processes": self.dist.world})
         _written("state")
         write_metrics(self.out, history)
         _written("metrics")

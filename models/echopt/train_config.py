@@ -76,8 +76,9 @@ class TrainConfig:
         """SonarSetError naming the first setting no run can have (the loss terms: losses.parse_loss)."""
         self.stages()
         if self.shuffle_buffer < 1 or self.loader_workers < 0:
+            bad = "shuffle_buffer" if self.shuffle_buffer < 1 else "loader_workers"
             raise SonarSetError(f"shuffle_buffer must be >= 1 and loader_workers >= 0, got {self.shuffle_buffer} "
-                                f"and {self.loader_workers}", parameter="shuffle_buffer")
+                                f"and {self.loader_workers}", parameter=bad)
         for name, allowed in (("prior", PRIORS), ("optimizer", OPTIMIZERS), ("schedule", SCHEDULES)):
             value = getattr(self, name)
             if (value or name != "prior") and value not in allowed:
@@ -110,3 +111,5 @@ class TrainConfig:
 RESUME_KEYS = ("preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps", "prior", "loss",
                "curriculum", "pushforward", "context_noise", "val_horizon", "optimizer", "weight_decay", "init",
                "worlds", "n_in", "stream", "shuffle_buffer", "loader_workers")
+#: Of those, the ones that matter only when the windows are streamed.
+STREAM_KEYS = ("shuffle_buffer", "loader_workers")
