@@ -147,13 +147,14 @@ class StreamingWindowDataset(IterableDataset):
                  batch_size: int = 64, seed: int = 0, shuffle_buffer: int = DEFAULT_SHUFFLE_BUFFER,
                  slab_frames: int | None = None, drop_last: bool = False, rank: int | None = None,
                  world_size: int | None = None, dtype: torch.dtype = torch.float32,
-                 storage_options: dict | None = None, cache_bytes: int = 0):
+                 storage_options: dict | None = None, cache_bytes: int = 0, remote_limits=None):
         if batch_size < 1 or shuffle_buffer < 1:
             raise SonarSetError("batch_size and shuffle_buffer must be >= 1")
         self.layout, self.starts = layout, np.sort(np.asarray(starts, dtype=np.int64))
         self.n_in, self.horizon, self.batch_size, self.seed = n_in, horizon, batch_size, seed
         self.shuffle_buffer, self.drop_last, self.dtype = shuffle_buffer, drop_last, dtype
         self.slab_frames, self.storage_options, self.cache_bytes = slab_frames, storage_options, cache_bytes
+        self.remote_limits = remote_limits
         self.rank, self.world_size = rank, world_size
         self._rank_world()  # a rank given must be one of the world's
         self.epoch = 0
@@ -167,7 +168,8 @@ class StreamingWindowDataset(IterableDataset):
         """Every window of ``split`` (of ``worlds``) of the store at ``location`` (a path or URL)."""
         from sonarset.store.store import open_store
 
-        store = open_store(location, storage_options=kwargs.get("storage_options"), cache_bytes=0)
+        store = open_store(location, storage_options=kwargs.get("storage_options"), cache_bytes=0,
+                           remote_limits=kwargs.get("remote_limits"))
         layout = RunLayout.of(store, split=split, worlds=worlds)
         return cls(layout, layout.index(n_in, horizon).starts, n_in=n_in, horizon=horizon, **kwargs)
 
@@ -222,7 +224,8 @@ class StreamingWindowDataset(IterableDataset):
         workers, worker = (info.num_workers, info.id) if info is not None else (1, 0)
         rank, world = self._rank_world()
         shard, n_shards = rank * workers + worker, world * workers
-        store = open_store(self.layout.location, storage_options=self.storage_options, cache_bytes=self.cache_bytes)
+        store = open_store(self.layout.location, storage_options=self.storage_options, cache_bytes=self.cache_bytes,
+                           remote_limits=self.remote_limits)
         plan = ShardPlan.make(self.slabs(), self.epoch, self.seed, shard, n_shards, self.shuffle_buffer)
         skip = self.consumed.get(shard, 0)
         stream = WindowStream(store, self.layout, self.slabs(), self.n_in, self.horizon, self.batch_size, plan,

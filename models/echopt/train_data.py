@@ -88,7 +88,7 @@ class StreamedWindows:
         local = cfg.batch_size // dist.world
         ds = StreamingWindowDataset(layout, train_idx.starts, n_in=n_in, horizon=horizon, batch_size=local,
                                     seed=cfg.seed, shuffle_buffer=cfg.shuffle_buffer, drop_last=True, rank=dist.rank,
-                                    world_size=dist.world, storage_options=getattr(store, "storage_options", None))
+                                    world_size=dist.world, **getattr(store, "open_options", {}))
         steps = batches_per_rank(len(train_idx), dist.world, cfg.loader_workers, local)
         if steps == 0:
             raise SonarSetError(f"{store.location}: {len(train_idx)} training windows, fewer than one batch per "

@@ -167,6 +167,8 @@ def open_store(
     group, loc = open_root(os.fspath(location), mode, storage_options=storage_options, consolidated=consolidated,
                            cache_bytes=cache_bytes, remote_limits=remote_limits)
     store = SonarStore(group, loc, mode)
+    # how it was opened, for processes that open it again (streaming DataLoader workers)
+    store.open_options = {"storage_options": storage_options, "remote_limits": remote_limits}
     return store.check() if check else store
 
 
