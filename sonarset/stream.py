@@ -1,12 +1,12 @@
 """Windows streamed from a store, for stores bigger than memory (training and evaluation with ``stream``).
 
 The in-memory path (:class:`~sonarset.windows.FrameBank`) decodes every frame of a split first. Here
-only the metadata is read up front (:class:`RunLayout`: each run's length, numbered as a FrameBank
-would number its frames, so a window is the same global start frame in both), and frames are read
-when they are needed:
+only the runs' layout is read up front (:class:`~sonarset.windows.RunLayout`, the FrameBank's own
+numbering, so a window is the same global start frame in both), and frames are read when they are
+needed:
 
 - **Slabs.** A run's windows are grouped by their start frame into slabs of ``slab_frames`` frames
-  (a multiple of the images' chunk length, so a slab decodes whole chunks); a slab holds the frames
+  (the default a multiple of the writer's chunk length, so a slab decodes whole chunks); a slab holds the frames
   of its windows, its own frames plus the ``span - 1`` that its last windows reach into. Windows
   never cross runs, and only the windows given (a split's, less the purged validation windows) are
   in a slab.
@@ -34,8 +34,7 @@ from typing import Iterator, Sequence
 import numpy as np
 
 from sonarset.errors import SonarSetError
-from sonarset.format.attrs import SensorGrid
-from sonarset.windows import FrameBank, WindowBatch, WindowIndex, select_runs
+from sonarset.windows import FrameBank, RunLayout, WindowBatch, WindowIndex
 
 #: Frames of a slab (4 chunks of the writer's 64 frames: 9 MB of float16 on the default grid). A
 #: slab also decodes the chunk its last windows reach into, so smaller slabs decode more per window.
@@ -46,37 +45,6 @@ DEFAULT_SLAB_FRAMES = 256
 DEFAULT_SHUFFLE_BUFFER = 2048
 #: Slabs a shard reads ahead in a background thread.
 PREFETCH_SLABS = 2
-
-
-@dataclass(frozen=True)
-class RunLayout:
-    """Some runs of a store, numbered frame by frame as a FrameBank of the same runs would be,
-    from the metadata alone (no frame is read)."""
-
-    location: str
-    run_names: list[str]
-    run_offsets: np.ndarray  # (n_runs + 1,) int64
-    grid: SensorGrid
-    frame_interval_s: float | None = None  # median spacing of the runs' time stamps
-
-    @classmethod
-    def of(cls, store, runs: Sequence[str] | None = None, split: str | None = None,
-           worlds: Sequence[str] | None = None) -> "RunLayout":
-        """The runs ``FrameBank.from_store`` would load with the same arguments; their time stamps
-        (a few bytes a frame) are read for the frame interval."""
-        names = select_runs(store, runs, split, worlds)
-        run_objs = [store.run(n) for n in names]
-        offsets = np.concatenate([[0], np.cumsum([r.n_frames for r in run_objs])]).astype(np.int64)
-        gaps = np.concatenate([np.diff(r.read_time()) for r in run_objs])
-        return cls(store.location, names, offsets, store.grid, float(np.median(gaps)) if gaps.size else None)
-
-    @property
-    def n_frames(self) -> int:
-        return int(self.run_offsets[-1])
-
-    def index(self, n_in: int, horizon: int = 1) -> WindowIndex:
-        """Every window of these runs: the same starts as ``WindowIndex.build`` over their FrameBank."""
-        return WindowIndex.build(self, n_in, horizon)
 
 
 @dataclass(frozen=True)
@@ -116,12 +84,16 @@ def shard_sizes(n_windows: int, n_shards: int) -> list[int]:
     return [(s + 1) * n_windows // n_shards - s * n_windows // n_shards for s in range(n_shards)]
 
 
-def batches_per_rank(n_windows: int, world: int, workers: int, batch_size: int) -> int:
-    """Full batches every rank can take in an epoch: the fewest of any rank, each of whose
-    ``workers`` shards yields ``size // batch_size`` full ones (DDP needs every rank to step alike)."""
-    sizes = shard_sizes(n_windows, world * max(1, workers))
+def rank_shard_sizes(n_windows: int, world: int, workers: int, rank: int) -> list[int]:
+    """Windows in each shard of ``rank`` (one shard per DataLoader worker, one without workers)."""
     per = max(1, workers)
-    return min(sum(s // batch_size for s in sizes[r * per:(r + 1) * per]) for r in range(world))
+    return shard_sizes(n_windows, world * per)[rank * per:(rank + 1) * per]
+
+
+def batches_per_rank(n_windows: int, world: int, workers: int, batch_size: int) -> int:
+    """Full batches every rank can take in an epoch: the fewest of any rank, each of whose shards
+    yields ``size // batch_size`` full ones (DDP needs every rank to step alike)."""
+    return min(sum(s // batch_size for s in rank_shard_sizes(n_windows, world, workers, r)) for r in range(world))
 
 
 def canonical_order(counts: Sequence[int]) -> list[tuple[int, int]]:
@@ -338,7 +310,8 @@ class HeldFrames:
     def nbytes(self) -> int:
         return int(self.held.nbytes)
 
-    def __getitem__(self, at):
+    def positions(self, at) -> np.ndarray:
+        """Where the global rows ``at`` (integers; negative ones count from the end) are held."""
         at_arr = np.asarray(at)
         if at_arr.dtype.kind not in "iu":  # a mask, a float or a slice would quietly pick other frames
             raise TypeError(f"frames are indexed by integer rows, got {at_arr.dtype} ({at!r:.60})")
@@ -346,4 +319,7 @@ class HeldFrames:
         pos = np.searchsorted(self.rows, at_arr)
         if np.any(pos >= self.rows.size) or np.any(self.rows[np.minimum(pos, self.rows.size - 1)] != at_arr):
             raise IndexError("a frame outside the windows this bank was read for")
-        return self.held[pos]
+        return pos
+
+    def __getitem__(self, at):
+        return self.held[self.positions(at)]

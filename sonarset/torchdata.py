@@ -15,9 +15,9 @@ from torch.utils.data import BatchSampler, DataLoader, Dataset, IterableDataset,
 from torch.utils.data import get_worker_info
 
 from sonarset.errors import SonarSetError
-from sonarset.stream import (DEFAULT_SHUFFLE_BUFFER, DEFAULT_SLAB_FRAMES, HeldFrames, RunLayout, ShardPlan, Slab, WindowStream,
-                             canonical_order, consumed_per_shard, make_slabs, shard_sizes)
-from sonarset.windows import N_IN, FrameBank, WindowBatcher, WindowIndex
+from sonarset.stream import (DEFAULT_SHUFFLE_BUFFER, DEFAULT_SLAB_FRAMES, HeldFrames, ShardPlan, Slab, WindowStream,
+                             canonical_order, consumed_per_shard, make_slabs, rank_shard_sizes)
+from sonarset.windows import N_IN, FrameBank, RunLayout, WindowBatcher, WindowIndex
 
 
 @dataclass(frozen=True)
@@ -35,11 +35,11 @@ class _RowsOn:
 class _HeldRows:
     """Global frame rows as positions among a bank's held frames (a tensor on ``device``)."""
 
-    rows: np.ndarray
+    held: HeldFrames
     device: torch.device | None
 
     def __call__(self, rows: np.ndarray):
-        pos = np.searchsorted(self.rows, rows)
+        pos = self.held.positions(rows)
         return pos if self.device is None else torch.as_tensor(pos, device=self.device)
 
 
@@ -76,7 +76,7 @@ def torch_batcher(bank: FrameBank, device: str | torch.device = "cpu",
         images, velocity = held.held, np.ascontiguousarray(bank.velocity[held.rows])
         if device.type != "cpu":
             images, velocity = torch.from_numpy(images).to(device), torch.from_numpy(velocity).to(device)
-        rows = _HeldRows(held.rows, None if device.type == "cpu" else device)
+        rows = _HeldRows(held, None if device.type == "cpu" else device)
         return WindowBatcher(images, velocity, to_rows=rows, images_as=_As(dtype), commands_as=_As(dtype))
     if device.type == "cpu":
         return WindowBatcher(bank.images, bank.velocity, images_as=_As(dtype), commands_as=_As(dtype))
@@ -196,8 +196,7 @@ class StreamingWindowDataset(IterableDataset):
     def shard_batches(self, workers: int) -> list[int]:
         """Batches of each of this rank's shards per epoch, with ``workers`` DataLoader workers."""
         rank, world = self._rank_world()
-        per = max(1, workers)
-        sizes = shard_sizes(len(self.starts), world * per)[rank * per:(rank + 1) * per]
+        sizes = rank_shard_sizes(len(self.starts), world, workers, rank)
         B = self.batch_size
         return [s // B if self.drop_last else -(-s // B) for s in sizes]
 
@@ -259,16 +258,18 @@ class StreamingLoader:
         # hands them out so (a trainer converts them on its device), else they become dataset.dtype here
         self.convert = convert
 
-    def _order(self) -> list[tuple[int, int]]:
-        counts = self.dataset.shard_batches(self.num_workers)
-        order = canonical_order(counts)
-        return order if self.max_batches is None else order[:self.max_batches]
+    def _first_shard(self) -> int:
+        return self.dataset._rank_world()[0] * max(1, self.num_workers)
+
+    def _todo(self) -> list[tuple[int, int]]:
+        """(shard, batch number) of the batches this epoch still hands out, in order."""
+        first = self._first_shard()
+        order = canonical_order(self.dataset.shard_batches(self.num_workers))[:self.max_batches]
+        return [(first + w, r) for w, r in order if r >= self.dataset.consumed.get(first + w, 0)]
 
     def __len__(self) -> int:
         """Batches left in this epoch."""
-        rank, _ = self.dataset._rank_world()
-        first = rank * max(1, self.num_workers)
-        return sum(1 for w, r in self._order() if r >= self.dataset.consumed.get(first + w, 0))
+        return len(self._todo())
 
     def state_dict(self) -> dict:
         return self.dataset.state_dict()
@@ -279,16 +280,13 @@ class StreamingLoader:
     def skip_to(self, epoch: int, taken: int) -> None:
         """Position the loader at batch ``taken`` of ``epoch`` (its canonical order): what a
         training step count says, without a saved loader state."""
-        rank, _ = self.dataset._rank_world()
-        first = rank * max(1, self.num_workers)
+        first = self._first_shard()
         done = consumed_per_shard(self.dataset.shard_batches(self.num_workers), taken)
         self.dataset.load_state_dict({"epoch": epoch, "consumed": {first + w: n for w, n in enumerate(done)}})
 
     def __iter__(self) -> Iterator[dict]:
         ds = self.dataset
-        rank, _ = ds._rank_world()
-        first = rank * max(1, self.num_workers)
-        todo = [(first + w, r) for w, r in self._order() if r >= ds.consumed.get(first + w, 0)]
+        todo = self._todo()
         if self.num_workers:
             loader = DataLoader(ds, batch_size=None, num_workers=self.num_workers, multiprocessing_context="spawn",
                                 prefetch_factor=self.prefetch_factor)

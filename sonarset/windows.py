@@ -31,7 +31,7 @@ from sonarset.store.store import SonarStore
 N_IN = 3
 
 
-def select_runs(store: SonarStore, runs: Sequence[str] | None = None, split: str | None = None,
+def _select_runs(store: SonarStore, runs: Sequence[str] | None = None, split: str | None = None,
                 worlds: Sequence[str] | None = None) -> list[str]:
     """The runs named, or every complete run of ``split`` (of the world families ``worlds`` if
     given); none is an error naming what the store has."""
@@ -45,6 +45,37 @@ def select_runs(store: SonarStore, runs: Sequence[str] | None = None, split: str
         raise SonarSetError(f"{store.location}: no complete runs in {what} (splits: "
                             f"{', '.join(sorted(store.splits())) or 'none'})")
     return names
+
+
+@dataclass(frozen=True)
+class RunLayout:
+    """Some runs of a store numbered frame by frame, run after run: a FrameBank's numbering, known
+    without reading a frame (the streamed path's whole view of the runs)."""
+
+    location: str
+    run_names: list[str]
+    run_offsets: np.ndarray  # (n_runs + 1,) int64
+    grid: SensorGrid
+    frame_interval_s: float | None = None  # median spacing of the runs' time stamps
+
+    @classmethod
+    def of(cls, store: SonarStore, runs: Sequence[str] | None = None, split: str | None = None,
+           worlds: Sequence[str] | None = None) -> "RunLayout":
+        """The runs named, or every complete run of ``split`` (of ``worlds``); their time stamps (a
+        few bytes a frame) are read, checked, for the frame interval."""
+        names = _select_runs(store, runs, split, worlds)
+        run_objs = [store.run(n) for n in names]
+        offsets = np.concatenate([[0], np.cumsum([r.n_frames for r in run_objs])]).astype(np.int64)
+        gaps = np.concatenate([np.diff(r.read_time()) for r in run_objs])
+        return cls(store.location, names, offsets, store.grid, float(np.median(gaps)) if gaps.size else None)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.run_offsets[-1])
+
+    def index(self, n_in: int, horizon: int = 1) -> "WindowIndex":
+        """Every window of these runs: the same starts as ``WindowIndex.build`` over their FrameBank."""
+        return WindowIndex.build(self, n_in, horizon)
 
 
 @dataclass
@@ -71,14 +102,12 @@ class FrameBank:
     ) -> "FrameBank":
         """Load runs (by name, or every complete run of ``split``, of the world families ``worlds``
         if given) into memory, each chunk decoded once."""
-        names = select_runs(store, runs, split, worlds)
-        run_objs = [store.run(n) for n in names]
-        sizes = [r.n_frames for r in run_objs]
-        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        layout = RunLayout.of(store, runs, split, worlds)
+        run_objs = [store.run(n) for n in layout.run_names]
+        offsets = layout.run_offsets
         dtype = np.dtype(image_dtype) if image_dtype is not None else run_objs[0].array("images").dtype
-        images = np.empty((int(offsets[-1]), *store.grid.shape), dtype=dtype)
-        velocity = np.empty((int(offsets[-1]), 2), dtype=np.float32)
-        spacings = []
+        images = np.empty((layout.n_frames, *store.grid.shape), dtype=dtype)
+        velocity = np.empty((layout.n_frames, 2), dtype=np.float32)
         for j, run in enumerate(run_objs):
             lo, hi = int(offsets[j]), int(offsets[j + 1])
             # Read slabs of many chunks: zarr overlaps their I/O and decoding (2x faster than
@@ -91,10 +120,7 @@ class FrameBank:
                 if progress is not None:
                     progress(run.name, e, hi - lo)
             velocity[lo:hi] = run.read("velocity")
-            spacings.append(np.diff(run.read_time()))
-        gaps = np.concatenate(spacings)
-        interval = float(np.median(gaps)) if gaps.size else None
-        return cls(images, velocity, offsets, names, store.grid, interval)
+        return cls(images, velocity, offsets, layout.run_names, store.grid, layout.frame_interval_s)
 
     @classmethod
     def from_arrays(cls, runs: Sequence[tuple[np.ndarray, np.ndarray]], grid: SensorGrid,

@@ -14,10 +14,10 @@ import torch
 from sonarset import open_store
 from sonarset.format.attrs import SensorGrid
 from sonarset.sim import generate
-from sonarset.stream import RunLayout, ShardPlan, WindowStream, batches_per_rank, make_slabs, window_bank
+from sonarset.stream import ShardPlan, WindowStream, batches_per_rank, make_slabs, window_bank
 from sonarset.testing import serve_directory
 from sonarset.torchdata import StreamingLoader, StreamingWindowDataset
-from sonarset.windows import FrameBank, WindowBatcher, WindowIndex
+from sonarset.windows import FrameBank, RunLayout, WindowBatcher, WindowIndex
 
 GRID = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=50, azimuth_min_rad=-math.pi / 2,
                   azimuth_max_rad=math.pi / 2, n_azimuth=30)

@@ -13,9 +13,9 @@ import numpy as np
 
 from sonarset.errors import SonarSetError
 from sonarset.store.store import SonarStore
-from sonarset.stream import RunLayout, batches_per_rank, window_bank
+from sonarset.stream import batches_per_rank, window_bank
 from sonarset.torchdata import StreamingLoader, StreamingWindowDataset, torch_batcher
-from sonarset.windows import FrameBank, WindowBatcher, WindowIndex
+from sonarset.windows import FrameBank, RunLayout, WindowBatcher, WindowIndex
 
 from sonarset.models.echopt.distributed import Dist
 from sonarset.models.echopt.train_config import TrainConfig

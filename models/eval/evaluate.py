@@ -20,8 +20,8 @@ from sonarset.format.attrs import RobotRig
 from sonarset.scoring.echoes import EchoMatching
 from sonarset.scoring.stats import Comparison, compare, holm
 from sonarset.store.store import SonarStore
-from sonarset.stream import RunLayout, window_bank
-from sonarset.windows import N_IN, FrameBank, WindowBatcher, WindowIndex
+from sonarset.stream import window_bank
+from sonarset.windows import N_IN, FrameBank, RunLayout, WindowBatcher, WindowIndex
 
 from sonarset.models.baselines import Predictor
 from sonarset.models.registry import HORIZONS
