@@ -6,10 +6,10 @@ numbering, so a window is the same global start frame in both), and frames are r
 needed:
 
 - **Slabs.** A run's windows are grouped by their start frame into slabs of ``slab_frames`` frames
-  (the default a multiple of the writer's chunk length, so a slab decodes whole chunks); a slab holds the frames
-  of its windows, its own frames plus the ``span - 1`` that its last windows reach into. Windows
-  never cross runs, and only the windows given (a split's, less the purged validation windows) are
-  in a slab.
+  (by default a multiple of the writer's chunk length, so a slab decodes whole chunks); a slab
+  holds the frames of its windows, its own frames plus the ``span - 1`` that its last windows reach
+  into. Windows never cross runs, and only the windows given (a split's, less the purged
+  validation windows) are in a slab.
 - **Shards.** Each epoch the slabs are put in a seeded order and the windows of that order are cut
   into ``n_shards`` contiguous pieces of equal size (within one window): shard ``s`` of an epoch is
   one (DDP rank, DataLoader worker). Shards are disjoint and together hold every window once, and a
