@@ -14,7 +14,7 @@ from sonarset.format.attrs import BEAMFORMERS, PROCESSING_PROFILES
 from sonarset.format.schemas import SCHEMAS
 from sonarset.sensor.ertis import AZIMUTH_PSFS
 
-from sonarset.models.echopt.config import PRESETS, PRIORS
+from sonarset.models.echopt.config import INPUTS, PRESETS, PRIORS
 from sonarset.models.echopt.precision import DEVICES, PRECISIONS
 from sonarset.models.echopt.train_config import OPTIMIZERS, SCHEDULES
 from sonarset.ingest.bag.reader import STAMPS
@@ -32,6 +32,7 @@ Psf = _choices("Psf", AZIMUTH_PSFS)
 Device = _choices("Device", DEVICES)
 Preset = _choices("Preset", PRESETS)
 Prior = _choices("Prior", PRIORS)
+Inputs = _choices("Inputs", INPUTS)
 Optimizer = _choices("Optimizer", OPTIMIZERS)
 Schedule = _choices("Schedule", SCHEDULES)
 Precision = _choices("Precision", PRECISIONS)

@@ -294,3 +294,64 @@ def test_train_on_chosen_worlds_with_a_longer_context(tiny_store, tmp_path):
     assert ev.n_in == 5 and np.isfinite(ev.per_window["echopt"][2]["cc"]).all()
     with pytest.raises(SonarSetError, match="no complete runs of world orchard in split 'train'"):
         train(tiny_store, tmp_path / "none", _cfg(max_steps=3, worlds="orchard"))
+
+
+def test_aligned_inputs_register_a_reflector_at_the_predicted_pose():
+    """A reflector seen from three poses along the window's commands: aligned, each frame shows it
+    where the frame to predict will (within a bin), with the sensor ahead of the axle; the last
+    aligned frame is the flow prior, and an untrained aligned model is exactly that prior."""
+    from sonarset.models.flow import arc_motion
+
+    grid = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=100, azimuth_min_rad=-math.pi / 2,
+                      azimuth_max_rad=math.pi / 2, n_azimuth=45)
+    cfg = make_config("tiny", *grid.shape, range_edges=(0.5, 5.0), azimuth_edges=(-math.pi / 2, math.pi / 2),
+                      dt=0.2, sensor_offset=0.15, inputs="aligned")
+    model = EchoPT(cfg).eval()
+    commands = np.array([[0.0, 0.0], [0.3, 0.8], [0.25, 0.6], [0.3, -0.4]])  # command k: frame k-1 -> k
+    # robot poses (x, y, yaw) of frames 0..3 (3: the frame to predict), integrated along each arc
+    poses = [np.zeros(3)]
+    for v, w in commands[1:]:
+        c, s, dx, dy = (float(a[0]) for a in arc_motion(np, np.array([v]), np.array([w]), cfg.dt))
+        x, y, yaw = poses[-1]
+        poses.append(np.array([x + dx * math.cos(yaw) - dy * math.sin(yaw),
+                               y + dx * math.sin(yaw) + dy * math.cos(yaw), yaw + math.atan2(s, c)]))
+    reflector = np.array([2.4, 0.9])
+
+    def seen_from(pose):
+        x, y, yaw = pose
+        sx, sy = x + cfg.sensor_offset * math.cos(yaw), y + cfg.sensor_offset * math.sin(yaw)
+        dx, dy = reflector[0] - sx, reflector[1] - sy
+        return math.hypot(dx, dy), math.atan2(dy, dx) - yaw
+
+    rr, tt = np.meshgrid(grid.range_centres(), grid.azimuth_centres(), indexing="ij")
+    frames = np.stack([np.exp(-(((rr - r) / 0.06) ** 2 + ((tt - th) / math.radians(4)) ** 2) / 2)
+                       for r, th in map(seen_from, poses[:3])])[None].astype(np.float32)
+    r_target, th_target = seen_from(poses[3])
+    f, c = torch.from_numpy(frames), torch.from_numpy(commands[None].astype(np.float32))
+    with torch.no_grad():
+        aligned = model.align(f, c)[0].numpy()
+        np.testing.assert_allclose(model(f, c)[0].numpy(), aligned[-1], atol=1e-6)
+    np.testing.assert_allclose(aligned[-1], model.flow_prior(f[:, -1], c[:, -1])[0].numpy(), atol=1e-6)
+    for k in range(3):
+        i, j = np.unravel_index(np.argmax(aligned[k]), aligned[k].shape)
+        assert abs(grid.range_centres()[i] - r_target) <= grid.range_step, k
+        assert abs(grid.azimuth_centres()[j] - th_target) <= grid.azimuth_step, k
+    # the raw frames do not: the reflector moved by several bins over the window
+    i, j = np.unravel_index(np.argmax(frames[0, 0]), frames[0, 0].shape)
+    assert abs(grid.azimuth_centres()[j] - th_target) > 2 * grid.azimuth_step
+
+
+def test_a_fine_tune_may_align_its_inputs_and_keeps_them(tiny_store, tmp_path):
+    """--init with --inputs aligned warm-starts an aligned model from a raw one (the same weights);
+    a fine-tune of that one without --inputs stays aligned; a bad value is refused."""
+    train(tiny_store, tmp_path / "raw", _cfg(max_steps=2))
+    train(tiny_store, tmp_path / "al", _cfg(max_steps=2, init=str(tmp_path / "raw"), inputs="aligned"))
+    _, card = load_checkpoint(tmp_path / "al", TINY_GRID)
+    assert card["config"]["inputs"] == "aligned" and card["training"]["config"]["inputs"] == "aligned"
+    train(tiny_store, tmp_path / "al2", _cfg(max_steps=1, init=str(tmp_path / "al")))
+    assert load_checkpoint(tmp_path / "al2", TINY_GRID)[0].cfg.inputs == "aligned"
+    ev = evaluate(tiny_store, ["flow", f"echopt:{tmp_path / 'al2' / 'model.safetensors'}"], horizons=(1, 2), samples=10)
+    assert np.isfinite(ev.per_window["echopt"][2]["cc"]).all()
+    with pytest.raises(SonarSetError, match="inputs must be one of") as refused:
+        train(tiny_store, tmp_path / "bad", _cfg(max_steps=1, inputs="warped"))
+    assert refused.value.parameter == "inputs"

@@ -114,3 +114,18 @@ def test_bad_onnx_inputs_are_one_line_errors(exported, tmp_path):
     with pytest.raises(SonarSetError, match="no EchoPT checkpoint"):
         export_onnx(tmp_path / "nothing", tmp_path / "n.onnx")
     assert not (tmp_path / "n.onnx").exists()
+
+
+def test_an_aligned_model_exports_with_its_warps_in_the_graph(exported, tmp_path):
+    """inputs="aligned" warps every input frame inside the graph (chained grid samples): the export
+    matches torch within the parity tolerance."""
+    store = exported[0]
+    torch.manual_seed(1)
+    model = EchoPT(make_config("tiny", *GRID.shape, inputs="aligned", **grid_and_rig(store.grid, store.rig)))
+    torch.nn.init.normal_(model.head[-1].weight, std=0.05)
+    card = {"format": "echopt-card/1", "preset": "tiny", "grid": store.grid.model_dump(),
+            "processing": store.processing.model_dump(mode="json"), "rig": store.rig.model_dump(mode="json"),
+            "training": {"precision": "fp32"}}
+    e = export_onnx(save_checkpoint(tmp_path / "al" / "model.safetensors", model, card), tmp_path / "al.onnx")
+    assert e.max_abs_diff is not None and e.max_abs_diff <= PARITY_TOLERANCE
+    assert read_onnx_card(tmp_path / "al.onnx")["config"]["inputs"] == "aligned"

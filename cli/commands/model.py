@@ -13,7 +13,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from sonarset.models.echopt.train_config import TrainConfig
 from sonarset.models.registry import BASELINES, HORIZONS
 
-from sonarset.cli.choices import Device, Optimizer, Precision, Preset, Prior, Schedule, value
+from sonarset.cli.choices import Device, Optimizer, Precision, Inputs, Preset, Prior, Schedule, value
 from sonarset.cli.common import err, fail, out, per_name_progress, progress_bar, user_errors
 from sonarset.cli.options import Model, ModelDevice, ModelPrecision
 
@@ -157,6 +157,10 @@ def train(
                                                               "training run)."),
     n_in: int = typer.Option(TRAIN.n_in, "--n-in", min=0, help="Input frames per window (0: the preset's, the "
                                                                "paper's 3)."),
+    inputs: Optional[Inputs] = typer.Option(None, "--inputs", help="raw (paper: the frames as measured) or aligned "
+                                                                   "(each warped to the predicted frame's pose along "
+                                                                   "the commands). Default: the preset's (raw), or "
+                                                                   "--init's model's."),
     stream: bool = typer.Option(TRAIN.stream, "--stream",
                                 help="Stream windows from the store instead of loading all its frames: for stores "
                                      "bigger than memory, or behind a URL (docs/scaling.md)."),
@@ -179,7 +183,7 @@ def train(
                       max_steps=max_steps, max_minutes=max_minutes, compile=compile_, test_samples=test_samples,
                       n_val=n_val, prior=value(prior) or "", loss=loss, curriculum=curriculum, pushforward=pushforward,
                       optimizer=optimizer.value, context_noise=context_noise, val_horizon=val_horizon, init=init,
-                      precision=precision.value, worlds=worlds, n_in=n_in, stream=stream,
+                      precision=precision.value, worlds=worlds, n_in=n_in, inputs=value(inputs) or "", stream=stream,
                       shuffle_buffer=shuffle_buffer, loader_workers=workers)
     main = int(os.environ.get("RANK", "0")) == 0  # under torchrun only rank 0 reports
     with _training_bar(main) as progress:

@@ -35,6 +35,9 @@ class EchoPTConfig:
     mlp_hidden: int = 10
     mlp_out: int = 200  # laid out as a 20 x 10 image
     prior: str = "none"  # none (paper) | last | flow: the image the output corrects
+    # raw (paper): the frames as measured | aligned: each warped to the predicted frame's pose along
+    # the window's commands (the flow of each frame), so every branch sees the frames registered
+    inputs: str = "raw"
     dropout: float = 0.0
     # The sensor grid's edges and the robot rig, which the flow prior needs (from the store).
     range_edges: tuple[float, float] = (_DEFAULT_GRID.range_min_m, _DEFAULT_GRID.range_max_m)
@@ -93,6 +96,8 @@ class EchoPTConfig:
             raise ValueError(f"d_model {self.d_model} is not divisible by {self.n_heads} heads")
         if self.prior not in PRIORS:
             raise ValueError(f"prior must be one of {', '.join(PRIORS)}, got {self.prior!r}")
+        if self.inputs not in INPUTS:
+            raise ValueError(f"inputs must be one of {', '.join(INPUTS)}, got {self.inputs!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -107,6 +112,10 @@ class EchoPTConfig:
 
 
 PRIORS = ("none", "last", "flow")
+INPUTS = ("raw", "aligned")
+#: Settings a fine-tune (``init``) may change: they prepare the inputs and change no weight's shape
+#: or meaning enough to forbid starting from a trained model (the card's lineage records the change).
+WARM_START_FIELDS = ("inputs",)
 # Upper bounds on a card's sizes, far above any network here (the paper's: 8 layers, 376 + 8 wide,
 # 2000 tokens) but below what would exhaust memory building one; unlisted sizes: 100,000.
 _MAX_SIZE = {"n_layers": 256, "n_heads": 256, "n_in": 64, "d_embed": 8192, "d_ff": 32768, "max_tokens": 100_000,

@@ -19,6 +19,11 @@ image: ``none`` (the paper: the output is the image), ``last`` (the last input f
 (the acoustic-flow warp of the last frame along the newest command: the same SE(2) warp as the
 ``flow`` baseline, with the rig the model was trained for). With a prior, the last convolution
 starts at zero, so an untrained model is exactly its prior.
+
+Also beyond the paper, ``inputs="aligned"``: every branch sees the input frames registered to the
+pose of the frame to predict (each warped along the window's commands, :meth:`EchoPT.align`),
+instead of as measured, so what changed between frames (a wall's specular arc, an occlusion)
+lies at one pixel across the stack rather than along a motion the network must learn.
 """
 
 from __future__ import annotations
@@ -139,6 +144,9 @@ class EchoPT(nn.Module):
             raise GridMismatchError(f"EchoPT was built for {cfg.n_in} frames of {cfg.n_range}x{cfg.n_azimuth}, "
                                     f"got {n_in} of {R}x{A}")
         c = commands.reshape(B, -1) * self.cmd_scale
+        last = frames[:, -1]
+        if cfg.inputs == "aligned":
+            frames = self.align(frames, commands)
         # transformer branch
         tok = self.embed(frames)  # (B, d_embed, R/pr, A/pa)
         gr, ga = tok.shape[-2:]
@@ -164,7 +172,10 @@ class EchoPT(nn.Module):
         out = self.head(torch.cat([t, f1, f2, m], dim=1))[:, 0]
         if cfg.prior == "none":
             return out
-        return out + (frames[:, -1] if cfg.prior == "last" else self.flow_prior(frames[:, -1], commands[:, -1]))
+        if cfg.prior == "last":
+            return out + last
+        # with aligned inputs the last one is the flow prior already
+        return out + (frames[:, -1] if cfg.inputs == "aligned" else self.flow_prior(last, commands[:, -1]))
 
     def flow_prior(self, last: torch.Tensor, command: torch.Tensor) -> torch.Tensor:
         """The acoustic-flow warp of ``last`` (B, R, A) under ``command`` (B, 2): each pixel of the next
@@ -172,16 +183,40 @@ class EchoPT(nn.Module):
         models/flow.py), sampled bilinearly (edge values outside the field of view), as
         ``baselines.AcousticFlow``. The sampling is this model's own: its pixel constants are Python
         numbers, which a graph export (ONNX) needs."""
-        cfg = self.cfg
-        cmd = command.double()
-        motion = arc_motion(torch, cmd[:, 0], cmd[:, 1], cfg.dt)  # in float64, then the pixels in float32
         r, th = self.r_c.float()[None, :, None], self.th_c.float()[None, None, :]
-        xo, yo = source_points(torch, r, th, tuple(t.float()[:, None, None] for t in motion), cfg.sensor_offset)
-        R, A = cfg.n_range, cfg.n_azimuth
+        xo, yo = self._step_back(r, th, command)
+        return self._sample(last, xo, yo)
+
+    def align(self, frames: torch.Tensor, commands: torch.Tensor) -> torch.Tensor:
+        """Every frame of ``frames`` (B, n_in, R, A) warped to the pose of the frame to predict: the
+        predicted frame's pixels are moved back along the window's commands, newest first
+        (``commands[:, k]`` moves the robot from frame k - 1 to frame k), and each frame is sampled
+        where they were when it was taken. The last one is :meth:`flow_prior`'s image, the older
+        ones its chain over more commands (one bilinear sampling each, no accumulated blur)."""
+        n_in = frames.shape[1]
+        r, th = self.r_c.float()[None, :, None], self.th_c.float()[None, None, :]
+        aligned = [frames[:, 0]] * n_in
+        for k in range(n_in - 1, -1, -1):
+            xo, yo = self._step_back(r, th, commands[:, k + 1])
+            aligned[k] = self._sample(frames[:, k], xo, yo)
+            r, th = torch.hypot(xo, yo), torch.atan2(yo, xo)
+        return torch.stack(aligned, 1)
+
+    def _step_back(self, r: torch.Tensor, th: torch.Tensor, command: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(x, y) in the previous sensor frame of the points at range ``r``, azimuth ``th`` (float32,
+        broadcasting to (B, R, A)) after ``command`` (B, 2) over one frame interval."""
+        cmd = command.double()
+        motion = arc_motion(torch, cmd[:, 0], cmd[:, 1], self.cfg.dt)  # in float64, then the pixels in float32
+        return source_points(torch, r, th, tuple(t.float()[:, None, None] for t in motion), self.cfg.sensor_offset)
+
+    def _sample(self, image: torch.Tensor, xo: torch.Tensor, yo: torch.Tensor) -> torch.Tensor:
+        """``image`` (B, R, A) sampled bilinearly at the points (x, y) of its sensor frame, edge values
+        outside the field of view."""
+        R, A = self.cfg.n_range, self.cfg.n_azimuth
         (r_first, r_step), (th_first, th_step) = self._pixel_steps
         ir = (torch.hypot(xo, yo) - r_first) / r_step  # ONNX has no hypot: models/echopt/onnx_export.py translates it
         ia = (torch.atan2(yo, xo) - th_first) / th_step
-        B = last.shape[0]
+        B = image.shape[0]
         grid = torch.stack([(2 * ia / max(A - 1, 1) - 1).expand(B, R, A), (2 * ir / max(R - 1, 1) - 1).expand(B, R, A)], -1)
-        return F.grid_sample(last[:, None].float(), grid.to(last.device), mode="bilinear", padding_mode="border",
-                             align_corners=True)[:, 0].to(last.dtype)
+        return F.grid_sample(image[:, None].float(), grid.to(image.device), mode="bilinear", padding_mode="border",
+                             align_corners=True)[:, 0].to(image.dtype)

@@ -52,7 +52,7 @@ from sonarset.errors import SonarSetError
 from sonarset.store.store import SonarStore
 
 from sonarset.models.echopt.checkpoint import load_checkpoint, save_checkpoint
-from sonarset.models.echopt.config import grid_and_rig, make_config
+from sonarset.models.echopt.config import WARM_START_FIELDS, grid_and_rig, make_config
 from sonarset.models.echopt.distributed import Dist, destroy_process_group, init_distributed
 from sonarset.models.echopt.losses import parse_loss, rollout_losses, validation_loss
 from sonarset.models.echopt.model import EchoPT
@@ -100,15 +100,15 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
             destroy_process_group()
 
 
-def _init_from(model: EchoPT, spec: str, store: SonarStore) -> None:
+def _init_from(model: EchoPT, spec: str, trained: EchoPT, card: dict, store: SonarStore) -> None:
     """Copy a trained model's weights into ``model``, which must be the same network on the same grid,
-    trained on the same images (a fine-tune continues a model; it cannot change what it is)."""
+    trained on the same images (a fine-tune continues a model; it cannot change what it is, except
+    how its inputs are prepared: ``WARM_START_FIELDS``)."""
     from sonarset.models.echopt.cards import card_processing
 
-    trained, card = load_checkpoint(spec, store.grid)
-    if trained.cfg != model.cfg:
-        diff = ", ".join(f"{k}: {getattr(trained.cfg, k)!r} vs {getattr(model.cfg, k)!r}"
-                         for k in model.cfg.__dataclass_fields__ if getattr(trained.cfg, k) != getattr(model.cfg, k))
+    differ = [k for k in model.cfg.__dataclass_fields__ if getattr(trained.cfg, k) != getattr(model.cfg, k)]
+    if any(k not in WARM_START_FIELDS for k in differ):
+        diff = ", ".join(f"{k}: {getattr(trained.cfg, k)!r} vs {getattr(model.cfg, k)!r}" for k in differ)
         raise SonarSetError(f"init {spec}: another network than this preset and prior make here ({diff})",
                             parameter="init")
     if not card_processing(card).same_images(store.processing):
@@ -126,13 +126,18 @@ def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[Echo
         overrides["prior"] = cfg.prior
     if cfg.n_in:
         overrides["n_in"] = cfg.n_in
+    trained = card = None
+    if cfg.init:
+        trained, card = load_checkpoint(cfg.init, store.grid)
+    if cfg.inputs or trained is not None:  # a fine-tune keeps its model's unless told otherwise
+        overrides["inputs"] = cfg.inputs or trained.cfg.inputs
     try:
         model = EchoPT(make_config(cfg.preset, *store.grid.shape, **overrides))
     except ValueError as exc:  # e.g. an n_in whose command values leave d_model indivisible by the heads
         what = "n_in" if cfg.n_in else "preset"
         raise SonarSetError(f"{what} {getattr(cfg, what)}: {exc}", parameter=what) from None
-    if cfg.init:
-        _init_from(model, cfg.init, store)
+    if trained is not None:
+        _init_from(model, cfg.init, trained, card, store)
     model = model.to(device).to(memory_format=torch.channels_last)
     opt_cls = torch.optim.AdamW if cfg.optimizer == "adamw" else torch.optim.Adam
     opt = opt_cls(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=cfg.weight_decay)

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from sonarset.errors import SonarSetError
 from sonarset.stream import DEFAULT_SHUFFLE_BUFFER
 
-from sonarset.models.echopt.config import PRIORS
+from sonarset.models.echopt.config import INPUTS, PRIORS
 
 OPTIMIZERS = ("adam", "adamw")
 SCHEDULES = ("none", "cosine")
@@ -50,6 +50,7 @@ class TrainConfig:
     init: str = ""  # fine-tune: start from this checkpoint's weights (same preset, prior, grid, images)
     worlds: str = ""  # comma-separated world families to train on ("" = every training run)
     n_in: int = 0  # input frames per window (0 = the preset's: the paper's 3)
+    inputs: str = ""  # config.INPUTS (raw | aligned); "" = the preset's (raw), or init's model's
     # stream windows from the store instead of loading it (sonarset.stream): memory bounded by the
     # shuffle buffer (windows mixed at once) and the DataLoader workers' read-ahead, not the store
     stream: bool = False
@@ -79,9 +80,10 @@ class TrainConfig:
             bad = "shuffle_buffer" if self.shuffle_buffer < 1 else "loader_workers"
             raise SonarSetError(f"shuffle_buffer must be >= 1 and loader_workers >= 0, got {self.shuffle_buffer} "
                                 f"and {self.loader_workers}", parameter=bad)
-        for name, allowed in (("prior", PRIORS), ("optimizer", OPTIMIZERS), ("schedule", SCHEDULES)):
+        for name, allowed in (("prior", PRIORS), ("inputs", INPUTS), ("optimizer", OPTIMIZERS),
+                              ("schedule", SCHEDULES)):
             value = getattr(self, name)
-            if (value or name != "prior") and value not in allowed:
+            if (value or name not in ("prior", "inputs")) and value not in allowed:
                 raise SonarSetError(f"{name} must be one of {', '.join(allowed)}, got {value!r}", parameter=name)
 
     def lr_at(self, step: int, total: int) -> float:
@@ -110,6 +112,6 @@ class TrainConfig:
 #: Settings that must not change when a run is resumed.
 RESUME_KEYS = ("preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps", "prior", "loss",
                "curriculum", "pushforward", "context_noise", "val_horizon", "optimizer", "weight_decay", "init",
-               "worlds", "n_in", "stream", "shuffle_buffer", "loader_workers")
+               "worlds", "n_in", "inputs", "stream", "shuffle_buffer", "loader_workers")
 #: Of those, the ones that matter only when the windows are streamed.
 STREAM_KEYS = ("shuffle_buffer", "loader_workers")
