@@ -28,9 +28,9 @@ import time
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from sonarset import open_store
+from sonarset.models.baselines import AcousticFlow, rollout, sample_polar
 from sonarset.models.flow import arc_motion, source_points
 from sonarset.scoring.metrics import cc_and_nrmsd
 from sonarset.windows import N_IN, FrameBank, WindowIndex, gather
@@ -39,31 +39,22 @@ HORIZONS = (1, 3, 5, 10)
 ABSORPTION_DB_PER_M = 1.3  # docs/physics.md, one way
 
 
-class Warp:
-    """Bilinear re-sampling of (B, R, A) images at source points given in metres and radians."""
-
-    def __init__(self, grid):
-        self.grid = grid
-        self.r, self.th = grid.range_centres(), grid.azimuth_centres()
-
-    def __call__(self, images: np.ndarray, r: np.ndarray, th: np.ndarray, fill: str = "edge") -> np.ndarray:
-        R, A = self.grid.shape
-        ir = (r - self.r[0]) / self.grid.range_step
-        ia = (th - self.th[0]) / self.grid.azimuth_step
-        grid = torch.stack([torch.as_tensor(2 * ia / (A - 1) - 1), torch.as_tensor(2 * ir / (R - 1) - 1)], -1).float()
-        img = torch.as_tensor(images, dtype=torch.float32)[:, None]
-        if fill == "edge":
-            out = F.grid_sample(img, grid, mode="bilinear", padding_mode="border", align_corners=True)
-        else:  # the frame's median outside the field of view
-            bg = img.flatten(1).median(1).values[:, None, None, None]
-            out = F.grid_sample(img - bg, grid, mode="bilinear", padding_mode="zeros", align_corners=True) + bg
-        return out[:, 0].numpy()
+def warp(images: np.ndarray, grid, r: np.ndarray, th: np.ndarray, fill: str = "edge") -> np.ndarray:
+    """The baselines' bilinear sampling at source points (metres, radians); ``fill="background"``
+    puts the frame's median where the source lies outside the field of view, instead of the
+    nearest edge value."""
+    out = sample_polar(images, grid, torch.as_tensor(r, dtype=torch.float32), torch.as_tensor(th, dtype=torch.float32))
+    if fill == "background":
+        outside = ((r < grid.range_min_m) | (r > grid.range_max_m)
+                   | (th < grid.azimuth_min_rad) | (th > grid.azimuth_max_rad))
+        out = np.where(outside, np.median(images.reshape(len(images), -1), axis=1)[:, None, None], out)
+    return out
 
 
 def variants(store, frames: np.ndarray, commands: np.ndarray, n_in: int, horizon: int):
     """Yields (t, {variant: predictions of target t}) for t = 1 .. horizon."""
     grid, rig = store.grid, store.rig
-    warp, span = Warp(grid), store.processing.span_db
+    span = store.processing.span_db
     B, (R, A) = len(frames), grid.shape
     r0 = np.broadcast_to(grid.range_centres()[None, :, None], (B, R, A))
     th0 = np.broadcast_to(grid.azimuth_centres()[None, None, :], (B, R, A))
@@ -76,16 +67,18 @@ def variants(store, frames: np.ndarray, commands: np.ndarray, n_in: int, horizon
         return np.hypot(x, y), np.arctan2(y, x)
 
     last = frames[:, -1]
-    rolled = {"flow": last, "background": last}
+    flow = rollout(AcousticFlow(grid, rig), frames, commands, horizon)  # the baseline itself
+    background = last
     for t in range(1, horizon + 1):
         r, th = back(r0, th0, t - 1)
-        rolled = {"flow": warp(rolled["flow"], r, th), "background": warp(rolled["background"], r, th, "median")}
+        background = warp(background, grid, r, th, "background")
         for s in range(t - 2, -1, -1):
             r, th = back(r, th, s)
-        composite = warp(last, r, th)
+        composite = warp(last, grid, r, th)
         gain_db = 20 * np.log10(r / r0) + 2 * ABSORPTION_DB_PER_M * (r - r0)
         gained = np.clip(composite + np.where(composite > 0.02, gain_db / span, 0), 0, 1)
-        yield t, {**rolled, "composite": composite, "composite+gain": gained}
+        yield t, {"flow": flow[:, t - 1], "background": background, "composite": composite,
+                  "composite+gain": gained}
 
 
 def main() -> None:

@@ -48,7 +48,7 @@ def rollout(predictor: Predictor, frames: np.ndarray, commands: np.ndarray, hori
     return buf[:, n_in:]
 
 
-def _sample(images: np.ndarray, grid: SensorGrid, r_src, th_src, backend: str = "torch") -> np.ndarray:
+def sample_polar(images: np.ndarray, grid: SensorGrid, r_src, th_src, backend: str = "torch") -> np.ndarray:
     """Bilinear resampling of images (B, R, A) at source positions in metres / radians.
 
     ``r_src`` and ``th_src`` broadcast to (B, R, A); they are torch tensors for the torch backend
@@ -128,7 +128,7 @@ class NaiveShift(LastFrameBaseline):
         w = arr(commands[:, -1, 1])[:, None, None]
         r, th = _pixel_polar(self.grid, arr)
         dt = self.rig.frame_interval_s
-        return _sample(frames[:, -1], self.grid, r + v * dt, th + w * dt, self.backend)
+        return sample_polar(frames[:, -1], self.grid, r + v * dt, th + w * dt, self.backend)
 
 
 @dataclass
@@ -154,4 +154,4 @@ class AcousticFlow(LastFrameBaseline):
         motion = arc_motion(np, cmd[:, 0], cmd[:, 1], self.rig.frame_interval_s)
         r, th = _pixel_polar(self.grid, arr)
         xo, yo = source_points(xp, r, th, tuple(arr(a)[:, None, None] for a in motion), self.rig.sensor_offset_m)
-        return _sample(frames[:, -1], self.grid, xp.hypot(xo, yo), xp.arctan2(yo, xo), self.backend)
+        return sample_polar(frames[:, -1], self.grid, xp.hypot(xo, yo), xp.arctan2(yo, xo), self.backend)

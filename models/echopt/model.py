@@ -195,12 +195,12 @@ class EchoPT(nn.Module):
         ones its chain over more commands (one bilinear sampling each, no accumulated blur)."""
         n_in = frames.shape[1]
         r, th = self.r_c.float()[None, :, None], self.th_c.float()[None, None, :]
-        aligned = [frames[:, 0]] * n_in
+        newest_first = []
         for k in range(n_in - 1, -1, -1):
             xo, yo = self._step_back(r, th, commands[:, k + 1])
-            aligned[k] = self._sample(frames[:, k], xo, yo)
+            newest_first.append(self._sample(frames[:, k], xo, yo))
             r, th = torch.hypot(xo, yo), torch.atan2(yo, xo)
-        return torch.stack(aligned, 1)
+        return torch.stack(newest_first[::-1], 1)
 
     def _step_back(self, r: torch.Tensor, th: torch.Tensor, command: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(x, y) in the previous sensor frame of the points at range ``r``, azimuth ``th`` (float32,
