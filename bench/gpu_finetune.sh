@@ -7,7 +7,6 @@
 #
 #   PAPER_INIT=.gpu/paper1/model.safetensors bash bench/gpu_finetune.sh
 set -u
-T0=$(date +%s)
 BUDGET=${BUDGET:-360}
 OUT=${OUT:-/tmp/gpu-out}
 DEVICE=${DEVICE:-cuda}
@@ -20,31 +19,18 @@ SAMPLES=${SAMPLES:-1000}
 DEMO_MINUTES=${DEMO_MINUTES:-25}
 EVAL_S=${EVAL_S:-80}
 PAPER_INIT=$(realpath "${PAPER_INIT:-.gpu/paper1/model.safetensors}")
-REPO=$(pwd)
 W=/tmp/gpu-work
-R=$OUT/r
-rm -rf "$W" && mkdir -p "$W" "$R"
-log() { echo "[$(( $(date +%s) - T0 )) s] $*" | tee -a "$R/session.log"; }
-left() { echo $(( BUDGET - ($(date +%s) - T0) )); }
+source "$(dirname "$0")/gpu_lib.sh"
 pack() {
-  mkdir -p "$W/ship"
   for m in small paper; do
     cp "$W/$m/model.json" "$R/$m-model.json" 2>/dev/null; cp "$W/$m/metrics.jsonl" "$R/$m-metrics.jsonl" 2>/dev/null
     cp "$W/$m/model.safetensors" "$W/ship/$m.safetensors" 2>/dev/null
   done
-  tar czf - -C "$OUT" r -C "$W" ship | split -b 15m - "$OUT/gpu-ft.tgz.part-"
-  rm -rf "$R"; ls -la "$OUT"
+  pack_results gpu-ft
 }
 trap pack EXIT
-if [ -z "${LOCAL:-}" ]; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .whl/*.whl 2>/dev/null || exit 1
-  export PYTHONPATH=/tmp/site
-fi
-cd "$W"
-SS="python3 -m sonarset.cli"
-workers=$(( $(nproc) > 4 ? $(nproc) - 2 : 2 ))
 $SS generate "$W/multi.zarr" --world "$WORLDS" --minutes "$GEN_MINUTES" --test-runs 1 --seed "$SEED" \
-  --workers "$workers" > "$R/generate.log" 2>&1
+  --workers "$WORKERS" > "$R/generate.log" 2>&1
 log "generate: $(grep -E 'wrote|error' "$R/generate.log" | tr '\n' ' ')"
 grep -q wrote "$R/generate.log" || exit 1
 train_s=$(( $(left) - EVAL_S - 20 ))

@@ -9,11 +9,9 @@
 #   LOCAL=1 DEVICE=cpu WORLDS=lab:1,rooms:1 GEN_MINUTES=1 MAX_STEPS=4 BATCH=8 SAMPLES=20 \
 #     DEMO_MINUTES=1 BUDGET=400 OUT=/tmp/gpu-out bash bench/gpu_paper.sh   # a dry run of every stage here
 #
-# Where the image lacks zarr/pydantic, .whl/ holds their wheels and sonarset's own
-# (bash ../shared/tools/device-wheels.sh; pip wheel --no-deps -w .whl .). Every stage has a deadline
+# The wheels it installs: bench/gpu_lib.sh. Every stage has a deadline
 # inside BUDGET seconds, so the tarball is written whatever a stage does.
 set -u
-T0=$(date +%s)
 BUDGET=${BUDGET:-540}
 OUT=${OUT:-/tmp/gpu-out}
 DEVICE=${DEVICE:-cuda}
@@ -26,39 +24,21 @@ SAMPLES=${SAMPLES:-1000}
 DEMO_MINUTES=${DEMO_MINUTES:-25}
 N_VAL=${N_VAL:-512}
 EVAL_S=${EVAL_S:-170}  # reserved for the evaluations at the end
-REPO=$(pwd)
 W=/tmp/gpu-work
-R=$OUT/r
-rm -rf "$W" && mkdir -p "$W" "$R"
-log() { echo "[$(( $(date +%s) - T0 )) s] $*" | tee -a "$R/session.log"; }
-left() { echo $(( BUDGET - ($(date +%s) - T0) )); }
-
+source "$(dirname "$0")/gpu_lib.sh"
 pack() {
   cp "$W"/paper/model.json "$W"/paper/metrics.jsonl "$R"/ 2>/dev/null
-  mkdir -p "$W/ship" && cp "$W"/paper/model.safetensors "$W/ship/" 2>/dev/null
-  tar czf - -C "$OUT" r -C "$W" ship | split -b 15m - "$OUT/gpu-paper.tgz.part-"
-  rm -rf "$R"
-  ls -la "$OUT"
+  cp "$W"/paper/model.safetensors "$W/ship/" 2>/dev/null
+  pack_results gpu-paper
 }
 trap pack EXIT
-
-if [ -z "${LOCAL:-}" ]; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl || exit 1
-  export PYTHONPATH=/tmp/site
-fi
-# not in the repository root: its sonarset/ lacks models/ and cli/, which the wheel installs inside it
-cd "$W"
-SS="python3 -m sonarset.cli"
-{ nvidia-smi; python3 -c "import torch, sonarset; print('torch', torch.__version__, 'sonarset', sonarset.__file__)"; \
-  lscpu | head -20; } > "$R/machine.txt" 2>&1
 log "machine: $(head -c 300 "$R/machine.txt" | tr '\n' ' ')"
 python3 -c "import zarr, numba, sonarset.sim, sonarset.models.echopt.train" > "$R/imports.txt" 2>&1 \
   || { log "imports failed: $(tail -3 "$R/imports.txt")"; exit 1; }
 
 # 1. the store, on all but two cores, while the GPU is benchmarked
-workers=$(( $(nproc) > 4 ? $(nproc) - 2 : 2 ))
 ( $SS generate "$W/multi.zarr" --world "$WORLDS" --minutes "$GEN_MINUTES" --test-runs 1 \
-    --seed "$SEED" --workers "$workers" > "$R/generate.log" 2>&1 ) &
+    --seed "$SEED" --workers "$WORKERS" > "$R/generate.log" 2>&1 ) &
 gen=$!
 if [ "$DEVICE" = cuda ]; then
   timeout 150 python3 "$REPO/bench/bench_train.py" --presets "$PRESET" --devices cuda --cuda-batches "$BATCH" \

@@ -4,7 +4,11 @@ import pytest
 import torch
 
 from sonarset.errors import SonarSetError
-from sonarset.models.echopt.losses import LOSSES, echo_energy_loss, image_loss, parse_loss, value_distribution_loss
+import numpy as np
+
+from sonarset.models.echopt.losses import (LOSSES, echo_energy_loss, image_loss, nrmsd_loss, parse_loss,
+                                         value_distribution_loss)
+from sonarset.scoring.metrics import nrmsd
 
 
 def _echo(centre: int, width: float, amplitude: float = 1.0) -> torch.Tensor:
@@ -18,7 +22,7 @@ def _echo(centre: int, width: float, amplitude: float = 1.0) -> torch.Tensor:
 def test_parse_loss_terms_and_errors():
     assert parse_loss("mse") == {"mse": 1.0}
     assert parse_loss("mse=1,w1=0.3") == {"mse": 1.0, "w1": 0.3}
-    assert set(LOSSES) == {"mse", "l1", "gdl", "cc", "w1", "energy"}
+    assert set(LOSSES) == {"mse", "l1", "gdl", "cc", "nrmsd", "w1", "energy"}
     with pytest.raises(SonarSetError, match="unknown term 'wasserstein'"):
         parse_loss("mse,wasserstein")
     with pytest.raises(SonarSetError, match="weight of 'w1' is not a number"):
@@ -65,3 +69,17 @@ def test_echo_energy_loss_calibrates_the_batch_not_each_image():
     assert echo_energy_loss(1.2 * a, a).item() > 0.19 and echo_energy_loss(0.8 * b, b).item() > 0.19
     # ~0, but for the echo tails that the scaling moves across the floor.
     assert echo_energy_loss(pred, torch.cat([a, b])).item() < 0.02
+
+
+def test_nrmsd_loss_is_the_metric_and_weights_a_faint_target_as_it_does():
+    bright, faint = _echo(20, 1.5), _echo(20, 1.5, amplitude=0.05)
+    stray = 0.02 * _echo(30, 1.0)  # the same faint echo drawn where neither target has one
+    pred, target = torch.cat([bright + stray, faint + stray]), torch.cat([bright, faint])
+    expected = nrmsd(pred.numpy(), target.numpy()).mean()
+    assert nrmsd_loss(pred, target).item() == pytest.approx(float(expected), rel=1e-5)
+    # MSE charges the stray echo the same on both images; NRMSD 20 times more on the faint one.
+    per_image = [nrmsd_loss(p[None], t[None]).item() for p, t in zip(pred, target)]
+    assert per_image[1] == pytest.approx(20 * per_image[0], rel=1e-4)
+    assert image_loss(pred[:1], target[:1], {"mse": 1}) == pytest.approx(image_loss(pred[1:], target[1:], {"mse": 1}).item())
+    assert nrmsd_loss(target, target).item() == 0.0
+    assert np.isfinite(nrmsd_loss(stray, torch.zeros_like(stray)).item())  # a blank target stays finite

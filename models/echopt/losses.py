@@ -15,7 +15,7 @@ from sonarset.models.echopt.model import EchoPT
 from sonarset.models.echopt.precision import autocast
 from sonarset.models.eval.result import ECHO_FLOOR
 
-LOSSES = ("mse", "l1", "gdl", "cc", "w1", "energy")
+LOSSES = ("mse", "l1", "gdl", "cc", "nrmsd", "w1", "energy")
 
 
 def parse_loss(spec: str) -> dict[str, float]:
@@ -61,6 +61,18 @@ def echo_energy_loss(pred: torch.Tensor, target: torch.Tensor, floor: float = EC
     return (e_pred - e_target).abs() / e_target.clamp_min(1e-6)
 
 
+def nrmsd_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """The evaluation's NRMSD, ||p - m||_2 / ||m||_2 per image, averaged over the batch.
+
+    MSE weights every image by its own energy, so a near-blank target (a robot facing open space)
+    hardly counts in it, while NRMSD divides by that energy: a faint echo drawn where the target has
+    none costs little MSE and a large NRMSD. The mean NRMSD of a test run is dominated by such
+    windows (docs/metrics.md), and this term trains on them with the weight the metric gives them.
+    """
+    diff = (pred - target).flatten(1).norm(dim=1)
+    return (diff / target.flatten(1).norm(dim=1).clamp_min(1e-6)).mean()
+
+
 def image_loss(pred: torch.Tensor, target: torch.Tensor, terms: dict[str, float]) -> torch.Tensor:
     """Weighted sum of per-pixel losses over (B, R, A) images."""
     total = pred.new_zeros(())
@@ -71,6 +83,8 @@ def image_loss(pred: torch.Tensor, target: torch.Tensor, terms: dict[str, float]
             v = F.l1_loss(pred, target)
         elif name == "gdl":  # image-gradient difference (Mathieu et al. 2016): keeps edges sharp
             v = (F.l1_loss(pred.diff(dim=-1), target.diff(dim=-1)) + F.l1_loss(pred.diff(dim=-2), target.diff(dim=-2))) / 2
+        elif name == "nrmsd":
+            v = nrmsd_loss(pred, target)
         elif name == "w1":
             v = value_distribution_loss(pred, target)
         elif name == "energy":
