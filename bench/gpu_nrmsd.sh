@@ -25,7 +25,7 @@ N_VAL=${N_VAL:-512}
 STEPS=${STEPS:-1000}  # the cosine schedule's length; --max-minutes stops it sooner if the GPU is slower
 NRMSD_W=${NRMSD_W:-0.5}
 source "$(dirname "$0")/gpu_lib.sh"
-trap 'for m in aligned-nrmsd raw-nrmsd aligned aligned-nrmsd2; do cp "$W/$m/model.json" "$R/$m-model.json"; \
+trap 'for m in aligned-nrmsd raw-nrmsd aligned aligned-nrmsd2; do cp "$W/$m/model.json" "$W/ship/$m.json"; \
   cp "$W/$m/metrics.jsonl" "$R/$m-metrics.jsonl"; cp "$W/$m/model.safetensors" "$W/ship/$m.safetensors"; \
   done 2>/dev/null; pack_results gpu-nrmsd' EXIT
 log "machine: $(grep -m1 -E 'H200|H100|Model name' "$R/machine.txt")"

@@ -124,6 +124,9 @@ def fig5(res: SlipResult):
                 sig = paper["signals"][f"{name}|{h}|{det}"]
                 clean = paper["labels"][f"{name}|{h}"]["clean"]
                 ax.plot(t, sig / np.nanmedian(sig[clean]), lw=1.0, label=horizon_name(h))
+            # log: eps divides by sqrt(|CC|), so a single forecast with CC near 0 is a spike of
+            # 1000x that would flatten every other curve on a linear axis
+            ax.set_yscale("log")
             ax.grid(alpha=0.3)
             if j == 0:
                 ax.set_ylabel(f"{name}\nsignal / slip-free median")
