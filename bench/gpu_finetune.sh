@@ -8,18 +8,10 @@
 #   PAPER_INIT=.gpu/paper1/model.safetensors bash bench/gpu_finetune.sh
 set -u
 BUDGET=${BUDGET:-360}
-OUT=${OUT:-/tmp/gpu-out}
-DEVICE=${DEVICE:-cuda}
-WORLDS=${WORLDS:-lab:8,corridor:6,orchard:6,warehouse:6,rooms:6}
-GEN_MINUTES=${GEN_MINUTES:-10}
-SEED=${SEED:-2027}
-BATCH=${BATCH:-64}
-N_VAL=${N_VAL:-512}
 SAMPLES=${SAMPLES:-1000}
 DEMO_MINUTES=${DEMO_MINUTES:-25}
 EVAL_S=${EVAL_S:-80}
 PAPER_INIT=$(realpath "${PAPER_INIT:-.gpu/paper1/model.safetensors}")
-W=/tmp/gpu-work
 source "$(dirname "$0")/gpu_lib.sh"
 pack() {
   for m in small paper; do

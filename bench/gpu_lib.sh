@@ -1,11 +1,20 @@
-# Shared by the bench/gpu_*.sh sessions (sourced, not run): the clock, the log, the install of the
-# wheels an offline GPU image lacks, and the packing of what comes back. Each script sets BUDGET
-# (seconds), OUT, and W (its work folder) before sourcing this file.
+# Shared by the bench/gpu_*.sh sessions (sourced, not run): their common settings (each may be set
+# in the environment), the clock, the log, the install of the wheels an offline GPU image lacks,
+# and the packing of what comes back. Each script sets BUDGET (seconds) before sourcing this file.
 #
 # Where the image lacks zarr/pydantic, .whl/ holds their wheels and sonarset's own
 # (bash ../shared/tools/device-wheels.sh; pip wheel --no-deps -w .whl .). LOCAL=1 skips the install:
 # a dry run of a script on this machine.
 T0=$(date +%s)
+OUT=${OUT:-/tmp/gpu-out}
+W=/tmp/gpu-work
+DEVICE=${DEVICE:-cuda}
+# the five-family store every GPU session generates (the same seed: the same test runs)
+WORLDS=${WORLDS:-lab:8,corridor:6,orchard:6,warehouse:6,rooms:6}
+GEN_MINUTES=${GEN_MINUTES:-10}
+SEED=${SEED:-2027}
+BATCH=${BATCH:-64}
+N_VAL=${N_VAL:-512}
 REPO=$(pwd)
 R=$OUT/r
 rm -rf "$W" && mkdir -p "$W" "$R" "$W/ship"

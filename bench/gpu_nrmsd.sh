@@ -6,7 +6,7 @@
 #   raw-nrmsd      raw inputs (the shipped model's), loss + nrmsd=NRMSD_W
 #   aligned        --inputs aligned, the shipped loss (the control)
 #   aligned-nrmsd2 --inputs aligned, loss + nrmsd=2*NRMSD_W
-# The checkpoints come back and are scored here, on the held-out test runs of the CPU's store
+# The checkpoints (weights and cards, ship/NAME.safetensors + NAME.json) come back and are scored here, on the held-out test runs of the CPU's store
 # (a different seed: none of its worlds is in this store), with bench/bench_families.py.
 #
 #   bash bench/gpu_nrmsd.sh                         # on the GPU machine, from the repository root
@@ -14,14 +14,6 @@
 #     OUT=/tmp/gpu-out bash bench/gpu_nrmsd.sh     # a dry run of every stage here
 set -u
 BUDGET=${BUDGET:-540}
-OUT=${OUT:-/tmp/gpu-out}
-W=/tmp/gpu-work
-DEVICE=${DEVICE:-cuda}
-WORLDS=${WORLDS:-lab:8,corridor:6,orchard:6,warehouse:6,rooms:6}
-GEN_MINUTES=${GEN_MINUTES:-10}
-SEED=${SEED:-2027}
-BATCH=${BATCH:-64}
-N_VAL=${N_VAL:-512}
 STEPS=${STEPS:-1000}  # the cosine schedule's length; --max-minutes stops it sooner if the GPU is slower
 NRMSD_W=${NRMSD_W:-0.5}
 source "$(dirname "$0")/gpu_lib.sh"

@@ -13,18 +13,10 @@
 # inside BUDGET seconds, so the tarball is written whatever a stage does.
 set -u
 BUDGET=${BUDGET:-540}
-OUT=${OUT:-/tmp/gpu-out}
-DEVICE=${DEVICE:-cuda}
 PRESET=${PRESET:-paper}
-WORLDS=${WORLDS:-lab:8,corridor:6,orchard:6,warehouse:6,rooms:6}
-GEN_MINUTES=${GEN_MINUTES:-10}
-SEED=${SEED:-2027}
-BATCH=${BATCH:-64}
 SAMPLES=${SAMPLES:-1000}
 DEMO_MINUTES=${DEMO_MINUTES:-25}
-N_VAL=${N_VAL:-512}
 EVAL_S=${EVAL_S:-170}  # reserved for the evaluations at the end
-W=/tmp/gpu-work
 source "$(dirname "$0")/gpu_lib.sh"
 pack() {
   cp "$W"/paper/model.json "$W"/paper/metrics.jsonl "$R"/ 2>/dev/null
