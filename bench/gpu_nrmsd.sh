@@ -1,13 +1,15 @@
 #!/usr/bin/env bash
-# The third GPU call of issue 23: four fine-tunes of the shipped small model share the GPU for the
+# The third GPU call of issue 23: four fine-tunes of the then-shipped small model (the CPU
+# five-family one; aligned-nrmsd2 became the shipped model) share the GPU for the
 # same wall time on a five-family store generated there, to separate what aligned inputs and the
 # NRMSD loss term each buy at ~5x the CPU fine-tunes' budget:
 #   aligned-nrmsd  --inputs aligned, loss + nrmsd=NRMSD_W
 #   raw-nrmsd      raw inputs (the shipped model's), loss + nrmsd=NRMSD_W
 #   aligned        --inputs aligned, the shipped loss (the control)
 #   aligned-nrmsd2 --inputs aligned, loss + nrmsd=2*NRMSD_W
-# The checkpoints (weights and cards, ship/NAME.safetensors + NAME.json) come back and are scored here, on the held-out test runs of the CPU's store
-# (a different seed: none of its worlds is in this store), with bench/bench_families.py.
+# The checkpoints (ship/NAME.safetensors with its card NAME.json) come back and are scored here,
+# on the held-out test runs of the CPU's store (a different seed: none of its worlds is in this
+# store), with bench/bench_families.py.
 #
 #   bash bench/gpu_nrmsd.sh                         # on the GPU machine, from the repository root
 #   LOCAL=1 DEVICE=cpu WORLDS=lab:1,rooms:1 GEN_MINUTES=1 STEPS=3 BATCH=4 N_VAL=8 BUDGET=300 \
