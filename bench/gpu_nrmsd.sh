@@ -18,8 +18,9 @@ set -u
 BUDGET=${BUDGET:-540}
 STEPS=${STEPS:-1000}  # the cosine schedule's length; --max-minutes stops it sooner if the GPU is slower
 NRMSD_W=${NRMSD_W:-0.5}
+RUNS=(aligned-nrmsd raw-nrmsd aligned aligned-nrmsd2)
 source "$(dirname "$0")/gpu_lib.sh"
-trap 'for m in aligned-nrmsd raw-nrmsd aligned aligned-nrmsd2; do cp "$W/$m/model.json" "$W/ship/$m.json"; \
+trap 'for m in "${RUNS[@]}"; do cp "$W/$m/model.json" "$W/ship/$m.json"; \
   cp "$W/$m/metrics.jsonl" "$R/$m-metrics.jsonl"; cp "$W/$m/model.safetensors" "$W/ship/$m.safetensors"; \
   done 2>/dev/null; pack_results gpu-nrmsd' EXIT
 log "machine: $(grep -m1 -E 'H200|H100|Model name' "$R/machine.txt")"
@@ -47,5 +48,5 @@ run raw-nrmsd raw "$base,nrmsd=$NRMSD_W" &
 run aligned aligned "$base" &
 run aligned-nrmsd2 aligned "$base,nrmsd=$(python3 -c "print(2 * $NRMSD_W)")" &
 wait
-for m in aligned-nrmsd raw-nrmsd aligned aligned-nrmsd2; do log "train $m: $(tail -c 250 "$R/train-$m.log" | tr '\n' ' ')"; done
+for m in "${RUNS[@]}"; do log "train $m: $(tail -c 250 "$R/train-$m.log" | tr '\n' ' ')"; done
 log "end, $(left) s of the budget left"
