@@ -16,7 +16,7 @@ from sonarset.sensor.ertis import AZIMUTH_PSFS
 
 from sonarset.models.echopt.config import INPUTS, PRESETS, PRIORS
 from sonarset.models.echopt.precision import DEVICES, PRECISIONS
-from sonarset.models.echopt.train_config import OPTIMIZERS, SCHEDULES
+from sonarset.models.echopt.train_config import OPTIMIZERS, SCHEDULES, STEP_WEIGHTS
 from sonarset.ingest.bag.reader import STAMPS
 
 
@@ -35,6 +35,7 @@ Prior = _choices("Prior", PRIORS)
 Inputs = _choices("Inputs", INPUTS)
 Optimizer = _choices("Optimizer", OPTIMIZERS)
 Schedule = _choices("Schedule", SCHEDULES)
+StepWeights = _choices("StepWeights", STEP_WEIGHTS)
 Precision = _choices("Precision", PRECISIONS)
 Stamps = _choices("Stamps", STAMPS)
 

@@ -185,7 +185,7 @@ def test_killed_at_any_write_phase_resumes_to_the_uninterrupted_result(tiny_stor
     ends with the weights, optimizer state, best model and metrics of an uninterrupted run."""
     import sonarset.models.echopt.train as tr
 
-    cfg = _cfg(max_steps=6, eval_every=2, curriculum="0:1,2:2", context_noise=0.02)
+    cfg = _cfg(max_steps=6, eval_every=2, curriculum="0:1,2:2", context_noise=0.02, step_weights="harmonic")
     phases: list[str] = []
     tr._AFTER_WRITE = phases.append
     try:
@@ -246,7 +246,8 @@ def test_rollout_training_options_and_priors(tiny_store, tmp_path):
     assert card["training"]["config"]["loss"] == "mse=1,gdl=0.5,cc=0.1,w1=1,energy=0.5"
     assert all(np.isfinite(r["train_loss"]) for r in res.history)
     for bad, msg in ((dict(curriculum="2:3"), "start at step 0"), (dict(loss="mse,fancy"), "unknown term"),
-                     (dict(prior="magic"), "prior must be one of")):
+                     (dict(prior="magic"), "prior must be one of"),
+                     (dict(step_weights="cubic"), "step_weights must be one of")):
         with pytest.raises(SonarSetError, match=msg) as refused:
             train(tiny_store, tmp_path / "bad", _cfg(max_steps=2, **bad))
         assert refused.value.parameter == next(iter(bad))

@@ -6,7 +6,7 @@ import torch
 
 from sonarset.errors import SonarSetError
 from sonarset.models.echopt.losses import (LOSSES, echo_energy_loss, image_loss, nrmsd_loss, parse_loss,
-                                         value_distribution_loss)
+                                         step_weights, value_distribution_loss, weighted_loss)
 from sonarset.scoring.metrics import nrmsd
 
 
@@ -83,3 +83,19 @@ def test_nrmsd_loss_is_the_metric_and_weights_a_faint_target_as_it_does():
     assert mse[0] == pytest.approx(mse[1])
     assert nrmsd_loss(target, target).item() == 0.0
     assert np.isfinite(nrmsd_loss(stray, torch.zeros_like(stray)).item())  # a blank target stays finite
+
+
+def test_step_weights_share_a_rollout_loss():
+    assert step_weights("uniform", 4) == [0.25] * 4
+    harmonic = np.array(step_weights("harmonic", 4))
+    np.testing.assert_allclose(harmonic, np.array([1, 1 / 2, 1 / 3, 1 / 4]) / (25 / 12))
+    assert harmonic.sum() == pytest.approx(1)
+    # losses growing with the step, as a rollout's do: uniform is their mean, harmonic leans to the first
+    losses = [torch.tensor(x) for x in (1.0, 2.0, 3.0, 4.0)]
+    assert float(weighted_loss(losses)) == pytest.approx(2.5)
+    assert float(weighted_loss(losses, "harmonic")) == pytest.approx(4 / (25 / 12))
+    assert float(weighted_loss([torch.tensor(3.0)], "harmonic")) == pytest.approx(3.0)  # pushforward's one loss
+    # the first step's share of the gradient
+    steps = [torch.tensor(1.0, requires_grad=True) for _ in range(10)]
+    weighted_loss([s * s for s in steps], "harmonic").backward()
+    assert steps[0].grad / sum(s.grad for s in steps) == pytest.approx(1 / sum(1 / h for h in range(1, 11)))

@@ -13,7 +13,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from sonarset.models.echopt.train_config import TrainConfig
 from sonarset.models.registry import BASELINES, HORIZONS
 
-from sonarset.cli.choices import Device, Optimizer, Precision, Inputs, Preset, Prior, Schedule, value
+from sonarset.cli.choices import Device, Optimizer, Precision, Inputs, Preset, Prior, Schedule, StepWeights, value
 from sonarset.cli.common import err, fail, out, per_name_progress, progress_bar, user_errors
 from sonarset.cli.options import Model, ModelDevice, ModelPrecision
 
@@ -145,6 +145,9 @@ def train(
                                         "(e.g. 0:1,300:2,600:4,900:6)."),
     pushforward: bool = typer.Option(TRAIN.pushforward, "--pushforward",
                                      help="Only the last rollout step carries gradient."),
+    step_weights: StepWeights = typer.Option(TRAIN.step_weights, "--step-weights",
+                                             help="The rollout steps' shares of the loss: uniform (1/k each) or "
+                                                  "harmonic (step h by 1/h: more weight on the first forecasts)."),
     context_noise: float = typer.Option(TRAIN.context_noise, "--context-noise", min=0.0,
                                         help="Std of Gaussian noise on the context frames."),
     val_horizon: int = typer.Option(TRAIN.val_horizon, "--val-horizon", min=0,
@@ -182,6 +185,7 @@ def train(
                       schedule=schedule.value, seed=seed, device=device.value, eval_every=eval_every,
                       max_steps=max_steps, max_minutes=max_minutes, compile=compile_, test_samples=test_samples,
                       n_val=n_val, prior=value(prior) or "", loss=loss, curriculum=curriculum, pushforward=pushforward,
+                      step_weights=step_weights.value,
                       optimizer=optimizer.value, context_noise=context_noise, val_horizon=val_horizon, init=init,
                       precision=precision.value, worlds=worlds, n_in=n_in, inputs=value(inputs) or "", stream=stream,
                       shuffle_buffer=shuffle_buffer, loader_workers=workers)

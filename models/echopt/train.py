@@ -9,7 +9,8 @@ process and DataLoader worker its own shards, in memory bounded by the shuffle b
 
 For auto-regressive use (beyond the paper): an unrolled loss over k steps, each step fed the
 model's own previous predictions, with a curriculum on k (``curriculum="0:1,400:2,800:4"``: from
-step 0 k = 1, from step 400 k = 2, ...); optionally "pushforward" (the first k - 1 steps without
+step 0 k = 1, from step 400 k = 2, ...) and the steps' losses weighted alike or, ``harmonic``, step h
+by 1/h (losses.step_weights); optionally "pushforward" (the first k - 1 steps without
 gradient, so memory stays that of one step); Gaussian noise on the measured context frames; and a
 loss choice (``mse``, ``l1``, ``gdl`` image-gradient difference, ``cc`` = 1 - correlation, or a
 weighted sum such as ``mse=1,gdl=0.5``). Validation is the mean MSE over a rollout of
@@ -54,7 +55,7 @@ from sonarset.store.store import SonarStore
 from sonarset.models.echopt.checkpoint import load_checkpoint, save_checkpoint
 from sonarset.models.echopt.config import WARM_START_FIELDS, grid_and_rig, make_config
 from sonarset.models.echopt.distributed import Dist, destroy_process_group, init_distributed
-from sonarset.models.echopt.losses import parse_loss, rollout_losses, validation_loss
+from sonarset.models.echopt.losses import parse_loss, rollout_losses, validation_loss, weighted_loss
 from sonarset.models.echopt.model import EchoPT
 from sonarset.models.echopt.precision import resolve_device, resolve_precision
 from sonarset.models.echopt.train_config import RESUME_KEYS, STREAM_KEYS, TrainConfig
@@ -268,7 +269,7 @@ class _Run:
         for g in self.opt.param_groups:
             g["lr"] = self.cfg.lr_at(step, self.plan.total_steps)
         losses = rollout_losses(self.fwd, frames, cmds, targets, self.terms, self.cfg.pushforward, self.precision)
-        loss = sum(losses) / len(losses)
+        loss = weighted_loss(losses, self.cfg.step_weights)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
@@ -285,7 +286,7 @@ class _Run:
         """Validate, append to ``history``, save (rank 0) and report; returns the best loss so far."""
         dist = self.dist
         val = validation_loss(self.model, self.data.val_batcher, self.data.val_idx, self.val_horizon, dist=dist,
-                              terms=self.terms, precision=self.precision)
+                              terms=self.terms, precision=self.precision, weights=self.cfg.step_weights)
         run_loss, run_n = dist.all_sum(tally.loss, tally.n)
         rate = tally.samples / (time.perf_counter() - tally.t0)
         rec = {"step": step, "epoch": step / self.plan.steps_per_epoch, "train_loss": run_loss / max(run_n, 1),

@@ -17,6 +17,10 @@ from sonarset.models.echopt.config import INPUTS, PRIORS
 
 OPTIMIZERS = ("adam", "adamw")
 SCHEDULES = ("none", "cosine")
+#: How the steps of a rollout share the loss: uniform (each 1/k) or harmonic (step h ~ 1/h, normalised:
+#: the evaluation scores one-shot, AR-3, AR-5 and AR-10 alike, while a uniform 10-step loss gives the
+#: one-step forecast a tenth of the gradient and the late, large errors most of it).
+STEP_WEIGHTS = ("uniform", "harmonic")
 
 
 @dataclass
@@ -45,6 +49,7 @@ class TrainConfig:
     loss: str = "mse"  # a term of losses.LOSSES (mse, l1, gdl, cc, nrmsd, w1, energy), or a weighted sum "mse=1,w1=2"
     curriculum: str = "1"  # rollout length k: "k", or "step:k,step:k,..." from those steps on
     pushforward: bool = False  # only the last of the k steps carries gradient
+    step_weights: str = "uniform"  # STEP_WEIGHTS: the rollout steps' shares of the loss
     context_noise: float = 0.0  # std of Gaussian noise added to the measured context frames
     val_horizon: int = 0  # rollout steps of the validation loss (0 = the curriculum's longest)
     init: str = ""  # fine-tune: start from this checkpoint's weights (same preset, prior, grid, images)
@@ -81,7 +86,7 @@ class TrainConfig:
             raise SonarSetError(f"shuffle_buffer must be >= 1 and loader_workers >= 0, got {self.shuffle_buffer} "
                                 f"and {self.loader_workers}", parameter=bad)
         for name, allowed in (("prior", PRIORS), ("inputs", INPUTS), ("optimizer", OPTIMIZERS),
-                              ("schedule", SCHEDULES)):
+                              ("schedule", SCHEDULES), ("step_weights", STEP_WEIGHTS)):
             value = getattr(self, name)
             if (value or name not in ("prior", "inputs")) and value not in allowed:
                 raise SonarSetError(f"{name} must be one of {', '.join(allowed)}, got {value!r}", parameter=name)
@@ -111,7 +116,7 @@ class TrainConfig:
 
 #: Settings that must not change when a run is resumed.
 RESUME_KEYS = ("preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps", "prior", "loss",
-               "curriculum", "pushforward", "context_noise", "val_horizon", "optimizer", "weight_decay", "init",
-               "worlds", "n_in", "inputs", "stream", "shuffle_buffer", "loader_workers")
+               "curriculum", "pushforward", "step_weights", "context_noise", "val_horizon", "optimizer", "weight_decay",
+               "init", "worlds", "n_in", "inputs", "stream", "shuffle_buffer", "loader_workers")
 #: Of those, the ones that matter only when the windows are streamed.
 STREAM_KEYS = ("shuffle_buffer", "loader_workers")

@@ -253,14 +253,16 @@ def summarise(per_trial: list[dict], names: list[str], seed: int = 0) -> tuple[l
 
 
 def signal_ratios(paper: dict, names: list[str]) -> dict[str, dict[str, float]]:
-    """Per predictor|horizon|detector and slip kind: the signal's mean during that kind of slip over
-    its mean in slip-free frames (> 1: the slip raises it), on one trajectory kept with its signals."""
+    """Per predictor|horizon|detector and slip kind: the signal's median during that kind of slip over
+    its median in slip-free frames (> 1: the slip raises it), on one trajectory kept with its signals.
+    Medians, because eps divides by sqrt(|CC|): one forecast with CC near 0 makes a spike that
+    would carry a mean by itself (Fig. 5 shows the spikes)."""
     out = {}
     for name in names:
         for h in HORIZONS:
             lab = paper["labels"][f"{name}|{h}"]
             for det in DETECTORS:
                 sig = paper["signals"][f"{name}|{h}|{det}"]
-                base = np.nanmean(sig[lab["clean"]])
-                out[f"{name}|{h}|{det}"] = {k: float(np.nanmean(sig[lab[k]]) / base) for k in KINDS}
+                base = np.nanmedian(sig[lab["clean"]])
+                out[f"{name}|{h}|{det}"] = {k: float(np.nanmedian(sig[lab[k]]) / base) for k in KINDS}
     return out

@@ -95,8 +95,8 @@ def paper_trajectory_table(res: SlipResult) -> list[str]:
     p0, p1 = res.paper["trial"]["periods"]
     lines = ["", "## The paper's trajectory", "",
              f"Both wheels slip (factors {tuple(p0['factors'])}) from {p0['start_s']:g} s to {p0['end_s']:g} s, one "
-             f"wheel ({tuple(p1['factors'])}) from {p1['start_s']:g} s to {p1['end_s']:g} s. Mean signal during "
-             "each slip period over its mean in slip-free frames (> 1: the slip raises it):", "",
+             f"wheel ({tuple(p1['factors'])}) from {p1['start_s']:g} s to {p1['end_s']:g} s. Median signal during "
+             "each slip period over its median in slip-free frames (> 1: the slip raises it):", "",
              *_header("{d}: both | {d}: one")]
     for name in res.names:
         for h in HORIZONS:
