@@ -33,13 +33,20 @@ from sonarset.report.numbers import horizon_name
 KEYS = ("cc", "nrmsd", "echo_f1")
 
 
+def paired(res, model: str, metric: str, horizon: int) -> tuple[np.ndarray, np.ndarray]:
+    """``model``'s and flow's per-window scores, on the windows where both are finite."""
+    a = np.asarray(res.per_window[model][horizon][metric], float)
+    b = np.asarray(res.per_window["flow"][horizon][metric], float)
+    ok = np.isfinite(a) & np.isfinite(b)
+    return a[ok], b[ok]
+
+
 def win_share(res, model: str, metric: str, horizon: int) -> float:
     """The share of windows (both scores finite, ties left out) on which ``model`` scores better
     than flow: the paired t-test weighs each window by its difference, and NRMSD's differences
     are heavy-tailed (a near-blank target divides by almost nothing), so the two can disagree."""
-    a = np.asarray(res.per_window[model][horizon][metric], float)
-    b = np.asarray(res.per_window["flow"][horizon][metric], float)
-    d = (a - b)[np.isfinite(a) & np.isfinite(b)]
+    a, b = paired(res, model, metric, horizon)
+    d = a - b
     d = d[d != 0] * (-1 if metric == "nrmsd" else 1)
     return float(np.mean(d > 0)) if len(d) else float("nan")
 
@@ -49,10 +56,7 @@ def nrmsd_tail(res, model: str, horizon: int, level: float = 2.0) -> dict:
     so that the split favours neither) has NRMSD above ``level``, i.e. a near-blank target, against
     the others. A handful of such windows can carry nearly all the variance of the differences and
     so decide the test whoever wins them; the other windows' own t statistic says what the rest shows."""
-    a = np.asarray(res.per_window[model][horizon]["nrmsd"], float)
-    b = np.asarray(res.per_window["flow"][horizon]["nrmsd"], float)
-    ok = np.isfinite(a) & np.isfinite(b)
-    a, b = a[ok], b[ok]
+    a, b = paired(res, model, "nrmsd", horizon)
     d = a - b
     tail = np.maximum(a, b) > level
     rest = d[~tail]

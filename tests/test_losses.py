@@ -99,3 +99,5 @@ def test_step_weights_share_a_rollout_loss():
     steps = [torch.tensor(1.0, requires_grad=True) for _ in range(10)]
     weighted_loss([s * s for s in steps], "harmonic").backward()
     assert steps[0].grad / sum(s.grad for s in steps) == pytest.approx(1 / sum(1 / h for h in range(1, 11)))
+    with pytest.raises(SonarSetError, match="step_weights must be one of"):
+        step_weights("cubic", 3)

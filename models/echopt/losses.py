@@ -13,6 +13,7 @@ from sonarset.windows import WindowBatcher, WindowIndex
 from sonarset.models.echopt.distributed import Dist
 from sonarset.models.echopt.model import EchoPT
 from sonarset.models.echopt.precision import autocast
+from sonarset.models.echopt.train_config import STEP_WEIGHTS
 from sonarset.models.eval.result import ECHO_FLOOR
 
 LOSSES = ("mse", "l1", "gdl", "cc", "nrmsd", "w1", "energy")
@@ -101,6 +102,9 @@ def step_weights(kind: str, k: int) -> list[float]:
     """The shares of a ``k``-step rollout's losses in the training loss, summing to 1: ``uniform``
     (1/k each) or ``harmonic`` (step h in proportion to 1/h; k = 10: the one-step forecast 34 %, the
     tenth 3 %)."""
+    if kind not in STEP_WEIGHTS:
+        raise SonarSetError(f"step_weights must be one of {', '.join(STEP_WEIGHTS)}, got {kind!r}",
+                            parameter="step_weights")
     w = [1.0] * k if kind == "uniform" else [1.0 / (h + 1) for h in range(k)]
     return [x / sum(w) for x in w]
 
