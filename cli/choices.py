@@ -16,7 +16,7 @@ from sonarset.sensor.ertis import AZIMUTH_PSFS
 
 from sonarset.models.echopt.config import INPUTS, PRESETS, PRIORS
 from sonarset.models.echopt.precision import DEVICES, PRECISIONS
-from sonarset.models.echopt.train_config import OPTIMIZERS, SCHEDULES, STEP_WEIGHTS
+from sonarset.models.echopt.train_config import OPTIMIZERS, SCHEDULES, STEP_WEIGHTS, TRAINABLE
 from sonarset.ingest.bag.reader import STAMPS
 
 
@@ -36,6 +36,7 @@ Inputs = _choices("Inputs", INPUTS)
 Optimizer = _choices("Optimizer", OPTIMIZERS)
 Schedule = _choices("Schedule", SCHEDULES)
 StepWeights = _choices("StepWeights", STEP_WEIGHTS)
+Trainable = _choices("Trainable", TRAINABLE)
 Precision = _choices("Precision", PRECISIONS)
 Stamps = _choices("Stamps", STAMPS)
 

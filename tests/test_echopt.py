@@ -356,3 +356,51 @@ def test_a_fine_tune_may_align_its_inputs_and_keeps_them(tiny_store, tmp_path):
     with pytest.raises(SonarSetError, match="inputs must be one of") as refused:
         train(tiny_store, tmp_path / "bad", _cfg(max_steps=1, inputs="warped"))
     assert refused.value.parameter == "inputs"
+
+
+def test_geometry_branch_starts_at_zero_and_sees_where_a_pixel_lies():
+    """The geometry branch (config.geometry_channels) added to a model leaves its forecasts exactly
+    as they were until it learns; its inputs are the pixel's position and the command's warp."""
+    torch.manual_seed(0)
+    cfg = make_config("tiny", *TINY_GRID.shape)
+    base = EchoPT(cfg)
+    torch.nn.init.normal_(base.head[-1].weight, std=0.1)  # a "trained" base: not just its prior
+    geo = EchoPT(make_config("tiny", *TINY_GRID.shape, geometry_channels=4))
+    missing, unexpected = geo.load_state_dict(base.state_dict(), strict=False)
+    assert not unexpected and missing and all(k.startswith("geo_") for k in missing)
+    frames, commands = torch.rand(3, 3, *TINY_GRID.shape), torch.tensor([[0.2, 0.5]] * 4).expand(3, 4, 2).clone()
+    assert torch.equal(base(frames, commands), geo(frames, commands))
+    g = geo.geometry(commands[:, -1])
+    assert g.shape == (3, 7, *TINY_GRID.shape)
+    # sin(azimuth) rises across the grid, the range channel runs -1 .. 1 down it, the command is scaled
+    assert (g[0, 0, 0].diff() > 0).all() and g[0, 2, 0, 0] < -0.9 and g[0, 2, -1, 0] > 0.9
+    assert torch.allclose(g[0, 3:5, 5, 5], torch.tensor([0.2 / 0.3, 0.5]))
+    # turning left (omega > 0) moves the scene to the right: each pixel's source lies at a larger azimuth
+    assert (g[0, 6, 10:, 5:-5] > 0).all()
+    with pytest.raises(ValueError, match="geometry_channels"):
+        make_config("tiny", *TINY_GRID.shape, geometry_channels=-1)
+
+
+def test_a_fine_tune_may_add_the_geometry_branch_and_train_only_it(tiny_store, tmp_path):
+    """--init with --geometry-channels adds the branch to a model without one; --trainable geometry
+    updates only it, so the rest of the network stays as trained; neither can take a branch away."""
+    train(tiny_store, tmp_path / "base", _cfg(max_steps=2))
+    start, _ = load_checkpoint(tmp_path / "base", TINY_GRID)
+    train(tiny_store, tmp_path / "geo", _cfg(max_steps=4, init=str(tmp_path / "base"), geometry_channels=4,
+                                             trainable="geometry"))
+    tuned, card = load_checkpoint(tmp_path / "geo", TINY_GRID)
+    assert card["config"]["geometry_channels"] == 4 and card["training"]["config"]["trainable"] == "geometry"
+    after = tuned.state_dict()
+    for k, a in start.state_dict().items():
+        assert torch.equal(a, after[k]), k
+    assert tuned.geo_weights[-1].weight.abs().sum() > 0  # the branch learned (it starts at zero)
+    # a fine-tune of it keeps the branch; one that would drop it, or train a branch that is not there, is refused
+    train(tiny_store, tmp_path / "geo2", _cfg(max_steps=1, init=str(tmp_path / "geo")))
+    assert load_checkpoint(tmp_path / "geo2", TINY_GRID)[0].cfg.geometry_channels == 4
+    with pytest.raises(SonarSetError, match="another network.*geometry_channels"):
+        train(tiny_store, tmp_path / "drop", _cfg(max_steps=1, init=str(tmp_path / "geo"), geometry_channels=0))
+    with pytest.raises(SonarSetError, match="no geometry branch") as refused:
+        train(tiny_store, tmp_path / "none", _cfg(max_steps=1, trainable="geometry"))
+    assert refused.value.parameter == "trainable"
+    ev = evaluate(tiny_store, ["flow", f"echopt:{tmp_path / 'geo' / 'model.safetensors'}"], horizons=(1, 2), samples=10)
+    assert np.isfinite(ev.per_window["echopt"][2]["cc"]).all()

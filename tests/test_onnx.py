@@ -116,13 +116,18 @@ def test_bad_onnx_inputs_are_one_line_errors(exported, tmp_path):
     assert not (tmp_path / "n.onnx").exists()
 
 
-def test_an_aligned_model_exports_with_its_warps_in_the_graph(exported, tmp_path):
-    """inputs="aligned" warps every input frame inside the graph (chained grid samples): the export
-    matches torch within the parity tolerance."""
+@pytest.mark.parametrize("geometry_channels", [0, 4])
+def test_an_aligned_model_exports_with_its_warps_in_the_graph(exported, tmp_path, geometry_channels):
+    """inputs="aligned" warps every input frame inside the graph (chained grid samples), and the
+    geometry branch computes its per-pixel inputs there: the export matches torch within the parity
+    tolerance."""
     store = exported[0]
     torch.manual_seed(1)
-    model = EchoPT(make_config("tiny", *GRID.shape, inputs="aligned", **grid_and_rig(store.grid, store.rig)))
+    model = EchoPT(make_config("tiny", *GRID.shape, inputs="aligned", geometry_channels=geometry_channels,
+                               **grid_and_rig(store.grid, store.rig)))
     torch.nn.init.normal_(model.head[-1].weight, std=0.05)
+    if geometry_channels:
+        torch.nn.init.normal_(model.geo_weights[-1].weight, std=0.05)
     card = {"format": "echopt-card/1", "preset": "tiny", "grid": store.grid.model_dump(),
             "processing": store.processing.model_dump(mode="json"), "rig": store.rig.model_dump(mode="json"),
             "training": {"precision": "fp32"}}

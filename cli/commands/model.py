@@ -13,7 +13,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from sonarset.models.echopt.train_config import TrainConfig
 from sonarset.models.registry import BASELINES, HORIZONS
 
-from sonarset.cli.choices import Device, Optimizer, Precision, Inputs, Preset, Prior, Schedule, StepWeights, value
+from sonarset.cli.choices import Device, Optimizer, Precision, Inputs, Preset, Prior, Schedule, StepWeights, Trainable, value
 from sonarset.cli.common import err, fail, out, per_name_progress, progress_bar, user_errors
 from sonarset.cli.options import Model, ModelDevice, ModelPrecision
 
@@ -164,6 +164,15 @@ def train(
                                                                    "(each warped to the predicted frame's pose along "
                                                                    "the commands). Default: the preset's (raw), or "
                                                                    "--init's model's."),
+    geometry_channels: Optional[int] = typer.Option(None, "--geometry-channels", min=0,
+                                                    help="Channels of the geometry branch: frame filters weighted "
+                                                         "per pixel by its position and the command's warp (0: "
+                                                         "none, the paper's). A fine-tune may add it to a model "
+                                                         "without one. Default: the preset's (0), or --init's "
+                                                         "model's."),
+    trainable: Trainable = typer.Option(TRAIN.trainable, "--trainable",
+                                        help="all, or geometry: only the geometry branch learns, the rest "
+                                             "stays as --init trained it."),
     stream: bool = typer.Option(TRAIN.stream, "--stream",
                                 help="Stream windows from the store instead of loading all its frames: for stores "
                                      "bigger than memory, or behind a URL (docs/scaling.md)."),
@@ -187,7 +196,9 @@ def train(
                       n_val=n_val, prior=value(prior) or "", loss=loss, curriculum=curriculum, pushforward=pushforward,
                       step_weights=step_weights.value,
                       optimizer=optimizer.value, context_noise=context_noise, val_horizon=val_horizon, init=init,
-                      precision=precision.value, worlds=worlds, n_in=n_in, inputs=value(inputs) or "", stream=stream,
+                      precision=precision.value, worlds=worlds, n_in=n_in, inputs=value(inputs) or "",
+                      geometry_channels=-1 if geometry_channels is None else geometry_channels,
+                      trainable=trainable.value, stream=stream,
                       shuffle_buffer=shuffle_buffer, loader_workers=workers)
     main = int(os.environ.get("RANK", "0")) == 0  # under torchrun only rank 0 reports
     with _training_bar(main) as progress:

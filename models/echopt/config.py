@@ -38,6 +38,12 @@ class EchoPTConfig:
     # raw (paper): the frames as measured | aligned: each warped to the predicted frame's pose along
     # the window's commands (the flow of each frame), so every branch sees the frames registered
     inputs: str = "raw"
+    # Channels of the geometry-modulated correction (0: none, the paper's). Convolutions are blind to
+    # where a pixel lies, but how a warp misplaces an echo depends on it: the azimuth PSF is
+    # shift-invariant in sin(azimuth), so an echo turned towards the edge widens in azimuth, and near
+    # echoes move fastest. This branch adds sum_k m_k(pixel, command) x f_k(frames): linear filters of
+    # the frames weighted per pixel by an MLP of the pixel's position and the newest command's warp.
+    geometry_channels: int = 0
     dropout: float = 0.0
     # The sensor grid's edges and the robot rig, which the flow prior needs (from the store).
     range_edges: tuple[float, float] = (_DEFAULT_GRID.range_min_m, _DEFAULT_GRID.range_max_m)
@@ -90,6 +96,9 @@ class EchoPTConfig:
         if self.n_range % self.patch[0] or self.n_azimuth % self.patch[1]:
             raise GridMismatchError(f"grid {self.n_range}x{self.n_azimuth} is not divisible by the "
                                     f"{self.patch[0]}x{self.patch[1]} patch")
+        g = self.geometry_channels
+        if isinstance(g, bool) or not isinstance(g, int) or not 0 <= g <= 1024:
+            raise ValueError(f"geometry_channels must be an integer in 0..1024, got {g!r}")
         if self.grid_tokens[0] * self.grid_tokens[1] > self.max_tokens:
             raise GridMismatchError(f"grid {self.n_range}x{self.n_azimuth} needs more than {self.max_tokens} tokens")
         if self.d_model % self.n_heads:
@@ -116,6 +125,9 @@ INPUTS = ("raw", "aligned")
 #: Settings a fine-tune (``init``) may change: they prepare the inputs and change no weight's shape
 #: or meaning enough to forbid starting from a trained model (the card's lineage records the change).
 WARM_START_FIELDS = ("inputs",)
+#: A fine-tune may also add the geometry branch to a model without one: it starts at zero, so the
+#: new model starts as the trained one.
+ADDABLE_FIELDS = ("geometry_channels",)
 # Upper bounds on a card's sizes, far above any network here (the paper's: 8 layers, 376 + 8 wide,
 # 2000 tokens) but below what would exhaust memory building one; unlisted sizes: 100,000.
 _MAX_SIZE = {"n_layers": 256, "n_heads": 256, "n_in": 64, "d_embed": 8192, "d_ff": 32768, "max_tokens": 100_000,

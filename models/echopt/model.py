@@ -41,6 +41,13 @@ from sonarset.models.flow import arc_motion, source_points
 # Command ranges (m/s, rad/s): inputs are scaled to [-1, 1]. The simulator's limits (RobotRig's
 # defaults) when written, but fixed here, not read from a rig: trained weights expect these scales.
 V_SCALE, W_SCALE = 0.3, 1.0
+# The geometry branch (config.geometry_channels): its frame filters' size (range x azimuth pixels, the
+# reach of a one-step warp's error on the default grid), the width of its per-pixel MLP, and its inputs:
+# sin and cos of the azimuth, the range, the newest command (v, omega) and the warp's shift (range, azimuth).
+GEOMETRY_KERNEL = (7, 5)
+GEOMETRY_HIDDEN = 16
+N_GEOMETRY = 7
+GEOMETRY_SHIFT_SCALE = 4.0  # pixels: a one-step shift is a few pixels; scaled to about [-1, 1]
 
 
 class Block(nn.Module):
@@ -109,6 +116,11 @@ class EchoPT(nn.Module):
         # head over the depth-concatenation: c2 + 2 fc + 1 channels (32 + 32 + 1 = 65 in the paper)
         h1, h2 = cfg.head_channels
         self.head = nn.Sequential(conv(c2 + 2 * fc + 1, h1, k), GELU(), conv(h1, h2, k), GELU(), conv(h2, 1, k))
+        if cfg.geometry_channels:
+            g = cfg.geometry_channels
+            self.geo_filters = nn.Conv2d(cfg.n_in, g, GEOMETRY_KERNEL, padding="same")
+            self.geo_weights = nn.Sequential(nn.Conv2d(N_GEOMETRY, GEOMETRY_HIDDEN, 1), GELU(),
+                                             nn.Conv2d(GEOMETRY_HIDDEN, g, 1))
         self.register_buffer("cmd_scale", torch.tensor([1 / V_SCALE, 1 / W_SCALE] * (cfg.n_in + 1)), persistent=False)
         # pixel centres of the grid (range [m], azimuth [rad]) for the flow prior
         (r0, r1), (a0, a1) = cfg.range_edges, cfg.azimuth_edges
@@ -124,6 +136,9 @@ class EchoPT(nn.Module):
         if cfg.prior != "none":  # an untrained model is exactly its prior
             nn.init.zeros_(self.head[-1].weight)
             nn.init.zeros_(self.head[-1].bias)
+        if cfg.geometry_channels:  # the branch starts at zero: added to a trained model, it changes nothing yet
+            nn.init.zeros_(self.geo_weights[-1].weight)
+            nn.init.zeros_(self.geo_weights[-1].bias)
 
     @staticmethod
     def _init(m: nn.Module) -> None:
@@ -170,6 +185,8 @@ class EchoPT(nn.Module):
             # out contiguously: one copy of it back to channels-last per forward (~10% of inference)
             m = torch.empty_like(m, memory_format=torch.channels_last).copy_(m)
         out = self.head(torch.cat([t, f1, f2, m], dim=1))[:, 0]
+        if cfg.geometry_channels:
+            out = out + (self.geo_weights(self.geometry(commands[:, -1])) * self.geo_filters(frames)).sum(1)
         if cfg.prior == "none":
             return out
         if cfg.prior == "last":
@@ -186,6 +203,25 @@ class EchoPT(nn.Module):
         r, th = self.r_c.float()[None, :, None], self.th_c.float()[None, None, :]
         xo, yo = self._step_back(r, th, command)
         return self._sample(last, xo, yo)
+
+    def geometry(self, command: torch.Tensor) -> torch.Tensor:
+        """The geometry branch's per-pixel inputs (B, N_GEOMETRY, R, A) for the newest ``command`` (B, 2):
+        the pixel's sine and cosine of azimuth and its range (-1 at the grid's first range, 1 at its
+        last), the command scaled as the other branches see it, and how far the command's warp moves
+        the pixel's source (range and azimuth pixels, / GEOMETRY_SHIFT_SCALE)."""
+        cfg = self.cfg
+        R, A, B = cfg.n_range, cfg.n_azimuth, command.shape[0]
+        r, th = self.r_c.float()[None, :, None], self.th_c.float()[None, None, :]
+        xo, yo = self._step_back(r, th, command)
+        (_, r_step), (_, th_step) = self._pixel_steps
+        # a source behind the sensor (atan2 near +-pi) is no shift the filters can use: clamped
+        shift = torch.stack([(torch.hypot(xo, yo) - r) / r_step, (torch.atan2(yo, xo) - th) / th_step], 1)
+        shift = shift.clamp(-8 * GEOMETRY_SHIFT_SCALE, 8 * GEOMETRY_SHIFT_SCALE) / GEOMETRY_SHIFT_SCALE
+        r0, r1 = cfg.range_edges
+        pos = torch.cat([torch.sin(th).expand(1, R, A), torch.cos(th).expand(1, R, A),
+                         ((r - r0) / (r1 - r0) * 2 - 1).expand(1, R, A)])
+        cmd = (command.float() * self.cmd_scale[:2])[:, :, None, None].expand(B, 2, R, A)
+        return torch.cat([pos.expand(B, 3, R, A), cmd, shift], 1)
 
     def align(self, frames: torch.Tensor, commands: torch.Tensor) -> torch.Tensor:
         """Every frame of ``frames`` (B, n_in, R, A) warped to the pose of the frame to predict: the

@@ -53,7 +53,7 @@ from sonarset.errors import SonarSetError
 from sonarset.store.store import SonarStore
 
 from sonarset.models.echopt.checkpoint import load_checkpoint, save_checkpoint
-from sonarset.models.echopt.config import WARM_START_FIELDS, grid_and_rig, make_config
+from sonarset.models.echopt.config import ADDABLE_FIELDS, WARM_START_FIELDS, grid_and_rig, make_config
 from sonarset.models.echopt.distributed import Dist, destroy_process_group, init_distributed
 from sonarset.models.echopt.losses import parse_loss, rollout_losses, validation_loss, weighted_loss
 from sonarset.models.echopt.model import EchoPT
@@ -104,18 +104,23 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
 def _init_from(model: EchoPT, spec: str, trained: EchoPT, card: dict, store: SonarStore) -> None:
     """Copy a trained model's weights into ``model``, which must be the same network on the same grid,
     trained on the same images (a fine-tune continues a model; it cannot change what it is, except
-    how its inputs are prepared: ``WARM_START_FIELDS``)."""
+    how its inputs are prepared: ``WARM_START_FIELDS``; or add a branch it lacks, which starts at
+    zero: ``ADDABLE_FIELDS``)."""
     from sonarset.models.echopt.cards import card_processing
 
     differ = [k for k in model.cfg.__dataclass_fields__ if getattr(trained.cfg, k) != getattr(model.cfg, k)]
-    if any(k not in WARM_START_FIELDS for k in differ):
+    added = [k for k in differ if k in ADDABLE_FIELDS and not getattr(trained.cfg, k)]
+    if any(k not in WARM_START_FIELDS and k not in added for k in differ):
         diff = ", ".join(f"{k}: {getattr(trained.cfg, k)!r} vs {getattr(model.cfg, k)!r}" for k in differ)
         raise SonarSetError(f"init {spec}: another network than this preset and prior make here ({diff})",
                             parameter="init")
     if not card_processing(card).same_images(store.processing):
         raise SonarSetError(f"init {spec}: trained on {card_processing(card).profile} images, "
                             f"{store.location} has {store.processing.profile}", parameter="init")
-    model.load_state_dict(trained.state_dict())
+    missing, unexpected = model.load_state_dict(trained.state_dict(), strict=not added)
+    if unexpected or any(not k.startswith("geo_") for k in missing):  # only the added branch may be new
+        raise SonarSetError(f"init {spec}: its weights do not fit this network ({', '.join(unexpected + missing)})",
+                            parameter="init")
 
 
 def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[EchoPT, torch.optim.Optimizer]:
@@ -132,6 +137,10 @@ def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[Echo
         trained, card = load_checkpoint(cfg.init, store.grid)
     if cfg.inputs or trained is not None:  # a fine-tune keeps its model's unless told otherwise
         overrides["inputs"] = cfg.inputs or trained.cfg.inputs
+    if cfg.geometry_channels >= 0:
+        overrides["geometry_channels"] = cfg.geometry_channels
+    elif trained is not None:
+        overrides["geometry_channels"] = trained.cfg.geometry_channels
     try:
         model = EchoPT(make_config(cfg.preset, *store.grid.shape, **overrides))
     except ValueError as exc:  # e.g. an n_in whose command values leave d_model indivisible by the heads
@@ -139,9 +148,15 @@ def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[Echo
         raise SonarSetError(f"{what} {getattr(cfg, what)}: {exc}", parameter=what) from None
     if trained is not None:
         _init_from(model, cfg.init, trained, card, store)
+    if cfg.trainable == "geometry":
+        if not model.cfg.geometry_channels:
+            raise SonarSetError("trainable geometry: the model has no geometry branch (geometry_channels 0)",
+                                parameter="trainable")
+        for name, p in model.named_parameters():
+            p.requires_grad_(name.startswith("geo_"))
     model = model.to(device).to(memory_format=torch.channels_last)
     opt_cls = torch.optim.AdamW if cfg.optimizer == "adamw" else torch.optim.Adam
-    opt = opt_cls(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=cfg.weight_decay)
+    opt = opt_cls([p for p in model.parameters() if p.requires_grad], lr=cfg.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=cfg.weight_decay)
     return model, opt
 
 

@@ -21,6 +21,9 @@ SCHEDULES = ("none", "cosine")
 #: the evaluation scores one-shot, AR-3, AR-5 and AR-10 alike, while a uniform 10-step loss gives the
 #: one-step forecast a tenth of the gradient and the late, large errors most of it).
 STEP_WEIGHTS = ("uniform", "harmonic")
+#: Which weights a run updates: all, or only the geometry branch (config.geometry_channels), the rest
+#: frozen as ``init`` trained it: what the branch adds is then measured on an unchanged model.
+TRAINABLE = ("all", "geometry")
 
 
 @dataclass
@@ -56,6 +59,8 @@ class TrainConfig:
     worlds: str = ""  # comma-separated world families to train on ("" = every training run)
     n_in: int = 0  # input frames per window (0 = the preset's: the paper's 3)
     inputs: str = ""  # config.INPUTS (raw | aligned); "" = the preset's (raw), or init's model's
+    geometry_channels: int = -1  # config.geometry_channels; -1 = the preset's (0, none), or init's model's
+    trainable: str = "all"  # TRAINABLE
     # stream windows from the store instead of loading it (sonarset.stream): memory bounded by the
     # shuffle buffer (windows mixed at once) and the DataLoader workers' read-ahead, not the store
     stream: bool = False
@@ -86,7 +91,7 @@ class TrainConfig:
             raise SonarSetError(f"shuffle_buffer must be >= 1 and loader_workers >= 0, got {self.shuffle_buffer} "
                                 f"and {self.loader_workers}", parameter=bad)
         for name, allowed in (("prior", PRIORS), ("inputs", INPUTS), ("optimizer", OPTIMIZERS),
-                              ("schedule", SCHEDULES), ("step_weights", STEP_WEIGHTS)):
+                              ("schedule", SCHEDULES), ("step_weights", STEP_WEIGHTS), ("trainable", TRAINABLE)):
             value = getattr(self, name)
             if (value or name not in ("prior", "inputs")) and value not in allowed:
                 raise SonarSetError(f"{name} must be one of {', '.join(allowed)}, got {value!r}", parameter=name)
@@ -117,6 +122,6 @@ class TrainConfig:
 #: Settings that must not change when a run is resumed.
 RESUME_KEYS = ("preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps", "prior", "loss",
                "curriculum", "pushforward", "step_weights", "context_noise", "val_horizon", "optimizer", "weight_decay",
-               "init", "worlds", "n_in", "inputs", "stream", "shuffle_buffer", "loader_workers")
+               "init", "worlds", "n_in", "inputs", "geometry_channels", "trainable", "stream", "shuffle_buffer", "loader_workers")
 #: Of those, the ones that matter only when the windows are streamed.
 STREAM_KEYS = ("shuffle_buffer", "loader_workers")
