@@ -42,7 +42,8 @@ from sonarset.models.flow import arc_motion, source_points
 # defaults) when written, but fixed here, not read from a rig: trained weights expect these scales.
 V_SCALE, W_SCALE = 0.3, 1.0
 # The geometry branch (config.geometry_channels): its frame filters' size (range x azimuth pixels, the
-# reach of a one-step warp's error on the default grid), the width of its per-pixel MLP, and its inputs:
+# reach of a one-step warp's error on the default grid), the least width of its per-pixel MLP (never
+# narrower than its output), and its inputs:
 # sin and cos of the azimuth, the range, the newest command (v, omega) and the warp's shift (range, azimuth).
 GEOMETRY_KERNEL = (7, 5)
 GEOMETRY_HIDDEN = 16
@@ -119,8 +120,8 @@ class EchoPT(nn.Module):
         if cfg.geometry_channels:
             g = cfg.geometry_channels
             self.geo_filters = nn.Conv2d(cfg.n_in, g, GEOMETRY_KERNEL, padding="same")
-            self.geo_weights = nn.Sequential(nn.Conv2d(N_GEOMETRY, GEOMETRY_HIDDEN, 1), GELU(),
-                                             nn.Conv2d(GEOMETRY_HIDDEN, g, 1))
+            hidden = max(GEOMETRY_HIDDEN, g)
+            self.geo_weights = nn.Sequential(nn.Conv2d(N_GEOMETRY, hidden, 1), GELU(), nn.Conv2d(hidden, g, 1))
         self.register_buffer("cmd_scale", torch.tensor([1 / V_SCALE, 1 / W_SCALE] * (cfg.n_in + 1)), persistent=False)
         # pixel centres of the grid (range [m], azimuth [rad]) for the flow prior
         (r0, r1), (a0, a1) = cfg.range_edges, cfg.azimuth_edges
