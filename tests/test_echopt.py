@@ -402,5 +402,8 @@ def test_a_fine_tune_may_add_the_geometry_branch_and_train_only_it(tiny_store, t
     with pytest.raises(SonarSetError, match="no geometry branch") as refused:
         train(tiny_store, tmp_path / "none", _cfg(max_steps=1, trainable="geometry"))
     assert refused.value.parameter == "trainable"
+    with pytest.raises(SonarSetError, match="geometry_channels must be an integer") as refused:
+        train(tiny_store, tmp_path / "huge", _cfg(max_steps=1, geometry_channels=5000))
+    assert refused.value.parameter == "geometry_channels"
     ev = evaluate(tiny_store, ["flow", f"echopt:{tmp_path / 'geo' / 'model.safetensors'}"], horizons=(1, 2), samples=10)
     assert np.isfinite(ev.per_window["echopt"][2]["cc"]).all()

@@ -144,7 +144,7 @@ def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[Echo
     try:
         model = EchoPT(make_config(cfg.preset, *store.grid.shape, **overrides))
     except ValueError as exc:  # e.g. an n_in whose command values leave d_model indivisible by the heads
-        what = "n_in" if cfg.n_in else "preset"
+        what = "geometry_channels" if "geometry_channels" in str(exc) else "n_in" if cfg.n_in else "preset"
         raise SonarSetError(f"{what} {getattr(cfg, what)}: {exc}", parameter=what) from None
     if trained is not None:
         _init_from(model, cfg.init, trained, card, store)
@@ -156,7 +156,8 @@ def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[Echo
             p.requires_grad_(name.startswith("geo_"))
     model = model.to(device).to(memory_format=torch.channels_last)
     opt_cls = torch.optim.AdamW if cfg.optimizer == "adamw" else torch.optim.Adam
-    opt = opt_cls([p for p in model.parameters() if p.requires_grad], lr=cfg.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=cfg.weight_decay)
+    opt = opt_cls([p for p in model.parameters() if p.requires_grad], lr=cfg.lr, betas=(0.9, 0.999), eps=1e-8,
+                  weight_decay=cfg.weight_decay)
     return model, opt
 
 
