@@ -14,11 +14,18 @@ from sonarset.testing import pool_workers, running
 pytestmark = pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table in /proc")
 
 
+def _interruptible() -> None:
+    # A shell starts a background job (``cmd &``) with SIGINT ignored, and the ignore is inherited:
+    # run under one, the command would rightly keep ignoring Ctrl-C. The test is of a command a
+    # user can interrupt.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def generating(tmp_path) -> tuple[subprocess.Popen, set[int]]:
     """``generate --workers 2`` in its own session, once both workers run; (process, workers)."""
     proc = subprocess.Popen([sys.executable, "-m", "sonarset.cli", "generate", str(tmp_path / "s.zarr"),
                              "--minutes", "25", "--runs", "3", "--workers", "2"],
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=_interruptible)
     deadline = time.monotonic() + 60
     workers: set[int] = set()
     while len(workers) < 2 and time.monotonic() < deadline and proc.poll() is None:
