@@ -49,6 +49,7 @@ GEOMETRY_KERNEL = (7, 5)
 GEOMETRY_HIDDEN = 16
 N_GEOMETRY = 7
 GEOMETRY_SHIFT_SCALE = 4.0  # pixels: a one-step shift is a few pixels; scaled to about [-1, 1]
+GEOMETRY_PREFIX = "geo_"  # the branch's parameter names start with it (a fine-tune adds or trains just those)
 
 
 class Block(nn.Module):
@@ -161,8 +162,12 @@ class EchoPT(nn.Module):
                                     f"got {n_in} of {R}x{A}")
         c = commands.reshape(B, -1) * self.cmd_scale
         last = frames[:, -1]
+        # where the newest command moves each pixel from: the flow prior (the aligned newest frame) and
+        # the geometry branch both need it, computed once
+        uses_source = cfg.prior == "flow" or cfg.inputs == "aligned" or cfg.geometry_channels
+        newest = self._source(self._centres(), commands[:, -1]) if uses_source else None
         if cfg.inputs == "aligned":
-            frames = self.align(frames, commands)
+            frames = self.align(frames, commands, newest)
         # transformer branch
         tok = self.embed(frames)  # (B, d_embed, R/pr, A/pa)
         gr, ga = tok.shape[-2:]
@@ -187,13 +192,13 @@ class EchoPT(nn.Module):
             m = torch.empty_like(m, memory_format=torch.channels_last).copy_(m)
         out = self.head(torch.cat([t, f1, f2, m], dim=1))[:, 0]
         if cfg.geometry_channels:
-            out = out + (self.geo_weights(self.geometry(commands[:, -1])) * self.geo_filters(frames)).sum(1)
+            out = out + (self.geo_weights(self.geometry(commands[:, -1], newest)) * self.geo_filters(frames)).sum(1)
         if cfg.prior == "none":
             return out
         if cfg.prior == "last":
             return out + last
         # with aligned inputs the last one is the flow prior already
-        return out + (frames[:, -1] if cfg.inputs == "aligned" else self.flow_prior(last, commands[:, -1]))
+        return out + (frames[:, -1] if cfg.inputs == "aligned" else self._sample(last, *newest))
 
     def flow_prior(self, last: torch.Tensor, command: torch.Tensor) -> torch.Tensor:
         """The acoustic-flow warp of ``last`` (B, R, A) under ``command`` (B, 2): each pixel of the next
@@ -201,22 +206,21 @@ class EchoPT(nn.Module):
         models/flow.py), sampled bilinearly (edge values outside the field of view), as
         ``baselines.AcousticFlow``. The sampling is this model's own: its pixel constants are Python
         numbers, which a graph export (ONNX) needs."""
-        r, th = self.r_c.float()[None, :, None], self.th_c.float()[None, None, :]
-        xo, yo = self._step_back(r, th, command)
-        return self._sample(last, xo, yo)
+        return self._sample(last, *self._source(self._centres(), command))
 
-    def geometry(self, command: torch.Tensor) -> torch.Tensor:
+    def geometry(self, command: torch.Tensor, source: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """The geometry branch's per-pixel inputs (B, N_GEOMETRY, R, A) for the newest ``command`` (B, 2):
         the pixel's sine and cosine of azimuth and its range (-1 at the grid's first range, 1 at its
         last), the command scaled as the other branches see it, and how far the command's warp moves
-        the pixel's source (range and azimuth pixels, / GEOMETRY_SHIFT_SCALE)."""
+        the pixel's source (range and azimuth pixels, / GEOMETRY_SHIFT_SCALE). ``source``: that source
+        (:meth:`_source` of the pixel centres), when the caller has it already."""
         cfg = self.cfg
         R, A, B = cfg.n_range, cfg.n_azimuth, command.shape[0]
-        r, th = self.r_c.float()[None, :, None], self.th_c.float()[None, None, :]
-        xo, yo = self._step_back(r, th, command)
+        r, th = self._centres()
+        r_src, th_src = source if source is not None else self._source((r, th), command)
         (_, r_step), (_, th_step) = self._pixel_steps
         # a source behind the sensor (atan2 near +-pi) is no shift the filters can use: clamped
-        shift = torch.stack([(torch.hypot(xo, yo) - r) / r_step, (torch.atan2(yo, xo) - th) / th_step], -1)
+        shift = torch.stack([(r_src - r) / r_step, (th_src - th) / th_step], -1)
         shift = shift.clamp(-8 * GEOMETRY_SHIFT_SCALE, 8 * GEOMETRY_SHIFT_SCALE) / GEOMETRY_SHIFT_SCALE
         r0, r1 = cfg.range_edges
         pos = torch.stack([torch.sin(th).expand(1, R, A), torch.cos(th).expand(1, R, A),
@@ -226,20 +230,30 @@ class EchoPT(nn.Module):
         # 1 x 1 convolutions run fastest on (3x against a contiguous NCHW input)
         return torch.cat([pos.expand(B, R, A, 3), cmd.expand(B, R, A, 2), shift], -1).permute(0, 3, 1, 2)
 
-    def align(self, frames: torch.Tensor, commands: torch.Tensor) -> torch.Tensor:
+    def align(self, frames: torch.Tensor, commands: torch.Tensor,
+              newest: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """Every frame of ``frames`` (B, n_in, R, A) warped to the pose of the frame to predict: the
         predicted frame's pixels are moved back along the window's commands, newest first
         (``commands[:, k]`` moves the robot from frame k - 1 to frame k), and each frame is sampled
         where they were when it was taken. The last one is :meth:`flow_prior`'s image, the older
-        ones its chain over more commands (one bilinear sampling each, no accumulated blur)."""
+        ones its chain over more commands (one bilinear sampling each, no accumulated blur).
+        ``newest``: the newest command's :meth:`_source` of the pixel centres, when the caller has it."""
         n_in = frames.shape[1]
-        r, th = self.r_c.float()[None, :, None], self.th_c.float()[None, None, :]
+        points = self._centres()
         newest_first = []
         for k in range(n_in - 1, -1, -1):
-            xo, yo = self._step_back(r, th, commands[:, k + 1])
-            newest_first.append(self._sample(frames[:, k], xo, yo))
-            r, th = torch.hypot(xo, yo), torch.atan2(yo, xo)
+            points = newest if k == n_in - 1 and newest is not None else self._source(points, commands[:, k + 1])
+            newest_first.append(self._sample(frames[:, k], *points))
         return torch.stack(newest_first[::-1], 1)
+
+    def _centres(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The pixel centres' range (1, R, 1) and azimuth (1, 1, A), float32."""
+        return self.r_c.float()[None, :, None], self.th_c.float()[None, None, :]
+
+    def _source(self, points: tuple[torch.Tensor, torch.Tensor], command: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(range, azimuth) in the previous sensor frame of ``points`` (range, azimuth) after ``command``."""
+        xo, yo = self._step_back(*points, command)
+        return torch.hypot(xo, yo), torch.atan2(yo, xo)  # ONNX has no hypot: models/echopt/onnx_export.py translates it
 
     def _step_back(self, r: torch.Tensor, th: torch.Tensor, command: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(x, y) in the previous sensor frame of the points at range ``r``, azimuth ``th`` (float32,
@@ -248,13 +262,13 @@ class EchoPT(nn.Module):
         motion = arc_motion(torch, cmd[:, 0], cmd[:, 1], self.cfg.dt)  # in float64, then the pixels in float32
         return source_points(torch, r, th, tuple(t.float()[:, None, None] for t in motion), self.cfg.sensor_offset)
 
-    def _sample(self, image: torch.Tensor, xo: torch.Tensor, yo: torch.Tensor) -> torch.Tensor:
-        """``image`` (B, R, A) sampled bilinearly at the points (x, y) of its sensor frame, edge values
-        outside the field of view."""
+    def _sample(self, image: torch.Tensor, r: torch.Tensor, th: torch.Tensor) -> torch.Tensor:
+        """``image`` (B, R, A) sampled bilinearly at the points (range ``r``, azimuth ``th``) of its
+        sensor frame, edge values outside the field of view."""
         R, A = self.cfg.n_range, self.cfg.n_azimuth
         (r_first, r_step), (th_first, th_step) = self._pixel_steps
-        ir = (torch.hypot(xo, yo) - r_first) / r_step  # ONNX has no hypot: models/echopt/onnx_export.py translates it
-        ia = (torch.atan2(yo, xo) - th_first) / th_step
+        ir = (r - r_first) / r_step
+        ia = (th - th_first) / th_step
         B = image.shape[0]
         grid = torch.stack([(2 * ia / max(A - 1, 1) - 1).expand(B, R, A), (2 * ir / max(R - 1, 1) - 1).expand(B, R, A)], -1)
         return F.grid_sample(image[:, None].float(), grid.to(image.device), mode="bilinear", padding_mode="border",

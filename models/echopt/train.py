@@ -56,7 +56,7 @@ from sonarset.models.echopt.checkpoint import load_checkpoint, save_checkpoint
 from sonarset.models.echopt.config import ADDABLE_FIELDS, WARM_START_FIELDS, grid_and_rig, make_config
 from sonarset.models.echopt.distributed import Dist, destroy_process_group, init_distributed
 from sonarset.models.echopt.losses import parse_loss, rollout_losses, validation_loss, weighted_loss
-from sonarset.models.echopt.model import EchoPT
+from sonarset.models.echopt.model import GEOMETRY_PREFIX, EchoPT
 from sonarset.models.echopt.precision import resolve_device, resolve_precision
 from sonarset.models.echopt.train_config import RESUME_KEYS, STREAM_KEYS, TrainConfig
 from sonarset.models.echopt.train_data import MemoryWindows, StreamedWindows
@@ -118,7 +118,7 @@ def _init_from(model: EchoPT, spec: str, trained: EchoPT, card: dict, store: Son
         raise SonarSetError(f"init {spec}: trained on {card_processing(card).profile} images, "
                             f"{store.location} has {store.processing.profile}", parameter="init")
     missing, unexpected = model.load_state_dict(trained.state_dict(), strict=not added)
-    if unexpected or any(not k.startswith("geo_") for k in missing):  # only the added branch may be new
+    if unexpected or any(not k.startswith(GEOMETRY_PREFIX) for k in missing):  # only the added branch may be new
         raise SonarSetError(f"init {spec}: its weights do not fit this network ({', '.join(unexpected + missing)})",
                             parameter="init")
 
@@ -153,7 +153,7 @@ def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[Echo
             raise SonarSetError("trainable geometry: the model has no geometry branch (geometry_channels 0)",
                                 parameter="trainable")
         for name, p in model.named_parameters():
-            p.requires_grad_(name.startswith("geo_"))
+            p.requires_grad_(name.startswith(GEOMETRY_PREFIX))
     model = model.to(device).to(memory_format=torch.channels_last)
     opt_cls = torch.optim.AdamW if cfg.optimizer == "adamw" else torch.optim.Adam
     opt = opt_cls([p for p in model.parameters() if p.requires_grad], lr=cfg.lr, betas=(0.9, 0.999), eps=1e-8,
