@@ -17,6 +17,14 @@ _DEFAULT_RIG = RobotRig()
 _DEFAULT_GRID = SensorGrid.default()
 
 
+class ConfigError(ValueError):
+    """A setting no network can have; ``setting`` names it (a caller maps it to its own option)."""
+
+    def __init__(self, setting: str, message: str):
+        super().__init__(message)
+        self.setting = setting
+
+
 @dataclass(frozen=True)
 class EchoPTConfig:
     n_range: int = _DEFAULT_GRID.n_range
@@ -64,7 +72,7 @@ class EchoPTConfig:
         return self.n_range // self.patch[0], self.n_azimuth // self.patch[1]
 
     def check(self) -> None:
-        """ValueError (GridMismatchError for the grid) naming the first setting no network can have:
+        """ConfigError (GridMismatchError for the grid) naming the first setting no network can have:
         a model card is data from a file, and a bad one must fail here, not deep in torch."""
         sizes = {"n_range": self.n_range, "n_azimuth": self.n_azimuth, "n_in": self.n_in, "d_embed": self.d_embed,
                  "n_layers": self.n_layers, "n_heads": self.n_heads, "d_ff": self.d_ff,
@@ -74,39 +82,39 @@ class EchoPTConfig:
                  "head_channels": self.head_channels}
         for name, pair in pairs.items():
             if not (isinstance(pair, tuple) and len(pair) == 2):
-                raise ValueError(f"{name} must be a pair of integers, got {pair!r}")
+                raise ConfigError(name, f"{name} must be a pair of integers, got {pair!r}")
             sizes.update({f"{name}[{i}]": v for i, v in enumerate(pair)})
         for name, v in sizes.items():
             if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= _MAX_SIZE.get(name, 100_000):
-                raise ValueError(f"{name} must be an integer in 1..{_MAX_SIZE.get(name, 100_000)}, got {v!r}")
+                raise ConfigError(name.split("[")[0], f"{name} must be an integer in 1..{_MAX_SIZE.get(name, 100_000)}, got {v!r}")
         for name in ("dt", "sensor_offset", "dropout"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ValueError(f"{name} must be a finite number, got {v!r}")
+                raise ConfigError(name, f"{name} must be a finite number, got {v!r}")
         if self.dt <= 0:
-            raise ValueError(f"dt (the frame interval) must be > 0 s, got {self.dt}")
+            raise ConfigError("dt", f"dt (the frame interval) must be > 0 s, got {self.dt}")
         if not 0 <= self.dropout < 1:
-            raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
+            raise ConfigError("dropout", f"dropout must be in [0, 1), got {self.dropout}")
         for name in ("range_edges", "azimuth_edges"):
             lo_hi = getattr(self, name)
             if not (isinstance(lo_hi, tuple) and len(lo_hi) == 2 and all(
                     isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in lo_hi)
                     and lo_hi[0] < lo_hi[1]):
-                raise ValueError(f"{name} must be two finite increasing numbers, got {lo_hi!r}")
+                raise ConfigError(name, f"{name} must be two finite increasing numbers, got {lo_hi!r}")
         if self.n_range % self.patch[0] or self.n_azimuth % self.patch[1]:
             raise GridMismatchError(f"grid {self.n_range}x{self.n_azimuth} is not divisible by the "
                                     f"{self.patch[0]}x{self.patch[1]} patch")
         g = self.geometry_channels
         if isinstance(g, bool) or not isinstance(g, int) or not 0 <= g <= 1024:
-            raise ValueError(f"geometry_channels must be an integer in 0..1024, got {g!r}")
+            raise ConfigError("geometry_channels", f"geometry_channels must be an integer in 0..1024, got {g!r}")
         if self.grid_tokens[0] * self.grid_tokens[1] > self.max_tokens:
             raise GridMismatchError(f"grid {self.n_range}x{self.n_azimuth} needs more than {self.max_tokens} tokens")
         if self.d_model % self.n_heads:
-            raise ValueError(f"d_model {self.d_model} is not divisible by {self.n_heads} heads")
+            raise ConfigError("d_model", f"d_model {self.d_model} is not divisible by {self.n_heads} heads")
         if self.prior not in PRIORS:
-            raise ValueError(f"prior must be one of {', '.join(PRIORS)}, got {self.prior!r}")
+            raise ConfigError("prior", f"prior must be one of {', '.join(PRIORS)}, got {self.prior!r}")
         if self.inputs not in INPUTS:
-            raise ValueError(f"inputs must be one of {', '.join(INPUTS)}, got {self.inputs!r}")
+            raise ConfigError("inputs", f"inputs must be one of {', '.join(INPUTS)}, got {self.inputs!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)

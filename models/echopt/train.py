@@ -53,7 +53,7 @@ from sonarset.errors import SonarSetError
 from sonarset.store.store import SonarStore
 
 from sonarset.models.echopt.checkpoint import load_checkpoint, save_checkpoint
-from sonarset.models.echopt.config import ADDABLE_FIELDS, WARM_START_FIELDS, grid_and_rig, make_config
+from sonarset.models.echopt.config import ADDABLE_FIELDS, WARM_START_FIELDS, ConfigError, grid_and_rig, make_config
 from sonarset.models.echopt.distributed import Dist, destroy_process_group, init_distributed
 from sonarset.models.echopt.losses import parse_loss, rollout_losses, validation_loss, weighted_loss
 from sonarset.models.echopt.model import GEOMETRY_PREFIX, EchoPT
@@ -143,8 +143,9 @@ def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[Echo
         overrides["geometry_channels"] = trained.cfg.geometry_channels
     try:
         model = EchoPT(make_config(cfg.preset, *store.grid.shape, **overrides))
-    except ValueError as exc:  # e.g. an n_in whose command values leave d_model indivisible by the heads
-        what = "geometry_channels" if "geometry_channels" in str(exc) else "n_in" if cfg.n_in else "preset"
+    except ValueError as exc:  # a size this run set, else what it derives from (n_in sets d_model)
+        setting = exc.setting if isinstance(exc, ConfigError) else None
+        what = setting if setting in ("n_in", "geometry_channels") else "n_in" if cfg.n_in else "preset"
         raise SonarSetError(f"{what} {getattr(cfg, what)}: {exc}", parameter=what) from None
     if trained is not None:
         _init_from(model, cfg.init, trained, card, store)
