@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -238,22 +239,32 @@ def test_energyscape_plot_puts_left_azimuths_on_the_left():
     plt.close(fig)
 
 
-# sha256 of the images that sonarset made before the processing stage existed (commit 9dc0b52),
-# for this command: `--processing raw` must keep reproducing them bit for bit.
-RAW_GOLDEN = {"run_000": "782e1b36da0fbe5e83f20b9c5802b5de675bfcdebe6d13af16d9775fe1e300ec",
-              "test_000": "24ad05fb7742024dccfe5616d804d9d1305a63348ba743efebcde918e35c12a0"}
+# The images that sonarset made before the processing stage existed (commit 9dc0b52), for the
+# generate() call below: `--processing raw` must keep reproducing them. Made on an AVX2 machine;
+# numpy's float64 sin/cos/exp take other code paths on AVX-512 machines (ulp-level differences), so
+# the comparison counts float16 steps instead of hashing: a changed simulator moves most pixels by many.
+RAW_FORMAT_1_0 = Path(__file__).parent / "data" / "raw_format_1_0.npz"
 
 
-def test_raw_processing_reproduces_the_format_1_0_images_bit_for_bit(tmp_path):
-    import hashlib
+def _float16_steps(a, b):
+    """How many float16 values lie between a and b (both non-negative)."""
+    return np.abs(a.view(np.int16).astype(np.int32) - b.view(np.int16).astype(np.int32))
 
-    grid = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=60, azimuth_min_rad=-math.pi / 2,
-                      azimuth_max_rad=math.pi / 2, n_azimuth=45)
-    generate(tmp_path / "raw.zarr", runs=1, test_runs=1, minutes=0.3, seed=11, workers=1, grid=grid, processing="raw")
+
+def test_raw_processing_reproduces_the_format_1_0_images(tmp_path):
+    grid = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=40, azimuth_min_rad=-math.pi / 2,
+                      azimuth_max_rad=math.pi / 2, n_azimuth=30)
+    generate(tmp_path / "raw.zarr", runs=1, test_runs=1, minutes=0.1, seed=11, workers=1, grid=grid, processing="raw")
     store = open_store(tmp_path / "raw.zarr")
     assert store.attrs.processing == Processing.raw()
-    got = {r: hashlib.sha256(store.run(r)["images"][:].tobytes()).hexdigest() for r in store.runs()}
-    assert got == RAW_GOLDEN
+    golden = np.load(RAW_FORMAT_1_0)
+    assert sorted(store.runs()) == sorted(golden.files)
+    for run in golden.files:
+        got, want = store.run(run)["images"][:], golden[run]
+        assert got.dtype == want.dtype == np.float16 and got.shape == want.shape
+        assert (got >= 0).all() and (want >= 0).all()
+        steps = _float16_steps(got, want)
+        assert (steps <= 1).mean() >= 0.999, f"{run}: {(steps > 1).mean():.2%} of pixels moved by > 1 float16 step"
 
 
 def test_default_processing_is_ertis_and_the_store_records_it(tmp_path):
