@@ -240,8 +240,9 @@ def test_energyscape_plot_puts_left_azimuths_on_the_left():
 
 
 # The images that sonarset made before the processing stage existed (commit 9dc0b52), for the
-# generate() call below: `--processing raw` must keep reproducing them. Made on an AVX2 machine;
-# numpy's float64 sin/cos/exp take other code paths on AVX-512 machines (ulp-level differences), so
+# generate() call below: `--processing raw` must keep reproducing them. Made on an AVX2 machine,
+# where 9dc0b52 and today's code hash the same but not as they did on AVX-512 machines (numpy,
+# scipy and OpenBLAS versions and kernels ruled out; most likely numpy's float64 sin/cos/exp), so
 # the comparison counts float16 steps instead of hashing: a changed simulator moves most pixels by many.
 RAW_FORMAT_1_0 = Path(__file__).parent / "data" / "raw_format_1_0.npz"
 
