@@ -6,6 +6,7 @@ import torch
 
 from sonarset.errors import SonarSetError
 from sonarset.models.echopt.losses import (LOSSES, echo_energy_loss, image_loss, nrmsd_loss, parse_loss,
+                                         pooled_nrmsd_loss,
                                          step_weights, value_distribution_loss, weighted_loss)
 from sonarset.scoring.metrics import nrmsd
 
@@ -21,7 +22,7 @@ def _echo(centre: int, width: float, amplitude: float = 1.0) -> torch.Tensor:
 def test_parse_loss_terms_and_errors():
     assert parse_loss("mse") == {"mse": 1.0}
     assert parse_loss("mse=1,w1=0.3") == {"mse": 1.0, "w1": 0.3}
-    assert set(LOSSES) == {"mse", "l1", "gdl", "cc", "nrmsd", "w1", "energy"}
+    assert set(LOSSES) == {"mse", "l1", "gdl", "cc", "nrmsd", "nrmsd_pooled", "w1", "energy"}
     with pytest.raises(SonarSetError, match="unknown term 'wasserstein'"):
         parse_loss("mse,wasserstein")
     with pytest.raises(SonarSetError, match="weight of 'w1' is not a number"):
@@ -83,6 +84,25 @@ def test_nrmsd_loss_is_the_metric_and_weights_a_faint_target_as_it_does():
     assert mse[0] == pytest.approx(mse[1])
     assert nrmsd_loss(target, target).item() == 0.0
     assert np.isfinite(nrmsd_loss(stray, torch.zeros_like(stray)).item())  # a blank target stays finite
+
+
+def test_pooled_nrmsd_loss_pulls_every_image_alike():
+    bright, faint = _echo(20, 1.5), _echo(20, 1.5, amplitude=0.01)
+    stray = 0.02 * _echo(30, 1.0)
+    target = torch.cat([bright, faint])
+    # On one image it is that image's NRMSD; over a batch, summed error norms over summed target norms.
+    assert pooled_nrmsd_loss(bright + stray, bright).item() == pytest.approx(nrmsd_loss(bright + stray, bright).item())
+    pred = torch.cat([bright + stray, faint + stray])
+    expected = 2 * stray.norm() / (bright.norm() + faint.norm())
+    assert image_loss(pred, target, {"nrmsd_pooled": 1}).item() == pytest.approx(expected.item(), rel=1e-5)
+    assert pooled_nrmsd_loss(target, target).item() == 0.0
+    # Gradient per image: the same norm for the bright and the near-blank target under the pooled term,
+    # 100 times larger on the near-blank one under the per-image NRMSD.
+    for loss, ratio in ((pooled_nrmsd_loss, 1.0), (nrmsd_loss, 100.0)):
+        p = pred.clone().requires_grad_(True)
+        loss(p, target).backward()
+        norms = p.grad.flatten(1).norm(dim=1)
+        assert (norms[1] / norms[0]).item() == pytest.approx(ratio, rel=1e-3)
 
 
 def test_step_weights_share_a_rollout_loss():

@@ -137,7 +137,9 @@ def train(
                                                                  "or flow (its acoustic-flow warp). Default: the "
                                                                  "preset's (paper none, small flow)."),
     loss: str = typer.Option(TRAIN.loss, "--loss", help="mse, l1, gdl (image-gradient difference), cc (1 - CC), "
-                                                        "nrmsd (the evaluation's NRMSD per image), w1 (1-D "
+                                                        "nrmsd (the evaluation's NRMSD per image), "
+                                                        "nrmsd_pooled (summed error norms over summed target "
+                                                        "norms: every image pulls alike), w1 (1-D "
                                                         "Wasserstein of the pixel values), energy (the batch's "
                                                         "echo-energy deficit), or a weighted sum: cc=1,w1=50."),
     curriculum: str = typer.Option(TRAIN.curriculum, "--curriculum",
