@@ -6,7 +6,7 @@ import torch
 
 from sonarset.errors import SonarSetError
 from sonarset.models.echopt.losses import (LOSSES, echo_energy_loss, image_loss, nrmsd_loss, parse_loss,
-                                         pooled_nrmsd_loss,
+                                         floored_nrmsd_loss, pooled_nrmsd_loss,
                                          step_weights, value_distribution_loss, weighted_loss)
 from sonarset.scoring.metrics import nrmsd
 
@@ -22,7 +22,7 @@ def _echo(centre: int, width: float, amplitude: float = 1.0) -> torch.Tensor:
 def test_parse_loss_terms_and_errors():
     assert parse_loss("mse") == {"mse": 1.0}
     assert parse_loss("mse=1,w1=0.3") == {"mse": 1.0, "w1": 0.3}
-    assert set(LOSSES) == {"mse", "l1", "gdl", "cc", "nrmsd", "nrmsd_pooled", "w1", "energy"}
+    assert set(LOSSES) == {"mse", "l1", "gdl", "cc", "nrmsd", "nrmsd_pooled", "nrmsd_floored", "w1", "energy"}
     with pytest.raises(SonarSetError, match="unknown term 'wasserstein'"):
         parse_loss("mse,wasserstein")
     with pytest.raises(SonarSetError, match="weight of 'w1' is not a number"):
@@ -103,6 +103,21 @@ def test_pooled_nrmsd_loss_pulls_every_image_alike():
         loss(p, target).backward()
         norms = p.grad.flatten(1).norm(dim=1)
         assert (norms[1] / norms[0]).item() == pytest.approx(ratio, rel=1e-3)
+
+
+def test_floored_nrmsd_loss_caps_only_near_blank_targets():
+    stray = 0.02 * _echo(30, 1.0)
+    ordinary = torch.cat([_echo(20, 1.5), _echo(20, 1.5, 0.8), _echo(20, 1.5, 0.5)])
+    # No target below a quarter of the batch's median norm: exactly the per-image NRMSD.
+    assert floored_nrmsd_loss(ordinary + stray, ordinary).item() == pytest.approx(
+        nrmsd_loss(ordinary + stray, ordinary).item(), rel=1e-6)
+    # A near-blank target at 1/100 of the norm: its gradient capped at 4x a median image's, not 100x.
+    target = torch.cat([ordinary, _echo(20, 1.5, 0.01)])
+    p = (target + stray).requires_grad_(True)
+    floored_nrmsd_loss(p, target).backward()
+    norms = p.grad.flatten(1).norm(dim=1)
+    assert (norms[3] / norms[2]).item() == pytest.approx(4.0, rel=1e-3)  # torch: the lower middle value
+    assert floored_nrmsd_loss(target, target).item() == 0.0
 
 
 def test_step_weights_share_a_rollout_loss():

@@ -139,7 +139,9 @@ def train(
     loss: str = typer.Option(TRAIN.loss, "--loss", help="mse, l1, gdl (image-gradient difference), cc (1 - CC), "
                                                         "nrmsd (the evaluation's NRMSD per image), "
                                                         "nrmsd_pooled (summed error norms over summed target "
-                                                        "norms: every image pulls alike), w1 (1-D "
+                                                        "norms: every image pulls alike), nrmsd_floored "
+                                                        "(per image, no target counted below a quarter of "
+                                                        "the batch's median norm), w1 (1-D "
                                                         "Wasserstein of the pixel values), energy (the batch's "
                                                         "echo-energy deficit), or a weighted sum: cc=1,w1=50."),
     curriculum: str = typer.Option(TRAIN.curriculum, "--curriculum",
