@@ -62,6 +62,11 @@ def echo_energy_loss(pred: torch.Tensor, target: torch.Tensor, floor: float = EC
     return (e_pred - e_target).abs() / e_target.clamp_min(1e-6)
 
 
+def _error_and_target_norms(pred: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per image: ||p - m||_2 and ||m||_2, the two halves of every NRMSD term."""
+    return (pred - target).flatten(1).norm(dim=1), target.flatten(1).norm(dim=1)
+
+
 def nrmsd_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """The evaluation's NRMSD, ||p - m||_2 / ||m||_2 per image, averaged over the batch.
 
@@ -70,8 +75,8 @@ def nrmsd_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     none costs little MSE and a large NRMSD. The mean NRMSD of a test run is dominated by such
     windows (docs/metrics.md), and this term trains on them with the weight the metric gives them.
     """
-    diff = (pred - target).flatten(1).norm(dim=1)
-    return (diff / target.flatten(1).norm(dim=1).clamp_min(1e-6)).mean()
+    diff, norms = _error_and_target_norms(pred, target)
+    return (diff / norms.clamp_min(1e-6)).mean()
 
 
 def pooled_nrmsd_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -84,8 +89,8 @@ def pooled_nrmsd_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     margins while the ordinary windows, most of a test run, gain less (BENCHMARKS, "Where NRMSD's
     t-test gets its variance"). This term spends the push on all windows alike.
     """
-    diff = (pred - target).flatten(1).norm(dim=1)
-    return diff.sum() / target.flatten(1).norm(dim=1).sum().clamp_min(1e-6)
+    diff, norms = _error_and_target_norms(pred, target)
+    return diff.sum() / norms.sum().clamp_min(1e-6)
 
 
 NRMSD_FLOOR_SHARE = 0.25  # of the batch's median target norm
@@ -93,16 +98,16 @@ NRMSD_FLOOR_SHARE = 0.25  # of the batch's median target norm
 
 def floored_nrmsd_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Per-image NRMSD whose denominator is at least ``NRMSD_FLOOR_SHARE`` of the batch's median
-    target norm: ||p - m||_2 / max(||m||_2, 0.25 median ||m||_2), averaged over the batch.
+    target norm: ||p - m||_2 / max(||m||_2, share x median ||m||_2), averaged over the batch.
 
     Between ``nrmsd_loss`` and ``pooled_nrmsd_loss``: an ordinary image keeps the weight the metric
     gives it (1 / ||m||, so sparse families such as the corridor and the orchard, whose targets hold
     less energy, keep their larger share, which the pooled term takes from them), while a near-blank
     target pulls at most 4 times harder than a typical one instead of 100 times.
     """
-    norms = target.flatten(1).norm(dim=1)
-    floor = NRMSD_FLOOR_SHARE * norms.median().detach()
-    return ((pred - target).flatten(1).norm(dim=1) / torch.maximum(norms, floor).clamp_min(1e-6)).mean()
+    diff, norms = _error_and_target_norms(pred, target)
+    floor = NRMSD_FLOOR_SHARE * norms.median()
+    return (diff / torch.maximum(norms, floor).clamp_min(1e-6)).mean()
 
 
 def image_loss(pred: torch.Tensor, target: torch.Tensor, terms: dict[str, float]) -> torch.Tensor:

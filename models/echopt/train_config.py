@@ -49,7 +49,7 @@ class TrainConfig:
     precision: str = "auto"  # auto | fp32 | bf16 autocast (models/echopt/precision.py); auto: bf16 where the hardware has it
     test_samples: int = 1000  # one-shot + AR test metrics in the card (0 = skip)
     prior: str = ""  # config.PRIORS (none | last | flow); "" = the preset's (paper: none, small and tiny: flow)
-    loss: str = "mse"  # a term of losses.LOSSES (mse, l1, gdl, cc, nrmsd, nrmsd_pooled, nrmsd_floored, w1, energy), or a weighted sum "mse=1,w1=2"
+    loss: str = "mse"  # a term of losses.LOSSES, or a weighted sum "mse=1,w1=2"
     curriculum: str = "1"  # rollout length k: "k", or "step:k,step:k,..." from those steps on
     pushforward: bool = False  # only the last of the k steps carries gradient
     step_weights: str = "uniform"  # STEP_WEIGHTS: the rollout steps' shares of the loss
