@@ -175,7 +175,8 @@ class _Plan:
         if steps_per_epoch is None:
             steps_per_epoch = n_train // cfg.batch_size  # drop the last partial batch
         if steps_per_epoch == 0:
-            raise SonarSetError(f"{location}: {n_train} training windows, fewer than one batch", parameter="batch_size")
+            raise SonarSetError(f"{location}: {n_train} training windows (after {cfg.n_val} validation windows and the "
+                                f"windows overlapping them), fewer than one batch", parameter="batch_size")
         total_steps = cfg.epochs * steps_per_epoch
         if cfg.max_steps:
             total_steps = min(total_steps, cfg.max_steps)

@@ -91,8 +91,9 @@ class StreamedWindows:
                                     world_size=dist.world, **getattr(store, "open_options", {}))
         steps = batches_per_rank(len(train_idx), dist.world, cfg.loader_workers, local)
         if steps == 0:
-            raise SonarSetError(f"{store.location}: {len(train_idx)} training windows, fewer than one batch per "
-                                f"process and loader worker", parameter="batch_size")
+            raise SonarSetError(f"{store.location}: {len(train_idx)} training windows (after {cfg.n_val} validation "
+                                f"windows and the windows overlapping them), fewer than one batch per process "
+                                f"and loader worker", parameter="batch_size")
         loader = StreamingLoader(ds, cfg.loader_workers, max_batches=steps, convert=False)
         return cls(layout.run_names, loader, torch_batcher(val_bank, device), val_idx, len(train_idx), steps, n_in,
                    device)
