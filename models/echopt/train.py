@@ -59,7 +59,7 @@ from sonarset.models.echopt.losses import parse_loss, rollout_losses, validation
 from sonarset.models.echopt.model import GEOMETRY_PREFIX, EchoPT
 from sonarset.models.echopt.precision import resolve_device, resolve_precision
 from sonarset.models.echopt.train_config import RESUME_KEYS, STREAM_KEYS, TrainConfig
-from sonarset.models.echopt.train_data import MemoryWindows, StreamedWindows
+from sonarset.models.echopt.train_data import MemoryWindows, StreamedWindows, fewer_than_a_batch
 from sonarset.models.echopt.train_state import STATE, load_state, save_state, write_metrics
 
 #: Called with a phase name after each write of a checkpoint (tests kill training there).
@@ -175,8 +175,7 @@ class _Plan:
         if steps_per_epoch is None:
             steps_per_epoch = n_train // cfg.batch_size  # drop the last partial batch
         if steps_per_epoch == 0:
-            raise SonarSetError(f"{location}: {n_train} training windows (after {cfg.n_val} validation windows and the "
-                                f"windows overlapping them), fewer than one batch", parameter="batch_size")
+            raise fewer_than_a_batch(location, n_train, cfg.n_val)
         total_steps = cfg.epochs * steps_per_epoch
         if cfg.max_steps:
             total_steps = min(total_steps, cfg.max_steps)

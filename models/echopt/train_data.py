@@ -64,6 +64,13 @@ class MemoryWindows:
             yield windows
 
 
+def fewer_than_a_batch(location: str, n_train: int, n_val: int, per: str = "") -> SonarSetError:
+    """The error of a store too small for one batch: validation takes its windows and their
+    overlapping neighbours first, so the count left is what the batch size meets."""
+    return SonarSetError(f"{location}: {n_train} training windows (after {n_val} validation windows and the windows "
+                         f"overlapping them), fewer than one batch{per}", parameter="batch_size")
+
+
 @dataclass
 class StreamedWindows:
     """Training windows streamed from the store (``TrainConfig.stream``, sonarset.stream): each process reads
@@ -91,9 +98,7 @@ class StreamedWindows:
                                     world_size=dist.world, **getattr(store, "open_options", {}))
         steps = batches_per_rank(len(train_idx), dist.world, cfg.loader_workers, local)
         if steps == 0:
-            raise SonarSetError(f"{store.location}: {len(train_idx)} training windows (after {cfg.n_val} validation "
-                                f"windows and the windows overlapping them), fewer than one batch per process "
-                                f"and loader worker", parameter="batch_size")
+            raise fewer_than_a_batch(store.location, len(train_idx), cfg.n_val, " per process and loader worker")
         loader = StreamingLoader(ds, cfg.loader_workers, max_batches=steps, convert=False)
         return cls(layout.run_names, loader, torch_batcher(val_bank, device), val_idx, len(train_idx), steps, n_in,
                    device)
