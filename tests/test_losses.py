@@ -6,8 +6,8 @@ import torch
 
 from sonarset.errors import SonarSetError
 from sonarset.models.echopt.losses import (LOSSES, echo_energy_loss, image_loss, nrmsd_loss, parse_loss,
-                                         floored_nrmsd_loss, pooled_nrmsd_loss,
-                                         step_weights, value_distribution_loss, weighted_loss)
+                                         capped_nrmsd_loss, floored_nrmsd_loss, pooled_nrmsd_loss,
+                                         rollout_losses, step_weights, value_distribution_loss, weighted_loss)
 from sonarset.scoring.metrics import nrmsd
 
 
@@ -22,7 +22,8 @@ def _echo(centre: int, width: float, amplitude: float = 1.0) -> torch.Tensor:
 def test_parse_loss_terms_and_errors():
     assert parse_loss("mse") == {"mse": 1.0}
     assert parse_loss("mse=1,w1=0.3") == {"mse": 1.0, "w1": 0.3}
-    assert set(LOSSES) == {"mse", "l1", "gdl", "cc", "nrmsd", "nrmsd_pooled", "nrmsd_floored", "w1", "energy"}
+    assert set(LOSSES) == {"mse", "l1", "gdl", "cc", "nrmsd", "nrmsd_pooled", "nrmsd_floored", "nrmsd_capped",
+                           "w1", "energy"}
     with pytest.raises(SonarSetError, match="unknown term 'wasserstein'"):
         parse_loss("mse,wasserstein")
     with pytest.raises(SonarSetError, match="weight of 'w1' is not a number"):
@@ -118,6 +119,53 @@ def test_floored_nrmsd_loss_caps_only_near_blank_targets():
     norms = p.grad.flatten(1).norm(dim=1)
     assert (norms[3] / norms[2]).item() == pytest.approx(4.0, rel=1e-3)  # torch: the lower middle value
     assert floored_nrmsd_loss(target, target).item() == 0.0
+
+
+def test_capped_nrmsd_loss_caps_only_where_flow_calls_the_target_near_blank():
+    stray = 0.02 * _echo(30, 1.0)
+    bright, faint = _echo(20, 1.5), _echo(20, 1.5, 0.1)  # the faint one an ordinary target of a sparse world
+    target = torch.cat([bright, faint])
+    # flow's NRMSD at most 2 on both: exactly the per-image NRMSD, the faint target's 10x pull kept
+    flow_ok = target + 1.5 * stray
+    assert capped_nrmsd_loss(target + stray, target, flow_ok).item() == pytest.approx(
+        nrmsd_loss(target + stray, target).item(), rel=1e-6)
+    # a near-blank target on which flow's error is 8x its norm: its weight is that of flow's NRMSD 2
+    blank = _echo(20, 1.5, 0.001)
+    flow_far = blank + 8 * blank.norm() * stray / stray.norm()
+    p = (blank + stray).requires_grad_(True)
+    capped_nrmsd_loss(p, blank, flow_far).backward()
+    assert p.grad.norm().item() == pytest.approx(2 / (flow_far - blank).norm().item(), rel=1e-4)
+    assert p.grad.norm().item() == pytest.approx(1 / (4 * blank.norm().item()), rel=1e-4)  # 1/4 of the metric's
+    assert capped_nrmsd_loss(target, target, flow_far.expand(2, -1, -1)).item() == 0.0
+    with pytest.raises(ValueError, match="flow baseline"):
+        image_loss(target, target, {"nrmsd_capped": 1})
+
+
+def test_rollout_losses_compare_each_step_with_flows_own_rollout():
+    """The reference of step h is flow's h-step rollout from the measured frames (what evaluation
+    compares the model with), driven by step h's newest command, not flow of the model's forecasts."""
+    n_in, k = 3, 3
+    frames = torch.rand(2, n_in, 8, 6)
+    cmds = torch.arange(2 * (n_in + k) * 2, dtype=torch.float32).view(2, n_in + k, 2)
+    calls = []
+
+    def flow(last, command):
+        calls.append((last.clone(), command.clone()))
+        return last + 1.0
+
+    def fwd(ctx, c):
+        return torch.zeros_like(ctx[:, -1])  # the model's own forecasts differ from flow's
+
+    rollout_losses(fwd, frames, cmds, torch.rand(2, k, 8, 6), {"nrmsd_capped": 1.0}, flow=flow)
+    assert len(calls) == k
+    for h, (last, command) in enumerate(calls):
+        torch.testing.assert_close(last, frames[:, -1] + h)  # chained on flow's own forecasts
+        torch.testing.assert_close(command, cmds[:, h + n_in])
+    calls.clear()
+    rollout_losses(fwd, frames, cmds, torch.rand(2, k, 8, 6), {"nrmsd": 1.0}, flow=flow)
+    assert not calls  # no reference term: no warp
+    with pytest.raises(ValueError, match="flow baseline's warp"):
+        rollout_losses(fwd, frames, cmds, torch.rand(2, k, 8, 6), {"nrmsd_capped": 1.0})
 
 
 def test_step_weights_share_a_rollout_loss():

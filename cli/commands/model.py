@@ -141,7 +141,9 @@ def train(
                                                         "nrmsd_pooled (summed error norms over summed target "
                                                         "norms: every image pulls alike), nrmsd_floored "
                                                         "(per image, no target counted below a quarter of "
-                                                        "the batch's median norm), w1 (1-D "
+                                                        "the batch's median norm), nrmsd_capped (per "
+                                                        "image, weight capped where flow's NRMSD is above "
+                                                        "2), w1 (1-D "
                                                         "Wasserstein of the pixel values), energy (the batch's "
                                                         "echo-energy deficit), or a weighted sum: cc=1,w1=50."),
     curriculum: str = typer.Option(TRAIN.curriculum, "--curriculum",

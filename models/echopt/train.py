@@ -285,7 +285,8 @@ class _Run:
         frames, cmds, targets = self.batch(step, windows, k)
         for g in self.opt.param_groups:
             g["lr"] = self.cfg.lr_at(step, self.plan.total_steps)
-        losses = rollout_losses(self.fwd, frames, cmds, targets, self.terms, self.cfg.pushforward, self.precision)
+        losses = rollout_losses(self.fwd, frames, cmds, targets, self.terms, self.cfg.pushforward, self.precision,
+                                flow=self.model.flow_prior)
         loss = weighted_loss(losses, self.cfg.step_weights)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
