@@ -245,6 +245,17 @@ def test_rollout_training_options_and_priors(tiny_store, tmp_path):
     assert card["training"]["config"]["curriculum"] == "0:1,2:3"
     assert card["training"]["config"]["loss"] == "mse=1,gdl=0.5,cc=0.1,w1=1,energy=0.5"
     assert all(np.isfinite(r["train_loss"]) for r in res.history)
+    # the capped NRMSD term compares each step with the flow baseline's own rollout, whatever the prior
+    from sonarset.models.baselines import rollout
+    from sonarset.models.echopt.losses import rollout_losses
+    c5 = np.concatenate([c, c[:, -1:]], 1)
+    drawn = []
+    rollout_losses(model, torch.from_numpy(f), torch.from_numpy(c5), torch.rand(4, 2, *TINY_GRID.shape),
+                   {"nrmsd_capped": 1.0}, flow=lambda last, cmd: drawn.append(model.flow_prior(last, cmd)) or drawn[-1])
+    np.testing.assert_allclose(torch.stack(drawn, 1).detach().numpy(), rollout(flow, f, c5, 2), atol=1e-5)
+    res = train(tiny_store, tmp_path / "capped", _cfg(max_steps=2, curriculum="2", loss="cc=1,nrmsd_capped=1",
+                                                     prior="last", val_horizon=2))
+    assert all(np.isfinite(r["train_loss"]) and np.isfinite(r["val_loss"]) for r in res.history)
     for bad, msg in ((dict(curriculum="2:3"), "start at step 0"), (dict(loss="mse,fancy"), "unknown term"),
                      (dict(prior="magic"), "prior must be one of"),
                      (dict(step_weights="cubic"), "step_weights must be one of")):
