@@ -196,7 +196,7 @@ def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch
         flow = None
     elif flow is None:
         raise ValueError(f"the loss terms {', '.join(REFERENCE_TERMS)} need the flow baseline's warp")
-    reference = frames[:, -1]
+    reference = frames[:, -1] if flow is not None else None
     losses = []
     for h in range(k):
         grad = torch.is_grad_enabled() and (not pushforward or h == k - 1)
@@ -207,7 +207,7 @@ def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch
             with torch.no_grad():
                 reference = flow(reference.float(), cmds[:, h + n_in])
         if grad or not pushforward:
-            losses.append(image_loss(pred, targets[:, h], terms, reference if flow is not None else None))
+            losses.append(image_loss(pred, targets[:, h], terms, reference))
         buf.append(pred.clamp(0, 1))
     return losses
 
