@@ -17,7 +17,7 @@ PRESET=${PRESET:-paper}
 SAMPLES=${SAMPLES:-1000}
 DEMO_MINUTES=${DEMO_MINUTES:-25}
 EVAL_S=${EVAL_S:-170}  # reserved for the evaluations at the end
-LOSS=${LOSS:-cc=1,w1=100,energy=2,nrmsd_capped=1}
+LOSS=${LOSS:-cc=1,w1=100,energy=2,nrmsd_capped=2}
 GEOMETRY=${GEOMETRY:-32}
 source "$(dirname "$0")/gpu_lib.sh"
 pack() {
