@@ -66,6 +66,12 @@ class WorkerPool:
             p.join(5)
             if p.is_alive():
                 p.kill()
+        # The pool's manager thread closes its wake-up pipe as it winds down; if that is still
+        # under way at interpreter exit, concurrent.futures' atexit hook writes to the closed pipe
+        # and prints a traceback (CPython 3.11). Let it finish here.
+        manager = getattr(self._pool, "_executor_manager_thread", None)
+        if manager is not None and manager is not threading.current_thread():
+            manager.join(5)
 
     def __enter__(self) -> "WorkerPool":
         return self
