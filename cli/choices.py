@@ -16,7 +16,7 @@ from sonarset.sensor.ertis import AZIMUTH_PSFS
 
 from sonarset.models.echopt.config import INPUTS, PRESETS, PRIORS
 from sonarset.models.echopt.precision import DEVICES, PRECISIONS
-from sonarset.models.echopt.train_config import OPTIMIZERS, SCHEDULES, STEP_WEIGHTS, TRAINABLE
+from sonarset.models.echopt.train_config import MODEL_KINDS, OPTIMIZERS, SCHEDULES, STEP_WEIGHTS, TRAINABLE
 from sonarset.ingest.bag.reader import STAMPS
 
 
@@ -38,6 +38,7 @@ Schedule = _choices("Schedule", SCHEDULES)
 StepWeights = _choices("StepWeights", STEP_WEIGHTS)
 Trainable = _choices("Trainable", TRAINABLE)
 Precision = _choices("Precision", PRECISIONS)
+ModelKind = _choices("ModelKind", MODEL_KINDS)
 Stamps = _choices("Stamps", STAMPS)
 
 

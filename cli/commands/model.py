@@ -13,7 +13,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from sonarset.models.echopt.train_config import TrainConfig
 from sonarset.models.registry import BASELINES, HORIZONS
 
-from sonarset.cli.choices import Device, Optimizer, Precision, Inputs, Preset, Prior, Schedule, StepWeights, Trainable, value
+from sonarset.cli.choices import Device, ModelKind, Optimizer, Precision, Inputs, Preset, Prior, Schedule, StepWeights, Trainable, value
 from sonarset.cli.common import err, fail, out, per_name_progress, progress_bar, user_errors
 from sonarset.cli.options import Model, ModelDevice, ModelPrecision
 
@@ -108,6 +108,9 @@ def _training_bar(show: bool):
 @user_errors
 def train(
     store: str = typer.Argument(..., help="Training store (its 'train' split; 'test' is never used for training)."),
+    model: ModelKind = typer.Option(TRAIN.model, "--model",
+                                    help="The network: echopt (the paper's), or a reference method of video "
+                                         "prediction: convlstm, simvp, unet (models/zoo/)."),
     preset: Preset = typer.Option(TRAIN.preset, "--preset",
                                   help="small (trains on a CPU), paper (~9 M parameters), tiny (tests)."),
     out_dir: Path = typer.Option(..., "--out", help="Run directory: model.safetensors + model.json, metrics.jsonl, "
@@ -196,7 +199,7 @@ def train(
     from sonarset.store.store import open_store
 
     s = open_store(store, check=True)
-    cfg = TrainConfig(preset=preset.value, epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
+    cfg = TrainConfig(model=model.value, preset=preset.value, epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
                       schedule=schedule.value, seed=seed, device=device.value, eval_every=eval_every,
                       max_steps=max_steps, max_minutes=max_minutes, compile=compile_, test_samples=test_samples,
                       n_val=n_val, prior=value(prior) or "", loss=loss, curriculum=curriculum, pushforward=pushforward,

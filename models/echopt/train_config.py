@@ -24,10 +24,14 @@ STEP_WEIGHTS = ("uniform", "harmonic")
 #: Which weights a run updates: all, or only the geometry branch (config.geometry_channels), the rest
 #: frozen as ``init`` trained it: what the branch adds is then measured on an unchanged model.
 TRAINABLE = ("all", "geometry")
+#: The networks ``sonarset train`` builds: EchoPT and the reference methods of video prediction
+#: (models/zoo/), trained by the same trainer on the same windows and losses.
+MODEL_KINDS = ("echopt", "convlstm", "simvp", "unet")
 
 
 @dataclass
 class TrainConfig:
+    model: str = "echopt"  # MODEL_KINDS
     preset: str = "small"
     epochs: int = 1000
     batch_size: int = 64
@@ -91,7 +95,8 @@ class TrainConfig:
             raise SonarSetError(f"shuffle_buffer must be >= 1 and loader_workers >= 0, got {self.shuffle_buffer} "
                                 f"and {self.loader_workers}", parameter=bad)
         for name, allowed in (("prior", PRIORS), ("inputs", INPUTS), ("optimizer", OPTIMIZERS),
-                              ("schedule", SCHEDULES), ("step_weights", STEP_WEIGHTS), ("trainable", TRAINABLE)):
+                              ("schedule", SCHEDULES), ("step_weights", STEP_WEIGHTS), ("trainable", TRAINABLE),
+                              ("model", MODEL_KINDS)):
             value = getattr(self, name)
             if (value or name not in ("prior", "inputs")) and value not in allowed:
                 raise SonarSetError(f"{name} must be one of {', '.join(allowed)}, got {value!r}", parameter=name)
@@ -120,7 +125,7 @@ class TrainConfig:
 
 
 #: Settings that must not change when a run is resumed.
-RESUME_KEYS = ("preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps", "prior", "loss",
+RESUME_KEYS = ("model", "preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps", "prior", "loss",
                "curriculum", "pushforward", "step_weights", "context_noise", "val_horizon", "optimizer", "weight_decay",
                "init", "worlds", "n_in", "inputs", "geometry_channels", "trainable", "stream", "shuffle_buffer", "loader_workers")
 #: Of those, the ones that matter only when the windows are streamed.
