@@ -14,7 +14,8 @@ import typer
 
 from sonarset import __version__
 
-from sonarset.cli.commands import bag, ingest, model, sim, store, view
+from sonarset.cli.commands import bag, ingest, model, registry, sim, store, view
+from sonarset.cli.commands import benchmark
 from sonarset.cli.common import err, out
 from sonarset.cli.experiment import experiment_app
 
@@ -50,8 +51,10 @@ app.command()(store.schema)
 app.command()(sim.generate)
 app.command()(store.show)
 app.command("eval")(model.eval_)
+app.command()(registry.models)
 app.command()(model.train)
 app.command()(model.demo)
+app.command()(benchmark.benchmark)
 app.command("export-onnx")(model.export_onnx_)
 app.command()(view.view)
 

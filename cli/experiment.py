@@ -12,13 +12,10 @@ from rich.table import Table
 from sonarset.cli.choices import Device, Precision, value
 from sonarset.cli.common import out, progress_bar, user_errors
 from sonarset.cli.options import ExperimentProcessing, Model, ModelDevice, ModelPrecision, Workers
+from sonarset.models.registry import model_option_spec
 
 experiment_app = typer.Typer(help="The paper's robot experiments: wheel-slip detection, corridor control.",
                              no_args_is_help=True)
-
-
-def _echopt_spec(model: str) -> str:
-    return model if model.startswith("echopt:") else f"echopt:{model}"
 
 
 def _specs(text: str) -> list[str]:
@@ -35,7 +32,9 @@ def _count_progress(bar: Progress, name: str) -> Callable[[int, int], None]:
 def experiment_slip(
     out_dir: Path = typer.Option(..., "--out", help="Directory for metrics.json, report.md and fig5_slip.png."),
     model: Model = "pretrained",
-    baselines: str = typer.Option("naive,flow", "--baselines", help="Comma-separated baselines to compare."),
+    baselines: str = typer.Option("naive,flow", "--baselines",
+                                  help="Comma-separated other predictors to compare (any registered name, KIND:PATH "
+                                       "or package.module:factory; sonarset models lists the names)."),
     trials: int = typer.Option(20, "--trials", min=1, help="Random trajectories for the ROC analysis."),
     seed: int = typer.Option(0, "--seed", help="Master seed: trajectories, slip periods, sensor noise."),
     workers: Workers = None,
@@ -49,7 +48,7 @@ def experiment_slip(
     from sonarset.models.experiments.slip import run_slip_experiment
     from sonarset.models.experiments.slip_report import write_slip_report
 
-    models = [*_specs(baselines), _echopt_spec(model)]
+    models = [*_specs(baselines), model_option_spec(model)]
     with progress_bar() as bar:
         res = run_slip_experiment(models, trials=trials, seed=seed, workers=workers, device=device.value,
                                   processing=value(processing), precision=precision.value,
@@ -75,7 +74,8 @@ def experiment_control(
     out_dir: Path = typer.Option(..., "--out", help="Directory for metrics.json, report.md and fig6_control.png."),
     model: Model = "pretrained",
     compare: str = typer.Option("flow", "--compare",
-                                help="Comma-separated other predictors that also bridge the bursts ('' for none)."),
+                                help="Comma-separated other predictors that also bridge the bursts ('' for none): "
+                                     "any registered name, KIND:PATH or package.module:factory."),
     runs: int = typer.Option(50, "--runs", min=1, help="Runs per condition."),
     seed: int = typer.Option(0, "--seed", help="Master seed: spawn poses, burst schedules, sensor noise."),
     max_time: float = typer.Option(120.0, "--max-time", min=1.0, help="Seconds before a run times out."),
@@ -86,11 +86,12 @@ def experiment_control(
     record: Path = typer.Option(None, "--record", help="Also write every episode (paths, SNR, bursts, bridged "
                                                        "frames) as a Rerun recording (.rrd)."),
 ) -> None:
-    """Corridor control through noise bursts (paper Fig. 6): clean, bursts, bursts bridged by EchoPT."""
+    """Corridor control through noise bursts (paper Fig. 6): clean, bursts, bursts bridged by the model
+    (EchoPT by default)."""
     from sonarset.models.experiments.control import run_control_experiment
     from sonarset.models.experiments.control_report import write_control_report
 
-    models = [_echopt_spec(model), *_specs(compare)]
+    models = [model_option_spec(model), *_specs(compare)]
     with progress_bar() as bar:
         res = run_control_experiment(models, runs=runs, seed=seed, workers=workers, device=device.value,
                                      processing=value(processing), max_time_s=max_time, precision=precision.value,

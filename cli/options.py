@@ -17,7 +17,10 @@ RunName = Annotated[Optional[str], typer.Option("--name", help="Run name (defaul
 RunSplit = Annotated[Optional[str], typer.Option("--split", help="Split of the run (default: the metadata's split).")]
 Overwrite = Annotated[bool, typer.Option("--overwrite", help="Replace a run of the same name (only once the new one "
                                                              "is complete).")]
-Model = Annotated[str, typer.Option("--model", help="EchoPT checkpoint: pretrained or a path.")]
+Model = Annotated[str, typer.Option("--model", help="The model: any registered name (pretrained, the recommended "
+                                                    "shipped one; flow; a plugin's; sonarset models lists them), "
+                                                    "KIND:PATH (echopt:run/model.safetensors, .onnx) or "
+                                                    "package.module:factory. A bare path is an EchoPT checkpoint.")]
 Workers = Annotated[Optional[int], typer.Option("--workers", min=1, help="Processes (default: all cores).")]
 ModelDevice = Annotated[Device, typer.Option("--device", help="Device for learned models.")]
 ExperimentProcessing = Annotated[Optional[ProcessingProfile], typer.Option(

@@ -1,16 +1,16 @@
-"""The predictor interface, the non-learned baselines, and the auto-regressive rollout.
+"""The non-learned baselines.
 
-A predictor maps a batch of windows, ``frames`` (B, n_in, R, A) and ``commands`` (B, n_in + 1, 2),
-to the next frame (B, R, A). ``commands[:, -1]`` is the command that moves the robot from the last
-input frame to the predicted one (docs/conventions.md, "Windows"). These baselines use only the
-last frame and that command, turned into image motion by the robot's rig (frame interval, sensor
-offset); EchoPT uses them all. No torch here: the baselines run wherever NumPy and SciPy do.
+They answer the predictor protocol (models/predictor.py: ``frames`` (B, n_in, R, A) and
+``commands`` (B, n_in + 1, 2) to the next frame (B, R, A)) with only the last frame and the last
+command, turned into image motion by the robot's rig (frame interval, sensor offset); EchoPT uses
+them all. No torch here: the baselines run wherever NumPy and SciPy do (``backend="scipy"``).
+``Predictor`` and ``rollout`` are imported here too, where they lived before models/predictor.py.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar, Protocol
+from typing import ClassVar
 
 import numpy as np
 from scipy import ndimage
@@ -19,33 +19,7 @@ from sonarset.format.attrs import RobotRig, SensorGrid
 from sonarset.windows import N_IN
 
 from sonarset.models.flow import arc_motion, source_points
-
-
-class Predictor(Protocol):
-    name: str
-    grid: SensorGrid
-    n_in: int  # input frames per window
-
-    def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray: ...
-
-
-def rollout(predictor: Predictor, frames: np.ndarray, commands: np.ndarray, horizon: int) -> np.ndarray:
-    """Predict ``horizon`` frames ahead, feeding each prediction back as the newest input frame.
-
-    ``commands`` holds n_in + horizon commands (docs/conventions.md, "Windows"); step h uses
-    commands h .. h + n_in. Returns (B, horizon, R, A): predictions for targets 1..horizon.
-    """
-    n_in = frames.shape[1]
-    if commands.shape[1] < n_in + horizon:
-        raise ValueError(f"need {n_in + horizon} commands for horizon {horizon}, got {commands.shape[1]}")
-    # One buffer holds the measured inputs followed by the predictions; step h reads the view
-    # buf[:, h:h + n_in], so after the first step the model's own predictions replace measured
-    # frames, with no copying of windows.
-    buf = np.empty((frames.shape[0], n_in + horizon, *frames.shape[2:]), dtype=np.float32)
-    buf[:, :n_in] = frames
-    for h in range(horizon):
-        buf[:, n_in + h] = predictor.predict(buf[:, h:h + n_in], commands[:, h:h + n_in + 1])
-    return buf[:, n_in:]
+from sonarset.models.predictor import BasePredictor, Predictor, rollout  # noqa: F401 (re-exported)
 
 
 def sample_polar(images: np.ndarray, grid: SensorGrid, r_src, th_src, backend: str = "torch") -> np.ndarray:
@@ -89,7 +63,7 @@ def _pixel_polar(grid: SensorGrid, arr) -> tuple:
     return arr(grid.range_centres())[None, :, None], arr(grid.azimuth_centres())[None, None, :]
 
 
-class LastFrameBaseline:
+class LastFrameBaseline(BasePredictor):
     """A baseline that reads only the last input frame (and the last command); it is fed the
     windows of the paper's geometry all the same, or those of a learned model with a longer
     context when it is evaluated beside one (``any_context``)."""

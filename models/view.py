@@ -24,6 +24,8 @@ from sonarset.errors import SonarSetError
 from sonarset.format.attrs import RobotRig, SensorGrid
 from sonarset.store.store import SonarStore
 
+from sonarset.models.predictor import CheckedPredictor
+
 FAN_PIXELS = 256  # the metric fan's width and height
 
 
@@ -75,10 +77,10 @@ def record_run(store: SonarStore, run_name: str | None, out: str | os.PathLike, 
                horizon: int = 1, frames: slice | None = None, device: str = "cpu", precision: str = "auto",
                block: int = 64, progress: Callable[[str, int, int], None] | None = None) -> Path:
     """Write run ``run_name`` (default: the first complete run) of ``store`` as a Rerun recording
-    to ``out``, with each model's ``horizon``-step prediction of every frame that has the context."""
+    to ``out``, with each model's ``horizon``-step prediction of every frame that has the context.
+    ``models`` are specs the registry resolves (models/registry.py)."""
     import rerun as rr
 
-    from sonarset.models.baselines import rollout
     from sonarset.models.registry import make_predictor
     from sonarset.report.overview import simulated_world
 
@@ -105,7 +107,7 @@ def record_run(store: SonarStore, run_name: str | None, out: str | os.PathLike, 
             else RobotRig(frame_interval_s=dt, sensor_offset_m=0.0)
         for spec in models:
             p = make_predictor(spec, grid, rig, device=device, precision=precision)
-            preds[getattr(p, "label", p.name) if p.name in preds else p.name] = p
+            preds[(p.label if p.label not in preds else spec) if p.name in preds else p.name] = p
     out = Path(out)
     rec = rr.RecordingStream("sonarset", recording_id=f"{Path(store.location).name}/{name}")
     rec.save(out, default_blueprint=_blueprint(list(preds), pose is not None))
@@ -118,7 +120,7 @@ def record_run(store: SonarStore, run_name: str | None, out: str | os.PathLike, 
         b = min(stop, a + block)
         lo = max(0, a - first_predicted) if preds else a
         images = run.read("images", lo, b).astype(np.float32)
-        predicted = {n: _predict(p, rollout, images, velocity, lo, a, b, horizon) for n, p in preds.items()}
+        predicted = {n: _predict(p, images, velocity, lo, a, b, horizon) for n, p in preds.items()}
         for k in range(a, b):
             rec.set_time("frame", sequence=k)
             rec.set_time("time", duration=float(time_s[k] - time_s[0]))
@@ -144,7 +146,8 @@ def record_run(store: SonarStore, run_name: str | None, out: str | os.PathLike, 
     return out
 
 
-def _predict(p, rollout, images: np.ndarray, velocity: np.ndarray, lo: int, a: int, b: int, horizon: int) -> dict:
+def _predict(p: CheckedPredictor, images: np.ndarray, velocity: np.ndarray, lo: int, a: int, b: int,
+             horizon: int) -> dict:
     """{frame k: the H-step prediction of frame k} for k in a..b-1 with the context in ``images``
     (frames lo..b-1): from frames k-H-n_in+1 .. k-H and commands k-H-n_in+1 .. k."""
     n_in = p.n_in
@@ -154,7 +157,7 @@ def _predict(p, rollout, images: np.ndarray, velocity: np.ndarray, lo: int, a: i
     starts = np.array([k - horizon - n_in + 1 for k in ks])
     ctx = np.stack([images[s - lo:s - lo + n_in] for s in starts])
     cmds = np.stack([velocity[s:s + n_in + horizon] for s in starts]).astype(np.float32)
-    out = rollout(p, ctx, cmds, horizon)[:, -1]
+    out = p.rollout(ctx, cmds, horizon)[:, -1]
     return dict(zip(ks, out))
 
 

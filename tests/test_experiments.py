@@ -251,17 +251,20 @@ def test_experiments_simulate_the_images_their_models_were_trained_on(tmp_path):
         return save_checkpoint(tmp_path / name, EchoPT(make_config("tiny", *SMALL.shape)),
                                {"grid": SMALL.model_dump(), "preset": "tiny", "processing": processing.model_dump()})
 
+    def models(*specs):  # what the experiments pass: their predictors, whose cards say the images
+        return [predictor(spec, SMALL) for spec in specs]
+
     raw, ertis = ckpt("raw", Processing.raw()), ckpt("ertis", Processing.ertis())
-    assert experiment_processing(["flow"]) == Processing.ertis()  # the simulator's default
-    assert experiment_processing(["flow"], "raw") == Processing.raw()
-    assert experiment_processing(["flow", f"echopt:{ertis}"]) == Processing.ertis()
-    assert experiment_processing([f"echopt:{raw}"], "raw") == Processing.raw()
+    assert experiment_processing(models("flow")) == Processing.ertis()  # the simulator's default
+    assert experiment_processing(models("flow"), "raw") == Processing.raw()
+    assert experiment_processing(models("flow", f"echopt:{ertis}")) == Processing.ertis()
+    assert experiment_processing(models(f"echopt:{raw}"), "raw") == Processing.raw()
     with pytest.raises(SonarSetError, match="different images"):
-        experiment_processing([f"echopt:{raw}", f"echopt:{ertis}"])
+        experiment_processing(models(f"echopt:{raw}", f"echopt:{ertis}"))
     with pytest.raises(SonarSetError, match="trained on raw images, not ertis"):
-        experiment_processing([f"echopt:{raw}"], "ertis")
+        experiment_processing(models(f"echopt:{raw}"), "ertis")
     with pytest.raises(SonarSetError, match="unknown processing profile"):
-        experiment_processing(["flow"], "dmas")
+        experiment_processing(models("flow"), "dmas")
     full = save_checkpoint(tmp_path / "full", EchoPT(make_config("tiny", *GRID.shape, max_tokens=256)),
                            {"grid": GRID.model_dump(), "preset": "tiny", "processing": Processing.raw().model_dump()})
     r = CliRunner().invoke(app, ["experiment", "slip", "--model", str(full), "--processing", "ertis", "--trials", "1",

@@ -52,9 +52,9 @@ def test_export_matches_torch_with_a_dynamic_batch(exported):
     assert e.max_abs_diff is not None and e.max_abs_diff <= PARITY_TOLERANCE
     torch_pred = make_predictor(f"echopt:{ckpt}", store.grid, store.rig, precision="fp32")
     onnx_pred = make_predictor(f"echopt:{e.path}", store.grid, store.rig)
-    assert isinstance(onnx_pred, OnnxEchoPTPredictor) and onnx_pred.n_in == 3
+    assert isinstance(onnx_pred.predictor, OnnxEchoPTPredictor) and onnx_pred.n_in == 3  # the registry's checked view
     for batch in (1, 7, 70):  # one graph for every batch size
-        frames, commands = (t.numpy() for t in random_windows(torch_pred.model, batch, seed=batch))
+        frames, commands = (t.numpy() for t in random_windows(torch_pred.predictor.model, batch, seed=batch))
         got, ref = onnx_pred.predict(frames, commands), torch_pred.predict(frames, commands)
         assert got.shape == (batch, *GRID.shape)
         assert np.abs(got - ref).max() <= 1e-4

@@ -80,7 +80,7 @@ def test_the_predictor_gives_the_same_frames_in_one_batch_or_many(default_grid_r
     batch = WindowBatcher.of(bank).gather(index, np.arange(20))
     p = make_predictor("echopt:pretrained", default_grid_run.grid, RobotRig(), precision="fp32")
     whole = p.predict(batch.frames, batch.commands[:, :4])
-    p.batch_size = 3  # seven chunks over the worker threads
+    p.predictor.batch_size = 3  # seven chunks over the worker threads (p: the registry's checked view)
     chunked = p.predict(batch.frames, batch.commands[:, :4])
     np.testing.assert_allclose(chunked, whole, atol=1e-5)
     assert whole.dtype == np.float32 and whole.min() >= 0 and whole.max() <= 1

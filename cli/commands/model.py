@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import enum
 import os
 from pathlib import Path
 from typing import Optional
@@ -10,6 +11,7 @@ from typing import Optional
 import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
+from sonarset.errors import SonarSetError
 from sonarset.models.echopt.train_config import TrainConfig
 from sonarset.models.registry import BASELINES, HORIZONS
 
@@ -36,7 +38,10 @@ def _int_list(text: str, what: str) -> list[int]:
 def eval_(
     store: str = typer.Argument(..., help="Store path or fsspec URL."),
     models: str = typer.Option(",".join(BASELINES), "--models",
-                               help="Comma-separated: persistence, naive, flow, echopt:PATH (or echopt:pretrained)."),
+                               help="Comma-separated predictors: any registered name (persistence, naive, flow, "
+                                    "pretrained, a plugin's; sonarset models lists them), KIND:PATH "
+                                    "(echopt:run/model.safetensors, echopt:model.onnx, echopt:pretrained) or "
+                                    "package.module:factory."),
     horizons: str = typer.Option(",".join(map(str, HORIZONS)), "--horizons", help="Prediction horizons (1 = one-shot)."),
     samples: int = typer.Option(1000, "--samples", min=1, help="Windows drawn (seeded), shared by all methods."),
     out_dir: Path = typer.Option(Path("eval-out"), "--out", help="Directory for metrics.json, per_window.csv, report.md, figures."),
@@ -105,16 +110,73 @@ def _training_bar(show: bool):
         yield progress
 
 
+#: Recipe keys whose ``train`` parameter is spelled otherwise (the rest are the parameters' names).
+_RECIPE_PARAMETERS = {"out": "out_dir", "compile": "compile_"}
+
+
+def _recipe_values(ctx: typer.Context, path: Path) -> dict:
+    """The settings of the recipe at ``path`` that the command line does not give, each checked as its
+    option checks it (choices, ranges)."""
+    from sonarset.models.echopt.recipes import dump_recipe, load_recipe
+
+    params = {p.name: p for p in ctx.command.params}
+    taken = {}
+    for key, setting in load_recipe(path).items():
+        name = _RECIPE_PARAMETERS.get(key, key)
+        source = ctx.get_parameter_source(name)
+        if source is not None and source.name == "COMMANDLINE":
+            continue  # a flag given overrides the file
+        if setting != getattr(TRAIN, key, None):  # a default needs no check (prior "" is no choice)
+            try:
+                params[name].process_value(ctx, setting)
+            except typer.BadParameter as exc:
+                raise SonarSetError(f"{path}: {dump_recipe({key: setting}).strip()}: {exc.message}") from None
+        taken[key] = setting
+    return taken
+
+
+def _train_settings(ctx: typer.Context, config: Optional[Path]) -> dict:
+    """The run's recipe: each option's value from the command line where given, else from the recipe
+    file, else the option's default."""
+    from sonarset.models.echopt.recipes import RECIPE_KEYS
+
+    settings = {key: _setting(key, ctx.params[_RECIPE_PARAMETERS.get(key, key)]) for key in RECIPE_KEYS}
+    if config is not None:
+        settings.update(_recipe_values(ctx, config))
+    for key, what in (("store", "STORE"), ("out", "--out")):
+        if settings[key] is None:
+            fail(f"missing {what}: give it on the command line, or as {key} in a recipe (--config)", 2)
+    return settings
+
+
+def _setting(key: str, given):
+    """An option's value as a recipe holds it: a choice as its string, a path as a string, and no
+    value (options whose default is "the preset's") as TrainConfig's default."""
+    if given is None:
+        return getattr(TRAIN, key, None)
+    if isinstance(given, enum.Enum):
+        return given.value
+    return str(given) if isinstance(given, Path) else given
+
+
 @user_errors
 def train(
-    store: str = typer.Argument(..., help="Training store (its 'train' split; 'test' is never used for training)."),
+    ctx: typer.Context,
+    store: Optional[str] = typer.Argument(None, metavar="STORE",
+                                          help="Training store (its 'train' split; 'test' is never used for "
+                                               "training). Default: the recipe's."),
+    config: Optional[Path] = typer.Option(None, "--config", help="A recipe: a TOML file of these options, keys "
+                                                                 "spelled with underscores (max_steps = 2), also "
+                                                                 "store and out; options given here override it "
+                                                                 "(docs/guides/training.md)."),
     model: ModelKind = typer.Option(TRAIN.model, "--model",
                                     help="The network: echopt (the paper's), or a reference method of video "
                                          "prediction: convlstm, simvp, unet (models/zoo/)."),
     preset: Preset = typer.Option(TRAIN.preset, "--preset",
                                   help="small (trains on a CPU), paper (~9 M parameters), tiny (tests)."),
-    out_dir: Path = typer.Option(..., "--out", help="Run directory: model.safetensors + model.json, metrics.jsonl, "
-                                                    "state.safetensors"),
+    out_dir: Optional[Path] = typer.Option(None, "--out", help="Run directory: model.safetensors + model.json, "
+                                                               "metrics.jsonl, state.safetensors. Default: the "
+                                                               "recipe's."),
     epochs: int = typer.Option(TRAIN.epochs, "--epochs", min=1, help="Passes over the training windows (paper: 1000)."),
     batch_size: int = typer.Option(TRAIN.batch_size, "--batch-size", min=1),
     lr: float = typer.Option(TRAIN.lr, "--lr", help="Adam learning rate (paper: 5e-5)."),
@@ -126,13 +188,14 @@ def train(
     seed: int = typer.Option(TRAIN.seed, "--seed"),
     device: Device = typer.Option(TRAIN.device, "--device"),
     precision: ModelPrecision = Precision(TRAIN.precision),
-    resume: bool = typer.Option(False, "--resume", help="Continue a killed run exactly where it stopped."),
+    resume: bool = typer.Option(False, "--resume", help="Continue a killed run exactly where it stopped (give the "
+                                                        "same options, or the same recipe)."),
     eval_every: int = typer.Option(TRAIN.eval_every, "--eval-every", min=0,
                                    help="Steps between validations/checkpoints (0: each epoch)."),
     max_steps: int = typer.Option(TRAIN.max_steps, "--max-steps", min=0, help="Stop after this many steps (0: no limit)."),
     max_minutes: float = typer.Option(TRAIN.max_minutes, "--max-minutes", min=0.0,
                                       help="Stop after this wall time (0: no limit)."),
-    compile_: bool = typer.Option(TRAIN.compile, "--compile", help="torch.compile the model (GPU)."),
+    compile_: bool = typer.Option(TRAIN.compile, "--compile/--no-compile", help="torch.compile the model (GPU)."),
     test_samples: int = typer.Option(TRAIN.test_samples, "--test-samples", min=0,
                                      help="Test windows for the card's metrics (0: skip)."),
     n_val: int = typer.Option(TRAIN.n_val, "--n-val", min=1, help="Random validation windows (paper: 1600)."),
@@ -152,7 +215,7 @@ def train(
     curriculum: str = typer.Option(TRAIN.curriculum, "--curriculum",
                                    help="Rollout steps k of the unrolled loss: k, or step:k,... "
                                         "(e.g. 0:1,300:2,600:4,900:6)."),
-    pushforward: bool = typer.Option(TRAIN.pushforward, "--pushforward",
+    pushforward: bool = typer.Option(TRAIN.pushforward, "--pushforward/--no-pushforward",
                                      help="Only the last rollout step carries gradient."),
     step_weights: StepWeights = typer.Option(TRAIN.step_weights, "--step-weights",
                                              help="The rollout steps' shares of the loss: uniform (1/k each) or "
@@ -182,33 +245,31 @@ def train(
     trainable: Trainable = typer.Option(TRAIN.trainable, "--trainable",
                                         help="all, or geometry: only the geometry branch learns, the rest "
                                              "stays as --init trained it."),
-    stream: bool = typer.Option(TRAIN.stream, "--stream",
+    stream: bool = typer.Option(TRAIN.stream, "--stream/--no-stream",
                                 help="Stream windows from the store instead of loading all its frames: for stores "
                                      "bigger than memory, or behind a URL (docs/scaling.md)."),
     shuffle_buffer: int = typer.Option(TRAIN.shuffle_buffer, "--shuffle-buffer", min=1,
                                        help="With --stream: windows mixed at once (memory: ~36 MB per 1000 on the "
                                             "default grid)."),
-    workers: int = typer.Option(TRAIN.loader_workers, "--workers", min=0,
-                                help="With --stream: DataLoader worker processes reading the store (0: this one)."),
+    loader_workers: int = typer.Option(TRAIN.loader_workers, "--workers", "--loader-workers", min=0,
+                                       help="With --stream: DataLoader worker processes reading the store (0: this "
+                                            "one)."),
 ) -> None:
     """Train EchoPT; the best validation weights are kept as OUT/model.safetensors with a model card.
 
+    The options may come from a recipe file (--config RECIPE.toml); the card records the whole recipe.
+
     Killed at any point, the same command with --resume continues exactly (OUT/state.safetensors)."""
+    # the options are read by name from ctx.params, so a recipe's keys and the options are one list
     from sonarset.models.echopt.cards import add_test_metrics
+    from sonarset.models.echopt.recipes import config_of
     from sonarset.models.echopt.train import train as run_training
     from sonarset.store.store import open_store
 
-    s = open_store(store, check=True)
-    cfg = TrainConfig(model=model.value, preset=preset.value, epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
-                      schedule=schedule.value, seed=seed, device=device.value, eval_every=eval_every,
-                      max_steps=max_steps, max_minutes=max_minutes, compile=compile_, test_samples=test_samples,
-                      n_val=n_val, prior=value(prior) or "", loss=loss, curriculum=curriculum, pushforward=pushforward,
-                      step_weights=step_weights.value,
-                      optimizer=optimizer.value, context_noise=context_noise, val_horizon=val_horizon, init=init,
-                      precision=precision.value, worlds=worlds, n_in=n_in, inputs=value(inputs) or "",
-                      geometry_channels=-1 if geometry_channels is None else geometry_channels,
-                      trainable=trainable.value, stream=stream,
-                      shuffle_buffer=shuffle_buffer, loader_workers=workers)
+    settings = _train_settings(ctx, config)
+    out_dir = Path(settings["out"])
+    s = open_store(settings["store"], check=True)
+    cfg = config_of(settings)
     main = int(os.environ.get("RANK", "0")) == 0  # under torchrun only rank 0 reports
     with _training_bar(main) as progress:
         res = run_training(s, out_dir, cfg, resume=resume, progress=progress)
@@ -219,7 +280,7 @@ def train(
     if cfg.test_samples and s.runs("test"):
         test = add_test_metrics(out_dir, s, cfg)
         r = test["results"]
-        for m in ("flow", "echopt"):
+        for m in ("flow", test["model"]):
             one = r[m]["1"]
             out.print(f"test one-shot {m}: CC {_mean(one['cc'])}, NRMSD {_mean(one['nrmsd'])}")
 
@@ -234,14 +295,17 @@ def demo(
     device: ModelDevice = Device("auto"),
     precision: ModelPrecision = Precision("auto"),
 ) -> None:
-    """Simulate a fresh test run and compare the pretrained EchoPT with persistence, naive and flow
-    (and the noise and observable ceilings)."""
+    """Simulate a fresh test run and compare a model (the recommended pretrained one, EchoPT, by
+    default) with persistence, naive and flow (and the noise and observable ceilings)."""
     import time
 
     from sonarset.models import demo as pipeline
     from sonarset.models.eval.report import results_table, write_report
+    from sonarset.models.registry import model_option_spec
 
-    pipeline.check_model(model)  # a bad model fails now, not after the simulation
+    spec = model_option_spec(model)
+    # a bad model fails now, not after the simulation
+    predictor = pipeline.check_model(spec, device.value, precision.value)
     t0 = time.perf_counter()
     store_path = out_dir / "test.zarr"
     out.print(f"simulating a fresh {minutes:g}-minute test run (seed {seed}) -> {store_path}")
@@ -249,18 +313,19 @@ def demo(
         task = bar.add_task("simulating", total=None)
         s = pipeline.simulate_fresh_run(store_path, minutes=minutes, seed=seed,
                                         progress=lambda name, done, total: bar.update(task, completed=done, total=total))
-    out.print(pipeline.images_note(model, s), highlight=False)
-    out.print(pipeline.runs_in(model, precision.value, device.value), highlight=False)
-    out.print(f"evaluating {', '.join(BASELINES)} and EchoPT ({model}) on {samples} windows, "
+    for line in (pipeline.images_note(predictor, s), pipeline.runs_in(predictor, precision.value, device.value)):
+        if line:
+            out.print(line, highlight=False)
+    out.print(f"evaluating {', '.join(BASELINES)} and {pipeline.title(predictor.name)} ({model}) on {samples} windows, "
               f"horizons {', '.join(map(str, HORIZONS))}, "
               "with the noise and observable ceilings")
     with progress_bar() as bar:
-        res = pipeline.evaluate_fresh_run(s, model, samples=samples, device=device.value, precision=precision.value,
+        res = pipeline.evaluate_fresh_run(s, spec, samples=samples, device=device.value, precision=precision.value,
                                           progress=per_name_progress(bar))
     write_report(res, out_dir)
     _print_notes(res.notes)
     out.print(results_table(res, with_paper=True))
-    for line in pipeline.echopt_against_flow(res):
+    for line in pipeline.model_against_flow(res):
         out.print(line)
     out.print(f"report: {out_dir / 'report.md'} (figures beside it); {time.perf_counter() - t0:.0f} s in all")
 

@@ -33,7 +33,9 @@ def view(
     store: Annotated[str, typer.Argument(help="Store path or fsspec URL.")],
     run: Annotated[Optional[str], typer.Option("--run", help="Run to record (default: the first complete run).")] = None,
     model: Annotated[Optional[list[str]], typer.Option(
-        "--model", help="A predictor to show (repeat): persistence, naive, flow, echopt:pretrained, echopt:PATH.")] = None,
+        "--model", help="A predictor to show (repeat): any registered name (persistence, naive, flow, pretrained, "
+                        "a plugin's; sonarset models lists them), KIND:PATH (echopt:PATH) or "
+                        "package.module:factory.")] = None,
     horizon: Annotated[int, typer.Option("--horizon", min=1, help="Auto-regressive steps of each prediction.")] = 1,
     frames: Annotated[Optional[str], typer.Option("--frames", help="Frames A:B (default: the whole run).")] = None,
     out_file: Annotated[Optional[Path], typer.Option(

@@ -98,20 +98,27 @@ def training_notices(label: str, card: dict, processing: Processing, rig: RobotR
 
 
 def add_test_metrics(out_dir: str | os.PathLike, store: SonarStore, cfg: TrainConfig, seed: int = 0) -> dict:
-    """Evaluate a training run's best model against the baselines on ``cfg.test_samples`` windows of
-    the store's test split (drawn with ``seed``, not the training's), on ``cfg``'s device and
-    precision; record the results in its card."""
+    """Evaluate a training run's best model (of any kind: its card's) against the baselines on
+    ``cfg.test_samples`` windows of the store's test split (drawn with ``seed``, not the training's),
+    on ``cfg``'s device and precision; record the results in its card. The results name the model by
+    its kind (``test["model"]``); ``{kind}_vs_flow`` holds its comparisons with flow."""
+    from sonarset.models.echopt.predictor import load_learned_predictor
+    from sonarset.models.echopt.recipes import portable_path
     from sonarset.models.eval.evaluate import evaluate
     from sonarset.models.registry import BASELINES
 
     path = Path(out_dir) / "model.safetensors"
-    res = evaluate(store, [*BASELINES, f"echopt:{path}"], samples=cfg.test_samples, seed=seed, device=cfg.device,
-                   precision=cfg.precision, stream=cfg.stream)
+    model = load_learned_predictor(str(path), store.grid, device=cfg.device, precision=cfg.precision)
+    kind = model.name
+    res = evaluate(store, list(BASELINES), samples=cfg.test_samples, seed=seed, device=cfg.device,
+                   precision=cfg.precision, stream=cfg.stream, predictors={kind: model})
     card_path = path.with_suffix(".json")
     card = json.loads(card_path.read_text())
-    card["test"] = {"store": store.location, "split": "test", "windows": len(res.window_ids), "seed": seed,
-                    "precision": res.precision.get("echopt"),
+    # the store as seen from the run directory, as in the card's training.store (no path of this machine)
+    card["test"] = {"store": portable_path(store.location, out_dir), "split": "test", "windows": len(res.window_ids),
+                    "seed": seed,
+                    "model": kind, "precision": res.precision.get(kind),
                     "results": res.summary(),
-                    "echopt_vs_flow": [c.to_dict() for c in res.comparisons if {c.a, c.b} == {"echopt", "flow"}]}
+                    f"{kind}_vs_flow": [c.to_dict() for c in res.comparisons if {c.a, c.b} == {kind, "flow"}]}
     atomic_text(card_path, json.dumps(card, indent=2) + "\n")
     return card["test"]

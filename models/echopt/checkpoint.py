@@ -1,8 +1,9 @@
-"""EchoPT weights as safetensors with a JSON model card; no pickle is ever loaded.
+"""Trained weights as safetensors with a JSON model card; no pickle is ever loaded.
 
-A checkpoint is two files: ``NAME.safetensors`` (the weights) and ``NAME.json`` (the card: preset,
-config, grid, the training store's image processing and robot rig (models/echopt/cards.py), training
-store and command, epochs, validation loss, test metrics).
+A checkpoint is two files: ``NAME.safetensors`` (the weights) and ``NAME.json`` (the card: the
+network's kind (``model``: echopt, or a reference method of models/zoo/; cards without it are
+EchoPT's), preset, config, grid, the training store's image processing and robot rig
+(models/echopt/cards.py), training store and command, epochs, validation loss, test metrics).
 """
 
 from __future__ import annotations
@@ -12,27 +13,28 @@ import os
 from pathlib import Path
 
 import torch
+import torch.nn as nn
 from safetensors.torch import load_file, save_file
 
 from sonarset.store.atomic import atomic_text, atomic_write
 from sonarset.errors import GridMismatchError, SonarSetError
 from sonarset.format.attrs import SensorGrid
 
-from sonarset.models.echopt.config import EchoPTConfig
-from sonarset.models.echopt.model import EchoPT
+from sonarset.models.echopt.networks import A_TITLE, KINDS, TITLES, from_config, kind_of
 
 PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained" / "echopt-small.safetensors"
 
 
-def save_checkpoint(path: str | os.PathLike, model: EchoPT, card: dict, after_weights=None) -> Path:
+def save_checkpoint(path: str | os.PathLike, model: nn.Module, card: dict, after_weights=None) -> Path:
     """Weights, then the card (``after_weights(phase)`` is called between the two: tests kill there)."""
+    kind = kind_of(model)
     path = Path(path).with_suffix(".safetensors")
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
-    atomic_write(path, lambda p: save_file(state, str(p), metadata={"format": "echopt", "card": path.with_suffix(".json").name}))
+    atomic_write(path, lambda p: save_file(state, str(p), metadata={"format": kind, "card": path.with_suffix(".json").name}))
     if after_weights is not None:
         after_weights("best-weights")
-    card = {**card, "config": model.cfg.to_dict(), "n_params": model.n_params()}
+    card = {**card, "model": kind, "config": model.cfg.to_dict(), "n_params": model.n_params()}
     atomic_text(path.with_suffix(".json"), json.dumps(card, indent=2) + "\n")
     return path
 
@@ -46,25 +48,35 @@ def resolve(spec: str | os.PathLike) -> Path:
     return p.with_suffix(".safetensors")
 
 
-def load_checkpoint(spec: str | os.PathLike, grid: SensorGrid | None = None, device: str = "cpu") -> tuple[EchoPT, dict]:
-    """Load weights and card; refuse a model trained on another grid with a clear message."""
+def load_checkpoint(spec: str | os.PathLike, grid: SensorGrid | None = None, device: str = "cpu",
+                    kind: str | None = None) -> tuple[nn.Module, dict]:
+    """Load weights and card into the network the card's ``model`` names (EchoPT where a card, from
+    before the reference methods, names none); refuse a model trained on another grid, and with
+    ``kind``, a checkpoint of another kind, with a clear message."""
     path = resolve(spec)
     card_path = path.with_suffix(".json")
+    expected = kind or "echopt"
+    title = TITLES.get(expected, expected)
     if not path.is_file() or not card_path.is_file():
-        raise SonarSetError(f"{path}: no EchoPT checkpoint here (need {path.name} and {card_path.name})")
+        raise SonarSetError(f"{path}: no {title} checkpoint here (need {path.name} and {card_path.name})")
     try:
         card = json.loads(card_path.read_text())
-        cfg = EchoPTConfig.from_dict(card["config"])
-        cfg.check()
+        found = card.get("model", "echopt")
+        if found not in KINDS:
+            raise SonarSetError(f"{card_path}: a model of unknown kind {found!r} (this sonarset builds "
+                                f"{', '.join(KINDS)})")
+        if kind is not None and found != kind:
+            raise SonarSetError(f"{path}: {A_TITLE[found]} checkpoint, not {title}'s; name it {found}:{spec}")
+        expected, title = found, TITLES[found]
+        model = from_config(found, card["config"])
     except GridMismatchError as exc:
         raise GridMismatchError(f"{card_path}: {exc}") from None
-    except (ValueError, KeyError, TypeError, RecursionError) as exc:
-        raise SonarSetError(f"{card_path}: not an EchoPT model card ({exc})") from None
+    except (ValueError, KeyError, TypeError, AttributeError, RecursionError) as exc:
+        raise SonarSetError(f"{card_path}: not {A_TITLE.get(expected, 'a')} model card ({exc})") from None
     trained = SensorGrid.model_validate(card["grid"]) if "grid" in card else None
     if grid is not None and trained is not None and not trained.matches(grid):
-        raise GridMismatchError(f"{path}: EchoPT was trained on grid {trained.describe()}, "
+        raise GridMismatchError(f"{path}: {title} was trained on grid {trained.describe()}, "
                                 f"the data has {grid.describe()}; retrain on this grid")
-    model = EchoPT(cfg)
     try:
         state = load_file(str(path), device="cpu")
         model.load_state_dict(state)

@@ -11,7 +11,6 @@ from sonarset.errors import SonarSetError
 from sonarset.windows import WindowBatcher, WindowIndex
 
 from sonarset.models.echopt.distributed import Dist
-from sonarset.models.echopt.model import EchoPT
 from sonarset.models.echopt.precision import autocast
 from sonarset.models.echopt.train_config import STEP_WEIGHTS
 from sonarset.models.eval.result import ECHO_FLOOR
@@ -182,6 +181,15 @@ def weighted_loss(losses: list[torch.Tensor], kind: str = "uniform") -> torch.Te
     return sum(w * v for w, v in zip(step_weights(kind, len(losses)), losses))
 
 
+def forecaster(fwd) -> torch.nn.Module | None:
+    """The network behind ``fwd`` (itself, or under DistributedDataParallel or torch.compile) when it
+    forecasts several steps in one pass (a ``forecast`` method, such as SimVP's), else None."""
+    module = fwd
+    while isinstance(getattr(module, "module", None) or getattr(module, "_orig_mod", None), torch.nn.Module):
+        module = getattr(module, "module", None) or module._orig_mod
+    return module if callable(getattr(module, "forecast", None)) else None
+
+
 def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch.Tensor, terms: dict[str, float],
                    pushforward: bool = False, precision: str = "fp32", flow=None) -> list[torch.Tensor]:
     """One loss per rollout step: step h predicts target h from the last n_in frames, measured or
@@ -189,7 +197,13 @@ def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch
     steps but the last run without gradient, and only the last step's loss is returned. A
     ``REFERENCE_TERMS`` term compares step h with the flow baseline's own h-step rollout from the
     measured frames, the forecast an evaluation compares it with: ``flow`` (last frame, command ->
-    next frame, as ``EchoPT.flow_prior``) draws it."""
+    next frame, as ``EchoPT.flow_prior``) draws it.
+
+    A model that forecasts several steps in one pass (:func:`forecaster`) is called once per block
+    of up to its ``max_horizon`` steps (once, for every protocol horizon), through ``fwd`` with the
+    block's length as a third argument, each block's context the measured frames or the previous
+    block's predictions; with ``pushforward`` only the last block carries gradient, and its steps'
+    losses are returned (one block: the same as without)."""
     n_in, k = frames.shape[1], targets.shape[1]
     buf = list(frames.unbind(1))
     if not any(t in REFERENCE_TERMS for t in terms):
@@ -197,23 +211,32 @@ def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch
     elif flow is None:
         raise ValueError(f"the loss terms {', '.join(REFERENCE_TERMS)} need the flow baseline's warp")
     reference = frames[:, -1] if flow is not None else None
+    many = forecaster(fwd)
+    block = many.max_horizon if many is not None else 1
     losses = []
-    for h in range(k):
-        grad = torch.is_grad_enabled() and (not pushforward or h == k - 1)
+    h = 0
+    while h < k:
+        m = min(block, k - h)
+        grad = torch.is_grad_enabled() and (not pushforward or h + m == k)
         ctx = torch.stack(buf[h:h + n_in], 1).contiguous(memory_format=torch.channels_last)
         with torch.set_grad_enabled(grad), autocast(ctx.device, precision):
-            pred = fwd(ctx, cmds[:, h:h + n_in + 1]).float()  # the losses in fp32
-        if flow is not None:
-            with torch.no_grad():
-                reference = flow(reference.float(), cmds[:, h + n_in])
-        if grad or not pushforward:
-            losses.append(image_loss(pred, targets[:, h], terms, reference))
-        buf.append(pred.clamp(0, 1))
+            if many is None:
+                preds = fwd(ctx, cmds[:, h:h + n_in + 1]).float()[:, None]  # the losses in fp32
+            else:
+                preds = fwd(ctx, cmds[:, h:h + n_in + m], m).float()
+        for j, pred in enumerate(preds.unbind(1)):
+            if flow is not None:
+                with torch.no_grad():
+                    reference = flow(reference.float(), cmds[:, h + j + n_in])
+            if grad or not pushforward:
+                losses.append(image_loss(pred, targets[:, h + j], terms, reference))
+            buf.append(pred.clamp(0, 1))
+        h += m
     return losses
 
 
 @torch.no_grad()
-def validation_loss(model: EchoPT, batcher: WindowBatcher, index: WindowIndex, horizon: int = 1,
+def validation_loss(model: torch.nn.Module, batcher: WindowBatcher, index: WindowIndex, horizon: int = 1,
                     batch_size: int = 128, dist: Dist = Dist(), terms: dict[str, float] | None = None,
                     precision: str = "fp32", weights: str = "uniform") -> float:
     """The training loss (``terms``, default MSE) per pixel over ``index``, over a rollout of

@@ -124,15 +124,7 @@ class EchoPT(nn.Module):
             hidden = max(GEOMETRY_HIDDEN, g)
             self.geo_weights = nn.Sequential(nn.Conv2d(N_GEOMETRY, hidden, 1), GELU(), nn.Conv2d(hidden, g, 1))
         self.register_buffer("cmd_scale", torch.tensor([1 / V_SCALE, 1 / W_SCALE] * (cfg.n_in + 1)), persistent=False)
-        # pixel centres of the grid (range [m], azimuth [rad]) for the flow prior
-        (r0, r1), (a0, a1) = cfg.range_edges, cfg.azimuth_edges
-        dr, da = (r1 - r0) / cfg.n_range, (a1 - a0) / cfg.n_azimuth
-        self.register_buffer("r_c", r0 + (torch.arange(cfg.n_range, dtype=torch.float64) + 0.5) * dr, persistent=False)
-        self.register_buffer("th_c", a0 + (torch.arange(cfg.n_azimuth, dtype=torch.float64) + 0.5) * da, persistent=False)
-        # the first centre (as float32) and the step, as Python numbers: a graph export (ONNX) must not
-        # read them out of tensors
-        self._pixel_steps = tuple((float(c[0].float()), float(c[1] - c[0]) if len(c) > 1 else step)
-                                  for c, step in ((self.r_c, dr), (self.th_c, da)))
+        self._register_grid(cfg)
         self.apply(self._init)
         nn.init.normal_(self.pos, std=0.02)
         if cfg.prior != "none":  # an untrained model is exactly its prior
@@ -141,6 +133,19 @@ class EchoPT(nn.Module):
         if cfg.geometry_channels:  # the branch starts at zero: added to a trained model, it changes nothing yet
             nn.init.zeros_(self.geo_weights[-1].weight)
             nn.init.zeros_(self.geo_weights[-1].bias)
+
+    def _register_grid(self, cfg) -> None:
+        """The pixel centres of ``cfg``'s grid (range [m], azimuth [rad]), which the flow prior and
+        :meth:`align` sample at. ``cfg``: any config with the grid's sizes and edges (the reference
+        models of models/zoo/ share this plumbing)."""
+        (r0, r1), (a0, a1) = cfg.range_edges, cfg.azimuth_edges
+        dr, da = (r1 - r0) / cfg.n_range, (a1 - a0) / cfg.n_azimuth
+        self.register_buffer("r_c", r0 + (torch.arange(cfg.n_range, dtype=torch.float64) + 0.5) * dr, persistent=False)
+        self.register_buffer("th_c", a0 + (torch.arange(cfg.n_azimuth, dtype=torch.float64) + 0.5) * da, persistent=False)
+        # the first centre (as float32) and the step, as Python numbers: a graph export (ONNX) must not
+        # read them out of tensors
+        self._pixel_steps = tuple((float(c[0].float()), float(c[1] - c[0]) if len(c) > 1 else step)
+                                  for c, step in ((self.r_c, dr), (self.th_c, da)))
 
     @staticmethod
     def _init(m: nn.Module) -> None:

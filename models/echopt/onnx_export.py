@@ -28,6 +28,7 @@ from sonarset.errors import SonarSetError
 
 from sonarset.models.echopt.checkpoint import load_checkpoint
 from sonarset.models.echopt.model import EchoPT
+from sonarset.models.echopt.networks import A_TITLE, kind_of
 from sonarset.models.echopt.onnx_runtime import CARD_KEY, INPUTS, OUTPUT
 
 #: The largest torch-vs-onnxruntime difference an export may have (images are in [0, 1]).
@@ -117,6 +118,8 @@ def export_onnx(spec: str | os.PathLike, out: str | os.PathLike, *, check_window
         raise SonarSetError(f"{out}: is a directory")
     onnx = _onnx_modules()
     model, card = load_checkpoint(str(spec).removeprefix("echopt:"))
+    if kind_of(model) != "echopt":
+        raise SonarSetError(f"{spec}: {A_TITLE[kind_of(model)]} checkpoint; ONNX export is EchoPT's only")
     model = model.float().eval()
     deployed = DeployedEchoPT(model).eval()
     example = random_windows(model, 2, seed=1)

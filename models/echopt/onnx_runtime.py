@@ -18,6 +18,8 @@ import numpy as np
 from sonarset.errors import GridMismatchError, SonarSetError
 from sonarset.format.attrs import SensorGrid
 
+from sonarset.models.predictor import BasePredictor
+
 #: The metadata key of the model card (the JSON card of the exported checkpoint).
 CARD_KEY = "echopt.card"
 INPUTS = ("frames", "commands")
@@ -85,7 +87,7 @@ def read_onnx_card(path: str | os.PathLike) -> dict:
     return session_card(open_session(path, threads=1), path)
 
 
-class OnnxEchoPTPredictor:
+class OnnxEchoPTPredictor(BasePredictor):
     """An exported EchoPT under onnxruntime: the predictor interface of ``EchoPTPredictor``."""
 
     precision = "fp32"  # the exported graph's; onnxruntime runs it as written

@@ -1,18 +1,24 @@
-"""EchoPT behind the evaluation engine's predictor interface (NumPy in, NumPy out): a torch
-checkpoint (``echopt:PATH``, ``echopt:pretrained``) or an ONNX export (``echopt:PATH.onnx``,
-run by onnxruntime, models/echopt/onnx_runtime.py)."""
+"""A trained network behind the evaluation engine's predictor interface (NumPy in, NumPy out):
+EchoPT or a reference method (models/zoo/) from a torch checkpoint (``KIND:PATH``,
+``echopt:pretrained``), or EchoPT from an ONNX export (``echopt:PATH.onnx``, run by onnxruntime,
+models/echopt/onnx_runtime.py)."""
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+from typing import Callable
 
 import numpy as np
 import torch
 
+from sonarset.errors import SonarSetError
 from sonarset.format.attrs import SensorGrid
 
 from sonarset.models.echopt.checkpoint import load_checkpoint, resolve
+from sonarset.models.echopt.losses import forecaster
+from sonarset.models.echopt.networks import TITLES, kind_of
 from sonarset.models.echopt.precision import autocast, resolve_device, resolve_precision
+from sonarset.models.predictor import BasePredictor
 
 #: Windows per forward pass, by device. Measured (bench/bench_infer.py, BENCHMARKS.md): on a CPU
 #: samples/s peak at 8-32 windows in fp32 and bf16 and fall for larger batches, whose activations
@@ -24,7 +30,10 @@ def inference_batch(device: str) -> int:
     return INFERENCE_BATCH["cuda" if str(device).startswith("cuda") else "cpu"]
 
 
-class EchoPTPredictor:
+class LearnedPredictor(BasePredictor):
+    """A trained network of any kind as a predictor (models/predictor.py's protocol; its rollout
+    chains ``predict``); its ``name`` is the kind (echopt, convlstm, ...)."""
+
     def __init__(self, model, card: dict, grid: SensorGrid, device: str = "cpu", batch_size: int | None = None,
                  precision: str = "auto"):
         self.device = device
@@ -34,19 +43,24 @@ class EchoPTPredictor:
         self.model = model.to(memory_format=torch.channels_last)
         self.card, self.grid = card, grid
         self.batch_size = batch_size or inference_batch(device)
-        self.name = "echopt"
+        self.name = kind_of(model)
         self.n_in = model.cfg.n_in  # input frames per window, as trained
-        self.label = "echopt"  # names the checkpoint in notes: echopt-small, run-small/model
+        self.label = self.name  # names the checkpoint in notes: echopt-small, run-small/model
 
     def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:
         out = np.empty((frames.shape[0], *frames.shape[2:]), dtype=np.float32)
+        self._chunked(frames, commands, lambda f, c: self.model(f, c), out)
+        return out
+
+    def _chunked(self, frames: np.ndarray, commands: np.ndarray, step: Callable, out: np.ndarray) -> None:
+        """``out[chunk] = step(frames, commands)`` of each chunk of ``batch_size`` windows, clamped."""
         chunks = [slice(lo, lo + self.batch_size) for lo in range(0, len(frames), self.batch_size)]
 
         def run(sl: slice) -> None:
             f = torch.from_numpy(np.ascontiguousarray(frames[sl], dtype=np.float32)).to(self.device)
             c = torch.from_numpy(np.ascontiguousarray(commands[sl], dtype=np.float32)).to(self.device)
             with torch.no_grad(), autocast(self.device, self.precision):  # both thread-local: set here
-                pred = self.model(f.contiguous(memory_format=torch.channels_last), c)
+                pred = step(f.contiguous(memory_format=torch.channels_last), c)
             # energyscapes live in [0, 1]: clamp so that auto-regressive inputs stay in range
             out[sl] = pred.float().clamp_(0, 1).cpu().numpy()
 
@@ -54,29 +68,65 @@ class EchoPTPredictor:
         if self.device != "cpu" or threads == 1 or len(chunks) == 1:
             for sl in chunks:
                 run(sl)
-            return out
+            return
         # On a CPU, one batch per core, each single-threaded, beats every batch spread over all
-        # cores: this model's kernels are too small to keep several threads busy (bench_infer:
+        # cores: these models' kernels are too small to keep several threads busy (bench_infer:
         # +15-25% on 2 cores). torch's thread count is process-wide, so it is restored after.
         torch.set_num_threads(1)
         try:
             list(self._pool(threads).map(run, chunks))
         finally:
             torch.set_num_threads(threads)
-        return out
 
     def _pool(self, threads: int) -> cf.ThreadPoolExecutor:
         if getattr(self, "_workers", None) is None or self._workers._max_workers != threads:
-            self._workers = cf.ThreadPoolExecutor(threads, thread_name_prefix="echopt")
+            self._workers = cf.ThreadPoolExecutor(threads, thread_name_prefix=self.name)
         return self._workers
 
 
-def load_echopt_predictor(spec: str, grid: SensorGrid, device: str = "cpu", precision: str = "auto") -> EchoPTPredictor:
-    """The predictor of a checkpoint spec: ``pretrained``, a directory or a ``.safetensors`` path
-    (ONNX exports: registry.make_predictor routes them to onnx_runtime, without torch)."""
+#: The name the predictor had when EchoPT was the only learned model.
+EchoPTPredictor = LearnedPredictor
+
+
+class ForecastPredictor(LearnedPredictor):
+    """A network that forecasts several steps in one pass (SimVP): its ``rollout`` is that forecast,
+    in blocks of up to its ``max_horizon`` steps, each block's context the previous block's last
+    predictions; ``predict`` is its first step."""
+
+    def rollout(self, frames: np.ndarray, commands: np.ndarray, horizon: int) -> np.ndarray:
+        """(B, horizon, R, A) from frames (B, n_in, R, A) and commands (B, n_in + horizon, 2), as
+        models.baselines.rollout's contract."""
+        n_in = frames.shape[1]
+        if commands.shape[1] < n_in + horizon:
+            raise ValueError(f"need {n_in + horizon} commands for horizon {horizon}, got {commands.shape[1]}")
+        buf = np.empty((frames.shape[0], n_in + horizon, *frames.shape[2:]), dtype=np.float32)
+        buf[:, :n_in] = frames
+        h, block = 0, self.model.max_horizon
+        while h < horizon:
+            m = min(block, horizon - h)
+            self._chunked(buf[:, h:h + n_in], commands[:, h:h + n_in + m],
+                          lambda f, c, m=m: self.model.forecast(f, c, m), buf[:, n_in + h:n_in + h + m])
+            h += m
+        return buf[:, n_in:]
+
+
+def load_learned_predictor(spec: str, grid: SensorGrid, device: str = "cpu", precision: str = "auto",
+                           kind: str | None = None) -> LearnedPredictor:
+    """The predictor of a checkpoint spec of any kind (``pretrained``, a run directory or a
+    ``.safetensors`` path; the card says the kind); with ``kind``, a checkpoint of another kind is
+    refused (ONNX exports: the registry routes them to onnx_runtime, without torch)."""
+    if str(spec) in ("", "pretrained") and kind not in (None, "echopt"):
+        raise SonarSetError(f"{kind}:pretrained: sonarset ships no {TITLES[kind]} model; train one (sonarset train "
+                            f"--model {kind}) and name its run directory, {kind}:RUN")
     dev = resolve_device(device)
-    model, card = load_checkpoint(spec, grid, dev)
-    p = EchoPTPredictor(model, card, grid, dev, precision=precision)
-    path = resolve(spec)
-    p.label = path.stem if path.stem.startswith("echopt") else f"echopt {path.parent.name}/{path.stem}"
+    model, card = load_checkpoint(spec or "pretrained", grid, dev, kind=kind)
+    cls = ForecastPredictor if forecaster(model) is not None else LearnedPredictor
+    p = cls(model, card, grid, dev, precision=precision)
+    path = resolve(spec or "pretrained")
+    p.label = path.stem if path.stem.startswith(p.name) else f"{p.name} {path.parent.name}/{path.stem}"
     return p
+
+
+def load_echopt_predictor(spec: str, grid: SensorGrid, device: str = "cpu", precision: str = "auto") -> LearnedPredictor:
+    """EchoPT's predictor of a checkpoint spec (``pretrained``, a directory or a ``.safetensors`` path)."""
+    return load_learned_predictor(spec or "pretrained", grid, device, precision, kind="echopt")

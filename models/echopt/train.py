@@ -1,4 +1,6 @@
-"""Training EchoPT on a SonarSet store (``sonarset train``).
+"""Training EchoPT on a SonarSet store (``sonarset train``), and by the same code the reference
+methods of video prediction (``TrainConfig.model``: convlstm, simvp, unet; models/zoo/): the same
+windows, losses, rollouts, precision, checkpoints and resume, so that they compare at equal budget.
 
 Paper defaults: Adam, lr 5e-5, batch 64, L2 1e-4, 1600 random validation windows, best validation
 loss kept. By default all frames of the training runs are held in memory (on the GPU when there is
@@ -47,17 +49,20 @@ from pathlib import Path
 from typing import Callable
 
 import torch
+import torch.nn as nn
 
 from sonarset import __version__
 from sonarset.errors import SonarSetError
 from sonarset.store.store import SonarStore
 
 from sonarset.models.echopt.checkpoint import load_checkpoint, save_checkpoint
-from sonarset.models.echopt.config import ADDABLE_FIELDS, WARM_START_FIELDS, ConfigError, grid_and_rig, make_config
+from sonarset.models.echopt.config import ADDABLE_FIELDS, WARM_START_FIELDS, ConfigError, grid_and_rig
 from sonarset.models.echopt.distributed import Dist, destroy_process_group, init_distributed
 from sonarset.models.echopt.losses import parse_loss, rollout_losses, validation_loss, weighted_loss
-from sonarset.models.echopt.model import GEOMETRY_PREFIX, EchoPT
+from sonarset.models.echopt.model import GEOMETRY_PREFIX
+from sonarset.models.echopt.networks import TITLES, build, presets
 from sonarset.models.echopt.precision import resolve_device, resolve_precision
+from sonarset.models.echopt.recipes import SETTINGS, portable_command, recipe_of
 from sonarset.models.echopt.train_config import RESUME_KEYS, STREAM_KEYS, TrainConfig
 from sonarset.models.echopt.train_data import MemoryWindows, StreamedWindows, fewer_than_a_batch
 from sonarset.models.echopt.train_state import STATE, load_state, save_state, write_metrics
@@ -101,7 +106,7 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
             destroy_process_group()
 
 
-def _init_from(model: EchoPT, spec: str, trained: EchoPT, card: dict, store: SonarStore) -> None:
+def _init_from(model: nn.Module, spec: str, trained: nn.Module, card: dict, store: SonarStore) -> None:
     """Copy a trained model's weights into ``model``, which must be the same network on the same grid,
     trained on the same images (a fine-tune continues a model; it cannot change what it is, except
     how its inputs are prepared: ``WARM_START_FIELDS``; or add a branch it lacks, which starts at
@@ -123,9 +128,26 @@ def _init_from(model: EchoPT, spec: str, trained: EchoPT, card: dict, store: Son
                             parameter="init")
 
 
-def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[EchoPT, torch.optim.Optimizer]:
-    """The network for the store's grid and robot (seeded, or ``init``'s weights) on ``device``, and
-    its optimizer."""
+def _refuse_echopt_options(cfg: TrainConfig) -> None:
+    """A reference method (``cfg.model`` other than echopt) has its own presets, and none of
+    EchoPT's own options: each is refused in one line naming it, not silently ignored."""
+    kind, title = cfg.model, TITLES[cfg.model]
+    if cfg.preset not in presets(kind):
+        what = "EchoPT's only (the paper's network)" if cfg.preset in presets("echopt") else "unknown"
+        raise SonarSetError(f"preset {cfg.preset}: {what}; {kind} has {', '.join(presets(kind))}", parameter="preset")
+    if cfg.geometry_channels > 0:
+        raise SonarSetError(f"geometry_channels {cfg.geometry_channels}: an EchoPT option; {title} has no geometry "
+                            "branch", parameter="geometry_channels")
+    if cfg.trainable != "all":
+        raise SonarSetError(f"trainable {cfg.trainable}: an EchoPT option (its geometry branch); {title} trains all "
+                            "its weights", parameter="trainable")
+
+
+def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[nn.Module, torch.optim.Optimizer]:
+    """The network of kind ``cfg.model`` for the store's grid and robot (seeded, or ``init``'s
+    weights) on ``device``, and its optimizer."""
+    if cfg.model != "echopt":
+        _refuse_echopt_options(cfg)
     torch.manual_seed(cfg.seed)
     overrides = grid_and_rig(store.grid, store.rig)
     if cfg.prior:
@@ -134,15 +156,15 @@ def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[Echo
         overrides["n_in"] = cfg.n_in
     trained = card = None
     if cfg.init:
-        trained, card = load_checkpoint(cfg.init, store.grid)
+        trained, card = load_checkpoint(cfg.init, store.grid, kind=cfg.model)
     if cfg.inputs or trained is not None:  # a fine-tune keeps its model's unless told otherwise
         overrides["inputs"] = cfg.inputs or trained.cfg.inputs
-    if cfg.geometry_channels >= 0:
+    if cfg.model == "echopt" and cfg.geometry_channels >= 0:
         overrides["geometry_channels"] = cfg.geometry_channels
-    elif trained is not None:
+    elif cfg.model == "echopt" and trained is not None:
         overrides["geometry_channels"] = trained.cfg.geometry_channels
     try:
-        model = EchoPT(make_config(cfg.preset, *store.grid.shape, **overrides))
+        model = build(cfg.model, cfg.preset, *store.grid.shape, **overrides)
     except ValueError as exc:  # a size this run set, else what it derives from (n_in sets d_model)
         setting = exc.setting if isinstance(exc, ConfigError) else None
         what = setting if setting in ("n_in", "geometry_channels") else "n_in" if cfg.n_in else "preset"
@@ -182,7 +204,7 @@ class _Plan:
         return cls(steps_per_epoch, total_steps, cfg.eval_every or steps_per_epoch)
 
 
-def _resumed(out: Path, model: EchoPT, opt: torch.optim.Optimizer, cfg: TrainConfig,
+def _resumed(out: Path, model: nn.Module, opt: torch.optim.Optimizer, cfg: TrainConfig,
              dist: Dist) -> tuple[int, float, list[dict]]:
     """(step, best validation loss, history) of the saved state, loaded into ``model`` and ``opt``,
     after checking that the settings that shape the run are the saved ones."""
@@ -203,7 +225,7 @@ def _resumed(out: Path, model: EchoPT, opt: torch.optim.Optimizer, cfg: TrainCon
     return int(meta["step"]), float(meta["best_val_loss"]), list(meta["history"])
 
 
-def _forward(model: EchoPT, cfg: TrainConfig, dist: Dist, device: str):
+def _forward(model: nn.Module, cfg: TrainConfig, dist: Dist, device: str):
     """The model as a training step calls it: under DistributedDataParallel across processes,
     compiled on request (GPU)."""
     fwd = model
@@ -216,17 +238,20 @@ def _forward(model: EchoPT, cfg: TrainConfig, dist: Dist, device: str):
     return fwd
 
 
-def _card_base(store: SonarStore, cfg: TrainConfig, run_names: list[str], n_train: int, n_val: int,
+def _card_base(store: SonarStore, cfg: TrainConfig, out: Path, run_names: list[str], n_train: int, n_val: int,
                steps_per_epoch: int, precision: str) -> dict:
-    """What every checkpoint's card says about the model's data and training."""
+    """What every checkpoint's card says about the model's data and training: its recipe and command
+    with paths relative to the run directory ``out``, so a card names no directory of this machine."""
+    recipe = recipe_of(cfg, store.location, out, relative_to=out)
     return {
-        "format": "echopt-card/1", "preset": cfg.preset, "grid": store.grid.model_dump(),
+        "format": "echopt-card/1", "model": cfg.model, "preset": cfg.preset, "grid": store.grid.model_dump(),
         # what the model knows: the images' processing and the robot (models/echopt/cards.py reads them)
         "processing": store.processing.model_dump(mode="json"),
         "rig": store.rig.model_dump(mode="json") if store.rig is not None else None,
-        "training": {"store": store.location, "runs": run_names, "worlds": _run_worlds(store, run_names),
-                     "command": cfg.command,
-                     "sonarset": __version__, "config": asdict(cfg), "windows_train": n_train,
+        "training": {"store": recipe["store"], "runs": run_names, "worlds": _run_worlds(store, run_names),
+                     "command": portable_command(cfg.command, out), "recipe": recipe,
+                     "sonarset": __version__, "config": {k: v for k, v in recipe.items() if k in SETTINGS},
+                     "windows_train": n_train,
                      "windows_val": n_val, "steps_per_epoch": steps_per_epoch, "precision": precision},
     }
 
@@ -258,7 +283,7 @@ class _Run:
     cfg: TrainConfig
     out: Path
     dist: Dist
-    model: EchoPT
+    model: nn.Module
     fwd: Callable
     opt: torch.optim.Optimizer
     terms: dict[str, float]
@@ -350,7 +375,8 @@ def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progres
     if resume and (out / STATE).is_file():
         step, best, history = _resumed(out, model, opt, cfg, dist)
     run = _Run(cfg, out, dist, model, _forward(model, cfg, dist, device), opt, terms, data, plan, val_horizon, precision,
-               _card_base(store, cfg, data.run_names, data.n_train, len(data.val_idx), plan.steps_per_epoch, precision),
+               _card_base(store, cfg, out, data.run_names, data.n_train, len(data.val_idx), plan.steps_per_epoch,
+                          precision),
                progress)
     step, best = _steps(run, step, best, history)
     dist.barrier()  # rank 0's last checkpoint is on disk before any process returns

@@ -1,6 +1,7 @@
 """The settings of a training run (``TrainConfig``), built once by the caller (``sonarset train``
-builds it from its options) and carried whole through training, into the card and the resumable
-state. No torch here: the command line lists the optimizers and schedules without loading it.
+builds it from its options and a recipe file: models/echopt/recipes.py) and carried whole through
+training, into the card and the resumable state. No torch here: the command line lists the
+optimizers and schedules without loading it.
 """
 
 from __future__ import annotations
@@ -70,6 +71,7 @@ class TrainConfig:
     stream: bool = False
     shuffle_buffer: int = DEFAULT_SHUFFLE_BUFFER
     loader_workers: int = 0  # DataLoader worker processes reading the stream (0: in this process)
+    # the command line that ran, as typed; the card records it portable (recipes.portable_command)
     command: str = field(default_factory=lambda: " ".join(shlex.quote(a) for a in sys.argv))
 
     def stages(self) -> list[tuple[int, int]]:

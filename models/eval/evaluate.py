@@ -23,7 +23,7 @@ from sonarset.store.store import SonarStore
 from sonarset.stream import window_bank
 from sonarset.windows import N_IN, FrameBank, RunLayout, WindowBatcher, WindowIndex
 
-from sonarset.models.baselines import Predictor
+from sonarset.models.predictor import CheckedPredictor, Predictor, as_predictor
 from sonarset.models.registry import HORIZONS
 from sonarset.models.eval.result import METRICS, EvalResult, undefined_notes
 from sonarset.models.eval.scores import Scores, score_ceilings
@@ -72,6 +72,10 @@ def evaluate(
     stream: bool = False,
 ) -> EvalResult:
     """Evaluate every model on the same ``samples`` windows of ``split``, for every horizon.
+
+    ``model_specs`` are names the registry resolves (models/registry.py: persistence, naive, flow,
+    pretrained, ``KIND:PATH``, a plugin's name, ``package.module:factory``); ``predictors`` adds
+    predictor objects (anything that answers models/predictor.py's protocol) under their keys.
 
     Windows are drawn once (seeded) among those with room for the longest horizon, so every
     method and horizon sees the same starting points; each method is rolled out once to the
@@ -130,7 +134,7 @@ def evaluate(
                         index.starts, ids, scores.per_window, seconds=scores.seconds, examples=examples, notes=notes,
                         ceiling_skipped=skipped, step_peak=scores.step_peak, step_energy=scores.step_energy,
                         target_peak=scores.target_peak, target_energy=scores.target_energy, n_in=index.n_in,
-                        precision={m: p.precision for m, p in preds.items() if isinstance(getattr(p, "precision", None), str)},
+                        precision={m: p.precision for m, p in preds.items() if p.precision is not None},
                         echo_matching=echo_matching, worlds=list(worlds) if worlds else None)
     result.notes += undefined_notes(result)
     result.comparisons = _compare_all(result, seed)
@@ -138,34 +142,39 @@ def evaluate(
 
 
 def _predictors(store: SonarStore, model_specs: list[str], rig: RobotRig, device: str, precision: str,
-                given: dict[str, Predictor] | None) -> tuple[dict[str, Predictor], list[str]]:
-    """The predictors by name (``given`` first, then ``model_specs``), and notes on learned models
-    meeting other images than they were trained on."""
+                given: dict[str, Predictor] | None) -> tuple[dict[str, CheckedPredictor], list[str]]:
+    """The predictors by name (``given`` first, under their keys, then ``model_specs``), checked
+    against the protocol, and notes on learned models meeting other images than they were trained
+    on and on plugins a built-in name shadows."""
     from sonarset.models.echopt.cards import training_notices
-    from sonarset.models.registry import make_predictor
+    from sonarset.models.registry import make_predictor, shadowed_plugins
 
-    preds: dict[str, Predictor] = dict(given or {})
-    for spec in model_specs:
+    preds: dict[str, CheckedPredictor] = {}
+    for name, p in (given or {}).items():
+        preds[name] = as_predictor(p, name)
+        preds[name].name = name
+    for spec in dict.fromkeys(model_specs):
         p = make_predictor(spec, store.grid, rig, device=device, precision=precision)
-        if p.name in preds:  # several checkpoints: each under its own label (echopt RUN/model)
-            p.name = getattr(p, "label", spec)
+        if p.name in preds:  # several checkpoints: each under its own label (echopt RUN/model), else its spec
+            p.name = p.label if p.label not in preds else spec
             if p.name in preds:
-                p.name = spec
+                raise SonarSetError(f"model {spec!r}: another model is named {p.name!r}; evaluate them apart",
+                                    parameter="model_specs")
         preds[p.name] = p
-    notes = []
+    shadowed = shadowed_plugins()
+    notes = [shadowed[s.partition(":")[0]] for s in dict.fromkeys(model_specs) if s.partition(":")[0] in shadowed]
     for p in preds.values():
-        if isinstance(getattr(p, "card", None), dict):
-            notes += training_notices(getattr(p, "label", p.name), p.card, store.processing, store.rig,
-                                      rig.frame_interval_s)
+        if p.card is not None:
+            notes += training_notices(p.label, p.card, store.processing, store.rig, rig.frame_interval_s)
     if not preds:
         raise SonarSetError("no models to evaluate")
     return preds, notes
 
 
-def window_frames(preds: dict[str, Predictor]) -> int:
+def window_frames(preds: dict[str, CheckedPredictor]) -> int:
     """Input frames per window: the one count all predictors were built for (a learned model's is
     in its config); predictors that read only the last frame take any."""
-    counts = {p.n_in for p in preds.values() if not getattr(p, "any_context", False)}
+    counts = {p.n_in for p in preds.values() if not p.any_context}
     if not counts:
         return N_IN
     if len(counts) != 1:

@@ -17,7 +17,7 @@ from sonarset.scoring.metrics import cc_and_nrmsd
 from sonarset.store.store import SonarStore
 from sonarset.windows import FrameBank, WindowBatcher, WindowIndex
 
-from sonarset.models.baselines import Predictor, rollout
+from sonarset.models.predictor import CheckedPredictor
 from sonarset.models.eval.result import METRICS, peak_and_energy
 
 
@@ -35,17 +35,18 @@ class Scores:
     matching: EchoMatching
 
     @classmethod
-    def of(cls, preds: dict[str, Predictor], n: int, horizons: tuple[int, ...], grid,
+    def of(cls, preds: dict[str, CheckedPredictor], n: int, horizons: tuple[int, ...], grid,
            matching: EchoMatching) -> "Scores":
         H = horizons[-1]
         return cls({m: {h: {k: np.empty(n) for k in METRICS} for h in horizons} for m in preds},
                    dict.fromkeys(preds, 0.0), {m: np.empty((n, H)) for m in preds}, {m: np.empty((n, H)) for m in preds},
                    np.empty((n, H)), np.empty((n, H)), grid, matching)
 
-    def roll_out(self, batcher: WindowBatcher, index: WindowIndex, preds: dict[str, Predictor], batch_size: int,
+    def roll_out(self, batcher: WindowBatcher, index: WindowIndex, preds: dict[str, CheckedPredictor], batch_size: int,
                  progress: Callable[[str, int, int], None] | None) -> dict:
-        """Roll every method out over every window, batch by batch, and score it; returns the first
-        window's frames, targets and predictions (the figures' example)."""
+        """Roll every method (a checked predictor, models/predictor.py) out over every window, batch by
+        batch, and score it; returns the first window's frames, targets and predictions (the figures'
+        example)."""
         H = index.horizon
         examples: dict = {"methods": {}}
         for lo in range(0, len(index), batch_size):
@@ -58,7 +59,7 @@ class Scores:
             target_echoes = {h: find_echoes(batch.targets[:, h - 1], self.grid, self.matching) for h in horizons}
             for name, predictor in preds.items():
                 t0 = time.perf_counter()
-                pred = rollout(predictor, batch.frames, batch.commands, H)
+                pred = predictor.rollout(batch.frames, batch.commands, H)
                 self.seconds[name] += time.perf_counter() - t0  # the prediction's time, not the scoring's
                 for h, metrics in self.per_window[name].items():
                     for k, v in score_images(pred[:, h - 1], batch.targets[:, h - 1], self.grid, self.matching,

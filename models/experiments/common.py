@@ -7,7 +7,7 @@ import concurrent.futures as cf
 import json
 import os
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 from sonarset.store.atomic import atomic_text, publish_files, save_figure
@@ -19,14 +19,17 @@ from sonarset.report.numbers import finite_or_none
 from sonarset.scoring.stats import bootstrap_ci
 from sonarset.sim.runs import simulator_rig
 
+from sonarset.models.predictor import CheckedPredictor
+
 _PREDICTORS: dict = {}
 #: The robot the experiments simulate, at its frame interval; the baselines warp by its frame
 #: interval and sensor offset.
 RIG = simulator_rig()
 
 
-def predictor(spec: str, grid: SensorGrid, device: str = "cpu", precision: str = "auto"):
-    """The predictor for a model spec (``naive``, ``flow``, ``echopt:PATH``), built once per process."""
+def predictor(spec: str, grid: SensorGrid, device: str = "cpu", precision: str = "auto") -> CheckedPredictor:
+    """The predictor for a model spec (any the registry resolves: ``flow``, ``pretrained``,
+    ``echopt:PATH``, a plugin's name, ``package.module:factory``), built once per process."""
     key = (spec, grid.model_dump_json(), device, precision)
     if key not in _PREDICTORS:
         from sonarset.models.registry import make_predictor
@@ -35,12 +38,12 @@ def predictor(spec: str, grid: SensorGrid, device: str = "cpu", precision: str =
     return _PREDICTORS[key]
 
 
-def learned_precision(preds) -> dict[str, str]:
+def learned_precision(preds: Iterable[CheckedPredictor]) -> dict[str, str]:
     """{predictor name: fp32 | bf16} of the learned predictors among ``preds``, as they compute."""
-    return {p.name: p.precision for p in preds if isinstance(getattr(p, "precision", None), str)}
+    return {p.name: p.precision for p in preds if p.precision is not None}
 
 
-def experiment_processing(models, requested: Processing | str | None = None) -> Processing:
+def experiment_processing(preds: Iterable[CheckedPredictor], requested: Processing | str | None = None) -> Processing:
     """The images an experiment simulates: those its learned models were trained on (their cards).
 
     ``requested`` (a profile name or settings) is checked against the cards: a model is never fed
@@ -48,18 +51,14 @@ def experiment_processing(models, requested: Processing | str | None = None) -> 
     images in one experiment. Without a learned model, the request or the simulator's default
     (``ertis``); the controller and the burst detector work on both profiles (``sonarset.sim.control``).
     """
-    from sonarset.models.echopt.cards import card_processing, read_card
+    from sonarset.models.echopt.cards import card_processing
 
     if isinstance(requested, str):
         try:
             requested = Processing.named(requested)
         except ValueError as e:
             raise SonarSetError(f"processing: {e}", parameter="processing") from None
-    found: dict[str, Processing] = {}
-    for spec in models:
-        kind, _, path = spec.partition(":")
-        if kind == "echopt":
-            found[spec] = card_processing(read_card(path or "pretrained"))
+    found = {p.label: card_processing(p.card) for p in preds if p.card is not None}
     trained = next(iter(found.values()), None)
     if any(not p.same_images(trained) for p in found.values()):
         listed = ", ".join(f"{k}: {p.profile}" for k, p in found.items())

@@ -145,9 +145,11 @@ class ControlResult:
     precision: dict[str, str] = field(default_factory=dict)  # bridging model spec -> fp32 | bf16, as it ran
 
 
-def condition_name(spec: str) -> str:
-    """``bursts+echopt`` for ``echopt:pretrained``; the spec itself for other checkpoints' paths."""
-    return "bursts+" + (spec.partition(":")[0] if spec.partition(":")[2] in ("", "pretrained") else spec)
+def condition_name(spec: str, name: str) -> str:
+    """``bursts+NAME`` (the predictor's name) for a name the registry knows (``bursts+echopt`` for
+    ``pretrained`` and ``echopt:pretrained``); ``bursts+SPEC`` for a checkpoint's path or a
+    ``module:factory``, which stay apart where names may not."""
+    return "bursts+" + (name if spec.partition(":")[2] in ("", "pretrained") else spec)
 
 
 def run_control_experiment(models: list[str] | tuple[str, ...] = ("echopt:pretrained",), runs: int = 50, seed: int = 0,
@@ -161,16 +163,17 @@ def run_control_experiment(models: list[str] | tuple[str, ...] = ("echopt:pretra
     grid = grid or SensorGrid.default()
     t0 = time.perf_counter()
     preds = {m: predictor(m, grid, device, precision) for m in models}  # fail fast on a bad model
-    processing = experiment_processing(models, processing)
+    processing = experiment_processing(preds.values(), processing)
     conditions = [*CONDITIONS, *(f"bursts+{m}" for m in models)]
     seeds = spawn_seeds(seed, runs)  # run i uses the same spawn, bursts and noise seed in every condition
     eps = [Episode(i, s, c, grid, max_time_s=max_time_s, device=device, processing=processing, precision=precision)
            for c in conditions for i, s in enumerate(seeds)]
     results = parallel_map(run_episode, eps, workers, progress)
-    names = {c: condition_name(c.partition("+")[2]) if "+" in c else c for c in conditions}
+    names = {c: condition_name(c.partition("+")[2], preds[c.partition("+")[2]].name) if "+" in c else c
+             for c in conditions}
     by = {names[c]: [dict(r, condition=names[c]) for r in results if r["condition"] == c] for c in conditions}
     res = ControlResult(", ".join(models), runs, by, gains=ControllerGains().to_dict(), processing=processing,
-                        precision={m: p.precision for m, p in preds.items() if isinstance(getattr(p, "precision", None), str)})
+                        precision={m: p.precision for m, p in preds.items() if p.precision is not None})
     res.summary, res.comparisons, res.detector = summarise(by, seed)
     res.seconds = time.perf_counter() - t0
     return res

@@ -38,7 +38,7 @@ from sonarset.sim.sonar import SonarModel
 from sonarset.sim.families import lab_world
 from sonarset.scoring.stats import auc, holm, wilcoxon_p
 
-from sonarset.models.baselines import Predictor, rollout
+from sonarset.models.predictor import CheckedPredictor
 from sonarset.models.experiments.common import RIG, experiment_processing, learned_precision, mean_ci, parallel_map, predictor
 
 HORIZONS = (1, 3, 5)
@@ -107,7 +107,7 @@ def simulate_trial(trial: SlipTrial, grid: SensorGrid, snr_db: float = 5.0, proc
     return {"images": images, "commands": commands, "slip": slip, "pose": poses}
 
 
-def slip_signals(pred: Predictor, images: np.ndarray, commands: np.ndarray, horizons=HORIZONS,
+def slip_signals(pred: CheckedPredictor, images: np.ndarray, commands: np.ndarray, horizons=HORIZONS,
                  batch: int = 64) -> dict[int, np.ndarray]:
     """eps(t) per horizon H: for every frame t with H steps of prediction behind it (NaN before).
 
@@ -124,7 +124,7 @@ def slip_signals(pred: Predictor, images: np.ndarray, commands: np.ndarray, hori
         i = starts[lo:lo + batch]
         frames = images[i[:, None] + np.arange(n_in)]
         cmds = padded[i[:, None] + np.arange(n_in + H)]
-        steps = rollout(pred, frames, cmds, H)
+        steps = pred.rollout(frames, cmds, H)
         for h in horizons:
             t = i + n_in - 1 + h
             ok = t < T
@@ -216,7 +216,7 @@ def run_slip_experiment(models: list[str], trials: int = 30, seed: int = 0, grid
     t0 = time.perf_counter()
     preds = [predictor(m, grid, device, precision) for m in models]  # fail fast on a bad model
     names = [p.name for p in preds]
-    processing = experiment_processing(models, processing)
+    processing = experiment_processing(preds, processing)
     seeds = spawn_seeds(seed, trials + 1)
     tasks = [_Task(paper_trial(seeds[0]), grid, tuple(models), snr_db, device, True, processing, precision)]
     tasks += [_Task(random_trial(s), grid, tuple(models), snr_db, device, False, processing, precision)

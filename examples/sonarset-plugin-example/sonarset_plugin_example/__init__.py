@@ -1,0 +1,1 @@
+"""An example sonarset predictor plugin (see decay.py)."""

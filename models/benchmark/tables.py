@@ -1,0 +1,154 @@
+"""Benchmark results as Markdown: one file's tables (``results_markdown``, what results.md holds and
+README or BENCHMARKS paste), and several files side by side (``compare_results``), which must
+answer the same protocol version."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+from sonarset.errors import SonarSetError
+from sonarset.report.numbers import horizon_name
+
+from sonarset.models.benchmark.machine import describe
+
+#: The per-dataset table's metrics: CC and NRMSD (the paper's) and echo F1.
+TABLE_METRICS = (("cc", "CC"), ("nrmsd", "NRMSD"), ("echo_f1", "echo F1"))
+CEILING_LABELS = {"ceiling": "noise ceiling", "observable": "observable ceiling"}
+#: A cell differs from the reference where its Holm-corrected p is below this.
+ALPHA = 0.05
+
+
+def load_results(path: str | os.PathLike) -> dict:
+    """A results file (results.json of ``sonarset benchmark``); SonarSetError in one line when it is
+    not one."""
+    try:
+        doc = json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise SonarSetError(f"{path}: cannot read it ({exc.strerror or exc})") from None
+    except ValueError as exc:
+        raise SonarSetError(f"{path}: not JSON ({exc})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("protocol"), dict) or "datasets" not in doc:
+        raise SonarSetError(f"{path}: not a benchmark results file (no protocol and datasets)")
+    return doc
+
+
+def _version(doc: dict) -> str:
+    p = doc["protocol"]
+    return f"{p.get('name')} {p.get('version')}"
+
+
+def _number(x: float | None, spec: str = ".3f") -> str:
+    return "-" if x is None or not math.isfinite(x) else format(x, spec)
+
+
+def _marked(entry: dict, metric: str) -> str:
+    """The mean, with '*' where the comparison with the reference is significant after Holm."""
+    value = _number(entry[metric]["mean"])
+    c = (entry.get("vs_reference") or {}).get(metric)
+    if c and c.get("p_holm") is not None and c["p_holm"] < ALPHA and value != "-":
+        value += "*"
+    return value
+
+
+def dataset_table(results: dict, name: str) -> str:
+    """Rows = methods (then the ceilings, in italics), columns = CC, NRMSD and echo F1 at every
+    horizon, and the share of the CC gap between flow and the observable ceiling closed at the
+    longest horizon."""
+    d = results["datasets"][name]
+    hs = sorted(d["horizons"], key=int)
+    longest = hs[-1]
+    head = ["method"] + [f"{label} {horizon_name(int(h))}" for _, label in TABLE_METRICS for h in hs] + \
+           [f"{horizon_name(int(longest))} gap share"]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    methods = d["horizons"][longest]["methods"]
+    reference = results["statistics"]["reference"]
+    for m in methods:
+        cells = [_marked(d["horizons"][h]["methods"][m], k) for k, _ in TABLE_METRICS for h in hs]
+        share = (methods[m].get("gap_share") or {}).get("cc")
+        cells.append("ref" if m == reference else _number(share, ".2f"))
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    for c, label in CEILING_LABELS.items():
+        if c in d["horizons"][longest]["ceilings"]:
+            cells = [_number(d["horizons"][h]["ceilings"][c][k]["mean"]) for k, _ in TABLE_METRICS for h in hs]
+            lines.append(f"| *{label}* | " + " | ".join(cells) + " | |")
+    return "\n".join(lines)
+
+
+def summary_table(results: dict) -> str:
+    """Rows = methods, one column per dataset: CC at the longest horizon."""
+    names = list(results["datasets"])
+    longest = str(max(results["protocol"]["definition"]["horizons"]))
+    lines = ["| method | " + " | ".join(names) + " |", "|---" * (1 + len(names)) + "|"]
+    for m in results["datasets"][names[0]]["horizons"][longest]["methods"]:
+        cells = [_marked(results["datasets"][n]["horizons"][longest]["methods"][m], "cc") for n in names]
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    for c, label in CEILING_LABELS.items():
+        if all(c in results["datasets"][n]["horizons"][longest]["ceilings"] for n in names):
+            cells = [_number(results["datasets"][n]["horizons"][longest]["ceilings"][c]["cc"]["mean"]) for n in names]
+            lines.append(f"| *{label}* | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def results_markdown(results: dict) -> str:
+    """results.md: the summary, a table per dataset, the statistics' meaning and the timings."""
+    p = results["protocol"]["definition"]
+    longest = horizon_name(max(p["horizons"]))
+    models = ", ".join(f"{m['method']} (`{m['spec']}`" + (f", {m['precision']}" if m.get("precision") else "") + ")"
+                       for m in results["models"])
+    stats = results["statistics"]
+    parts = [
+        f"# Benchmark {_version(results)}", "",
+        f"Machine: {describe(results['machine'])}. Models: {models}.", "",
+        f"Each dataset: {p['samples']} windows drawn once (seed {p['eval_seed']}) and shared by every method; "
+        f"means over the windows where a metric is defined. CC and echo F1: higher is better; NRMSD: lower. "
+        f"`*`: differs from {stats['reference']} (paired t-test, p < {ALPHA} after Holm's correction over the "
+        f"{stats['tests']} tests of every model against {stats['reference']} on every dataset, horizon and metric of "
+        "this file). "
+        f"Gap share: the share of the gap between {stats['reference']} and the observable ceiling that the "
+        "method closes in CC (1: all the context allows; 0: no better than flow).", "",
+        f"## Summary: CC at {longest}", "", summary_table(results),
+    ]
+    for name, d in results["datasets"].items():
+        parts += ["", f"## {name}", "", f"{d['about']}: runs {', '.join(d['runs'])}, {d['windows']} windows, "
+                  f"{d['seconds']['evaluate']:.0f} s.", "", dataset_table(results, name)]
+        parts += [f"\n> {note}" for note in d["notes"]]
+    t = results["timings"]
+    methods = list(t["per_method"])
+    parts += ["", "## Timing (seconds)", "",
+              "| dataset | evaluate | " + " | ".join(methods) + " |", "|---" * (2 + len(methods)) + "|"]
+    for name, d in results["datasets"].items():
+        parts.append(f"| {name} | {d['seconds']['evaluate']:.1f} | "
+                     + " | ".join(_number(d["seconds"]["methods"].get(m), ".1f") for m in methods) + " |")
+    parts += ["", f"Total {t['total']:.0f} s: simulating the stores {t['generate']:.0f} s (0 when cached), "
+                  f"evaluating {t['evaluate']:.0f} s. Method times are the rollouts' (the ceilings' renders run "
+                  "beside them)."]
+    return "\n".join(parts) + "\n"
+
+
+def compare_results(paths: list[str | os.PathLike]) -> str:
+    """One table of several results files (from other machines, other models): per file and
+    method, CC at the longest horizon on every dataset and the method's seconds. Files of another
+    protocol version than the first's are refused."""
+    if not paths:
+        raise SonarSetError("no results files to compare")
+    docs = [(str(p), load_results(p)) for p in paths]
+    first, version = docs[0][0], _version(docs[0][1])
+    for path, doc in docs[1:]:
+        if _version(doc) != version:
+            raise SonarSetError(f"{path}: protocol {_version(doc)}, not {version} as {first}; results compare "
+                                "only within one protocol version")
+    names = [d["name"] for d in docs[0][1]["protocol"]["definition"]["datasets"]]
+    longest = str(max(docs[0][1]["protocol"]["definition"]["horizons"]))
+    lines = [f"# {version}: CC at {horizon_name(int(longest))} (`*`: differs from flow, Holm p < {ALPHA} within "
+             "its file); seconds: the method's rollouts over every dataset", "",
+             "| results | method | " + " | ".join(names) + " | seconds |", "|---" * (3 + len(names)) + "|"]
+    for path, doc in docs:
+        for m in doc["datasets"][names[0]]["horizons"][longest]["methods"]:
+            cells = [_marked(doc["datasets"][n]["horizons"][longest]["methods"][m], "cc") for n in names]
+            lines.append(f"| {path} | {m} | " + " | ".join(cells) + f" | "
+                         f"{_number(doc['timings']['per_method'].get(m), '.1f')} |")
+    lines += ["", *[f"- {path}: {describe(doc['machine'])}" for path, doc in docs]]
+    return "\n".join(lines) + "\n"
