@@ -2,7 +2,10 @@
 of EchoPT and the reference methods (models/zoo/), beside the machine's matmul roof.
 
     python bench/bench_zoo.py [--kinds echopt,convlstm,simvp,unet] [--preset small] [--grid 200x90]
-                              [--batch 32] [--steps 3] [--out bench_zoo.json]
+                              [--batch 32] [--steps 3] [--out bench_zoo.json] [--recipes recipes/zoo]
+
+With ``--recipes DIR`` each kind is built as DIR/KIND-small.toml trains it (its preset, prior,
+inputs and, for EchoPT, the geometry branch), so the table describes the networks the zoo trains.
 
 For each kind at ``--preset`` on the grid: parameters; GFLOP per training sample, forward and
 backward, of a one-step and of a 3-step rollout step (the trainer's own loss, models/echopt/losses.py:
@@ -28,6 +31,7 @@ from torch.utils.flop_counter import FlopCounterMode, conv_backward_flop
 from sonarset.models.echopt.losses import rollout_losses, weighted_loss
 from sonarset.models.echopt.networks import KINDS, build
 from sonarset.models.echopt.precision import cpu_bf16_flags
+from sonarset.models.echopt.recipes import config_of, load_recipe
 
 warnings.filterwarnings("ignore", message="Using padding='same'")
 
@@ -49,9 +53,16 @@ def flop_counter() -> FlopCounterMode:
                            custom_mapping={torch.ops.aten.convolution_backward: _grouped_conv_backward_flop})
 
 
-def network(kind: str, preset: str, grid: tuple[int, int]) -> torch.nn.Module:
+def network(kind: str, preset: str, grid: tuple[int, int], recipes: str = "") -> torch.nn.Module:
+    """``kind`` at ``preset``, or (``recipes``) as its recipe file builds it."""
+    overrides = {}
+    if recipes:
+        cfg = config_of(load_recipe(os.path.join(recipes, f"{kind}-{preset}.toml")))
+        overrides = {"prior": cfg.prior, "inputs": cfg.inputs}
+        if cfg.geometry_channels >= 0:
+            overrides["geometry_channels"] = cfg.geometry_channels
     torch.manual_seed(0)
-    return build(kind, preset, *grid).to(memory_format=torch.channels_last)
+    return build(kind, preset, *grid, **overrides).to(memory_format=torch.channels_last)
 
 
 def batch(n: int, grid: tuple[int, int], k: int, n_in: int = 3) -> tuple[torch.Tensor, ...]:
@@ -116,6 +127,7 @@ def main() -> None:
     ap.add_argument("--k", type=int, default=3, help="rollout steps of the multi-step measurements")
     ap.add_argument("--matmul", type=int, default=2048, help="size of the roof's square matmul")
     ap.add_argument("--out", default="bench_zoo.json")
+    ap.add_argument("--recipes", default="", help="build each kind as DIR/KIND-PRESET.toml does (e.g. recipes/zoo)")
     args = ap.parse_args()
     grid = tuple(int(x) for x in args.grid.split("x"))
     precisions = ["fp32"] + (["bf16"] if cpu_bf16_flags() and torch.backends.mkldnn.is_available() else [])
@@ -128,7 +140,7 @@ def main() -> None:
         f"{p + ' k=' + str(k) + ' samples/s (% roof)':>28s}" for p in precisions for k in (1, args.k)))
     rows = []
     for kind in args.kinds.split(","):
-        model = network(kind, args.preset, grid)
+        model = network(kind, args.preset, grid, args.recipes)
         flops = {k: gflop_per_sample(model, grid, k) for k in (1, args.k)}
         row = {"kind": kind, "params": sum(p.numel() for p in model.parameters()),
                "gflop_per_sample": {str(k): v for k, v in flops.items()}, "training": []}
@@ -144,7 +156,7 @@ def main() -> None:
     print(f"# GFLOP/sample: forward + backward of one training window, one-step / {args.k}-step rollout")
     result = {"bench": "bench_zoo", "date": time.strftime("%Y-%m-%d"), "host": platform.node(),
               "cores": os.cpu_count(), "threads": torch.get_num_threads(), "torch": torch.__version__,
-              "preset": args.preset, "grid": list(grid), "batch": args.batch, "steps": args.steps, "k": args.k,
+              "preset": args.preset, "recipes": args.recipes, "grid": list(grid), "batch": args.batch, "steps": args.steps, "k": args.k,
               "cpu_bf16_flags": list(cpu_bf16_flags()), "matmul_tflops": roof, "models": rows}
     with open(args.out, "w") as f:
         json.dump(result, f, indent=2)

@@ -116,14 +116,24 @@ class CheckedPredictor:
         return f"CheckedPredictor({self.name!r}, n_in={self.n_in}, of {self.who})"
 
     def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:
-        out = self.predictor.predict(frames, commands)
+        out = self._call("predict", self.predictor.predict, frames, commands)
         return self._checked(out, (frames.shape[0], *frames.shape[2:]), "predict", "(B, R, A)")
 
     def rollout(self, frames: np.ndarray, commands: np.ndarray, horizon: int) -> np.ndarray:
         if self._own_rollout is None:  # chained through the checked predict
             return chain_rollout(self.predict, frames, commands, horizon)
-        out = self._own_rollout(frames, commands, horizon)
+        out = self._call("rollout", self._own_rollout, frames, commands, horizon)
         return self._checked(out, (frames.shape[0], horizon, *frames.shape[2:]), "rollout", "(B, horizon, R, A)")
+
+    def _call(self, what: str, method: Callable, *args):
+        """``method(*args)``; an error inside an outside predictor is that predictor's, so it is
+        named in one line (our own errors, and interrupts, pass as they are)."""
+        try:
+            return method(*args)
+        except (SonarSetError, KeyboardInterrupt, MemoryError):
+            raise
+        except Exception as exc:
+            raise SonarSetError(f"predictor {self.who}: {what} raised {type(exc).__name__}: {exc}") from exc
 
     def _checked(self, out, shape: tuple[int, ...], what: str, layout: str) -> np.ndarray:
         got = getattr(out, "shape", None)

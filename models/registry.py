@@ -276,7 +276,7 @@ def _call_factory(factory: Callable, spec: str, where: str, arg: str | None, gri
 
 
 def model_option_spec(text: str) -> str:
-    """The spec a ``--model`` option means: a name, ``KIND:ARG`` or ``module:factory`` as it is; a
+    """The spec a command's ``model`` value means: a name, ``KIND:ARG`` or ``module:factory`` as it is; a
     path (it has a separator, a checkpoint's suffix, or exists) as an EchoPT checkpoint's, which is
     all the option took before."""
     text = text.strip()

@@ -110,6 +110,15 @@ def test_outputs_of_the_wrong_shape_are_refused_in_one_line(store):
         evaluate(store, [], predictors={"short": ShortRollout()}, horizons=(3,), samples=5)
 
 
+def test_an_error_inside_a_predictor_is_named_in_one_line(store):
+    class Broken(LastFrame):
+        def predict(self, frames, commands):
+            return frames[:, -1] @ np.ones((3, 3))  # a plugin's own bug: shapes that do not multiply
+
+    with pytest.raises(SonarSetError, match=r"^predictor 'broken': predict raised ValueError: matmul"):
+        evaluate(store, [], predictors={"broken": Broken()}, horizons=(1,), samples=5)
+
+
 def test_the_registry_lists_its_names_and_resolves_model_options():
     entries = {e.name: e.source for e in available_predictors()}
     assert entries["flow"] == "built-in" and entries["echopt:PATH"] == "built-in"

@@ -1,7 +1,7 @@
 """The open benchmark (``sonarset benchmark``): protocol v1, frozen in code, run into one results
 file that names its protocol version, so that results from other machines compare.
 
-- ``protocol``: what v1 (and ``--quick``'s v1-quick) simulates, draws and scores;
+- ``protocol``: what v1 (and the quick subset's v1-quick) simulates, draws and scores;
 - ``stores``: the protocol's stores, simulated on first use into a cache and reused;
 - ``run``: every model against flow and the ceilings on every dataset, into results.json / .md;
 - ``tables``: the Markdown of one results file, and of several side by side.

@@ -37,7 +37,7 @@ HOLM_FAMILY = ("the paired t-tests of every model against {reference} on every d
 def run_benchmark(specs: list[str], out: str | os.PathLike, quick: bool = False, *, cache: str | os.PathLike | None = None,
                   device: str = "auto", precision: str = "auto", protocol: Protocol | None = None,
                   progress: Progress | None = None, log: Callable[[str], None] | None = None) -> dict:
-    """Score the models ``specs`` (what ``sonarset eval --models`` takes) on the protocol (v1, or
+    """Score the models ``specs`` (the model specs the registry resolves, as eval takes them) on the protocol (v1, or
     v1-quick with ``quick``) and write ``out``/results.json and results.md; returns the results.
 
     The protocol's stores are generated on first use into ``cache`` (``cache_dir``) and reused

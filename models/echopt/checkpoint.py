@@ -39,9 +39,19 @@ def save_checkpoint(path: str | os.PathLike, model: nn.Module, card: dict, after
     return path
 
 
-def resolve(spec: str | os.PathLike) -> Path:
+def resolve(spec: str | os.PathLike, kind: str | None = None) -> Path:
+    """The weights file of a checkpoint spec: ``pretrained`` (``kind``'s shipped checkpoint, EchoPT's by
+    default), a run directory, or a ``.safetensors`` path."""
     if str(spec) in ("", "pretrained"):
-        return PRETRAINED
+        if kind in (None, "echopt"):
+            return PRETRAINED
+        from sonarset.models.registry import shipped_checkpoint
+
+        shipped = shipped_checkpoint(kind)
+        if shipped is None:
+            raise SonarSetError(f"{kind}:pretrained: sonarset ships no {TITLES[kind]} model; train one (model "
+                                f"{kind}) and name its run directory, {kind}:RUN")
+        return shipped
     p = Path(spec)
     if p.is_dir():
         p = p / "model.safetensors"
@@ -53,7 +63,7 @@ def load_checkpoint(spec: str | os.PathLike, grid: SensorGrid | None = None, dev
     """Load weights and card into the network the card's ``model`` names (EchoPT where a card, from
     before the reference methods, names none); refuse a model trained on another grid, and with
     ``kind``, a checkpoint of another kind, with a clear message."""
-    path = resolve(spec)
+    path = resolve(spec, kind)
     card_path = path.with_suffix(".json")
     expected = kind or "echopt"
     title = TITLES.get(expected, expected)

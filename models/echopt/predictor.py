@@ -11,12 +11,11 @@ from typing import Callable
 import numpy as np
 import torch
 
-from sonarset.errors import SonarSetError
 from sonarset.format.attrs import SensorGrid
 
 from sonarset.models.echopt.checkpoint import load_checkpoint, resolve
 from sonarset.models.echopt.losses import forecaster
-from sonarset.models.echopt.networks import TITLES, kind_of
+from sonarset.models.echopt.networks import kind_of
 from sonarset.models.echopt.precision import autocast, resolve_device, resolve_precision
 from sonarset.models.predictor import BasePredictor
 
@@ -115,14 +114,11 @@ def load_learned_predictor(spec: str, grid: SensorGrid, device: str = "cpu", pre
     """The predictor of a checkpoint spec of any kind (``pretrained``, a run directory or a
     ``.safetensors`` path; the card says the kind); with ``kind``, a checkpoint of another kind is
     refused (ONNX exports: the registry routes them to onnx_runtime, without torch)."""
-    if str(spec) in ("", "pretrained") and kind not in (None, "echopt"):
-        raise SonarSetError(f"{kind}:pretrained: sonarset ships no {TITLES[kind]} model; train one (sonarset train "
-                            f"--model {kind}) and name its run directory, {kind}:RUN")
     dev = resolve_device(device)
     model, card = load_checkpoint(spec or "pretrained", grid, dev, kind=kind)
     cls = ForecastPredictor if forecaster(model) is not None else LearnedPredictor
     p = cls(model, card, grid, dev, precision=precision)
-    path = resolve(spec or "pretrained")
+    path = resolve(spec or "pretrained", kind)
     p.label = path.stem if path.stem.startswith(p.name) else f"{p.name} {path.parent.name}/{path.stem}"
     return p
 

@@ -1,10 +1,10 @@
-"""Training recipes: a run's settings as a flat TOML file (``sonarset train --config RECIPE.toml``).
+"""Training recipes: a run's settings as a flat TOML file (the ``config`` of ``sonarset train``).
 
 A recipe's keys are ``TrainConfig``'s fields (its ``command`` aside) plus ``store`` and ``out``, the
 run's data and directory: the options of ``sonarset train`` with underscores, so a recipe and a
 command line say the same things in the same words. Relative paths in a recipe are relative to the
 directory ``sonarset train`` runs in, as on the command line. ``resume`` is no key: a recipe says
-what to train, ``--resume`` how to run it (continue the run in ``out``).
+what to train, resuming is how to run it (continue the run in ``out``).
 
 The card of a run records its resolved recipe (``training.recipe``) with paths relative to the run
 directory, so a card names no directory of the machine it was trained on, and
@@ -38,7 +38,7 @@ SETTINGS: dict[str, type] = {f.name: typing.get_type_hints(TrainConfig)[f.name]
 RECIPE_KEYS: dict[str, type] = {"store": str, "out": str, **SETTINGS}
 #: Keys people will try that a recipe must not hold, and why.
 NOT_KEYS = {
-    "resume": "a recipe says what to train, not how to run it: pass --resume on the command line",
+    "resume": "a recipe says what to train, not how to run it: resume it from the command line",
     "command": "the card records the command that ran; a recipe holds only settings",
 }
 #: ``init`` values that name a model rather than a path (models/echopt/checkpoint.py ``resolve``).
@@ -127,8 +127,8 @@ def portable_path(path: str | os.PathLike, relative_to: str | os.PathLike) -> st
 
 def portable_command(command: str, relative_to: str | os.PathLike) -> str:
     """A recorded command line (``shlex``-quoted) as ``sonarset ...``: the program's own path (an
-    interpreter's, a virtual environment's) dropped, every absolute path argument (also in
-    ``--flag=PATH``) relative to ``relative_to``."""
+    interpreter's, a virtual environment's) dropped, every absolute path argument (also in an
+    option's ``=PATH``) relative to ``relative_to``."""
     try:
         argv = shlex.split(command)
     except ValueError:  # unbalanced quotes: not written by shlex.join

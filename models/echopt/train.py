@@ -55,15 +55,13 @@ from sonarset import __version__
 from sonarset.errors import SonarSetError
 from sonarset.store.store import SonarStore
 
-from sonarset.models.echopt.checkpoint import load_checkpoint, save_checkpoint
-from sonarset.models.echopt.config import ADDABLE_FIELDS, WARM_START_FIELDS, ConfigError, grid_and_rig
+from sonarset.models.echopt.checkpoint import save_checkpoint
 from sonarset.models.echopt.distributed import Dist, destroy_process_group, init_distributed
 from sonarset.models.echopt.losses import parse_loss, rollout_losses, validation_loss, weighted_loss
-from sonarset.models.echopt.model import GEOMETRY_PREFIX
-from sonarset.models.echopt.networks import TITLES, build, presets
 from sonarset.models.echopt.precision import resolve_device, resolve_precision
 from sonarset.models.echopt.recipes import SETTINGS, portable_command, recipe_of
 from sonarset.models.echopt.train_config import RESUME_KEYS, STREAM_KEYS, TrainConfig
+from sonarset.models.echopt.train_model import build_model
 from sonarset.models.echopt.train_data import MemoryWindows, StreamedWindows, fewer_than_a_batch
 from sonarset.models.echopt.train_state import STATE, load_state, save_state, write_metrics
 
@@ -104,84 +102,6 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
     finally:
         if started:
             destroy_process_group()
-
-
-def _init_from(model: nn.Module, spec: str, trained: nn.Module, card: dict, store: SonarStore) -> None:
-    """Copy a trained model's weights into ``model``, which must be the same network on the same grid,
-    trained on the same images (a fine-tune continues a model; it cannot change what it is, except
-    how its inputs are prepared: ``WARM_START_FIELDS``; or add a branch it lacks, which starts at
-    zero: ``ADDABLE_FIELDS``)."""
-    from sonarset.models.echopt.cards import card_processing
-
-    differ = [k for k in model.cfg.__dataclass_fields__ if getattr(trained.cfg, k) != getattr(model.cfg, k)]
-    added = [k for k in differ if k in ADDABLE_FIELDS and not getattr(trained.cfg, k)]
-    if any(k not in WARM_START_FIELDS and k not in added for k in differ):
-        diff = ", ".join(f"{k}: {getattr(trained.cfg, k)!r} vs {getattr(model.cfg, k)!r}" for k in differ)
-        raise SonarSetError(f"init {spec}: another network than this preset and prior make here ({diff})",
-                            parameter="init")
-    if not card_processing(card).same_images(store.processing):
-        raise SonarSetError(f"init {spec}: trained on {card_processing(card).profile} images, "
-                            f"{store.location} has {store.processing.profile}", parameter="init")
-    missing, unexpected = model.load_state_dict(trained.state_dict(), strict=not added)
-    if unexpected or any(not k.startswith(GEOMETRY_PREFIX) for k in missing):  # only the added branch may be new
-        raise SonarSetError(f"init {spec}: its weights do not fit this network ({', '.join(unexpected + missing)})",
-                            parameter="init")
-
-
-def _refuse_echopt_options(cfg: TrainConfig) -> None:
-    """A reference method (``cfg.model`` other than echopt) has its own presets, and none of
-    EchoPT's own options: each is refused in one line naming it, not silently ignored."""
-    kind, title = cfg.model, TITLES[cfg.model]
-    if cfg.preset not in presets(kind):
-        what = "EchoPT's only (the paper's network)" if cfg.preset in presets("echopt") else "unknown"
-        raise SonarSetError(f"preset {cfg.preset}: {what}; {kind} has {', '.join(presets(kind))}", parameter="preset")
-    if cfg.geometry_channels > 0:
-        raise SonarSetError(f"geometry_channels {cfg.geometry_channels}: an EchoPT option; {title} has no geometry "
-                            "branch", parameter="geometry_channels")
-    if cfg.trainable != "all":
-        raise SonarSetError(f"trainable {cfg.trainable}: an EchoPT option (its geometry branch); {title} trains all "
-                            "its weights", parameter="trainable")
-
-
-def _build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[nn.Module, torch.optim.Optimizer]:
-    """The network of kind ``cfg.model`` for the store's grid and robot (seeded, or ``init``'s
-    weights) on ``device``, and its optimizer."""
-    if cfg.model != "echopt":
-        _refuse_echopt_options(cfg)
-    torch.manual_seed(cfg.seed)
-    overrides = grid_and_rig(store.grid, store.rig)
-    if cfg.prior:
-        overrides["prior"] = cfg.prior
-    if cfg.n_in:
-        overrides["n_in"] = cfg.n_in
-    trained = card = None
-    if cfg.init:
-        trained, card = load_checkpoint(cfg.init, store.grid, kind=cfg.model)
-    if cfg.inputs or trained is not None:  # a fine-tune keeps its model's unless told otherwise
-        overrides["inputs"] = cfg.inputs or trained.cfg.inputs
-    if cfg.model == "echopt" and cfg.geometry_channels >= 0:
-        overrides["geometry_channels"] = cfg.geometry_channels
-    elif cfg.model == "echopt" and trained is not None:
-        overrides["geometry_channels"] = trained.cfg.geometry_channels
-    try:
-        model = build(cfg.model, cfg.preset, *store.grid.shape, **overrides)
-    except ValueError as exc:  # a size this run set, else what it derives from (n_in sets d_model)
-        setting = exc.setting if isinstance(exc, ConfigError) else None
-        what = setting if setting in ("n_in", "geometry_channels") else "n_in" if cfg.n_in else "preset"
-        raise SonarSetError(f"{what} {getattr(cfg, what)}: {exc}", parameter=what) from None
-    if trained is not None:
-        _init_from(model, cfg.init, trained, card, store)
-    if cfg.trainable == "geometry":
-        if not model.cfg.geometry_channels:
-            raise SonarSetError("trainable geometry: the model has no geometry branch (geometry_channels 0)",
-                                parameter="trainable")
-        for name, p in model.named_parameters():
-            p.requires_grad_(name.startswith(GEOMETRY_PREFIX))
-    model = model.to(device).to(memory_format=torch.channels_last)
-    opt_cls = torch.optim.AdamW if cfg.optimizer == "adamw" else torch.optim.Adam
-    opt = opt_cls([p for p in model.parameters() if p.requires_grad], lr=cfg.lr, betas=(0.9, 0.999), eps=1e-8,
-                  weight_decay=cfg.weight_decay)
-    return model, opt
 
 
 @dataclass(frozen=True)
@@ -361,7 +281,7 @@ class _Run:
 
 def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progress, dist: Dist,
            device: str) -> TrainResult:
-    model, opt = _build_model(store, cfg, device)
+    model, opt = build_model(store, cfg, device)
     precision = resolve_precision(cfg.precision, device)
     terms = parse_loss(cfg.loss)
     val_horizon = cfg.val_horizon or cfg.k_max

@@ -1,5 +1,5 @@
 """Reference methods of video prediction, action-conditioned, trained by EchoPT's trainer
-(``sonarset train --model convlstm|simvp|unet``) on the same windows and losses: ConvLSTM
+(``sonarset train`` with model convlstm, simvp or unet) on the same windows and losses: ConvLSTM
 (convlstm.py), SimVP (simvp.py) and a U-Net over the flow warp (unet.py); what they share is
 common.py.
 
@@ -18,9 +18,9 @@ ZOO = {"convlstm": ("convlstm", "ConvLSTM", "ConvLSTMConfig"),
        "unet": ("unet", "UNet", "UNetConfig")}
 #: What each is, in a line (``sonarset models`` lists it beside ``KIND:PATH``).
 DESCRIPTIONS = {
-    "convlstm": "ConvLSTM (Shi 2015), action-conditioned: sonarset train --model convlstm",
-    "simvp": "SimVP + gSTA (Gao 2022, Tan 2022), every horizon in one pass: sonarset train --model simvp",
-    "unet": "U-Net over the flow warp (Ronneberger 2015, RainNet 2020): sonarset train --model unet",
+    "convlstm": "ConvLSTM (Shi 2015), action-conditioned: trained with model = convlstm",
+    "simvp": "SimVP + gSTA (Gao 2022, Tan 2022), every horizon in one pass: trained with model = simvp",
+    "unet": "U-Net over the flow warp (Ronneberger 2015, RainNet 2020): trained with model = unet",
 }
 
 
