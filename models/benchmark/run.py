@@ -100,11 +100,7 @@ def describe_models(specs: list[str], protocol: Protocol, device: str, precision
     models = []
     for spec in specs:
         p = make_predictor(spec, protocol.sensor_grid(), simulator_rig(), device=device, precision=precision)
-        card = getattr(p, "card", None)
-        p_precision = getattr(p, "precision", None)
-        models.append({"method": p.name, "spec": spec, "label": getattr(p, "label", None) or p.name,
-                       "card": card if isinstance(card, dict) else None,
-                       "precision": p_precision if isinstance(p_precision, str) else None})
+        models.append({"method": p.name, "spec": spec, "label": p.label, "card": p.card, "precision": p.precision})
     return models
 
 

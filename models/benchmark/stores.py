@@ -82,7 +82,7 @@ def ensure_store(recipe: StoreRecipe, protocol: Protocol, folder: Path, *,
                  progress: Callable[[str, int, int], None] | None = None,
                  log: Callable[[str], None] | None = None) -> tuple[SonarStore, dict]:
     """The recipe's store in ``folder``, generated or completed where needed; and what was done:
-    {"path", "generated" (bool), "reason" (why it was generated, or None), "seconds"}."""
+    {"file" (its name in the cache: a results file names no directory of the machine), "generated" (bool), "reason" (why it was generated, or None), "seconds"}."""
     from sonarset.sim import generate
 
     path = folder / f"{recipe.name}.zarr"
@@ -104,7 +104,7 @@ def ensure_store(recipe: StoreRecipe, protocol: Protocol, folder: Path, *,
         left = cache_problem(path, recipe, protocol)
         if left is not None:
             raise SonarSetError(f"{path}: the benchmark's store is still not usable after generating it: {left[0]}")
-    info = {"path": str(path), "generated": problem is not None, "reason": problem and problem[0],
+    info = {"file": path.name, "generated": problem is not None, "reason": problem and problem[0],
             "seconds": time.perf_counter() - t0}
     return open_store(path), info
 

@@ -92,6 +92,30 @@ def summary_table(results: dict) -> str:
     return "\n".join(lines)
 
 
+def zoo_table(results: dict, costs: dict) -> str:
+    """The learned methods side by side: what each costs to train (``costs``: bench/bench_zoo.py's
+    JSON, measured on one machine) and the share of the flow-to-observable CC gap it closes at the
+    longest horizon on every dataset of ``results``. A method's row is found by its card's kind
+    (``card["model"]``, EchoPT where a card names none)."""
+    names = list(results["datasets"])
+    longest = str(max(results["protocol"]["definition"]["horizons"]))
+    by_kind = {row["kind"]: row for row in costs["models"]}
+    head = ["method", "M params", "GFLOP/window (1 / 3 steps)", "samples/s fp32 (k=3)", "samples/s bf16 (k=3)",
+            *[f"gap share {n}" for n in names], "mean"]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for m in results["models"]:
+        row = by_kind.get((m.get("card") or {}).get("model", "echopt")) if m.get("card") else None
+        rates = {t["precision"]: t["samples_per_s"] for t in (row or {}).get("training", []) if t["k"] == costs["k"]}
+        shares = [(results["datasets"][n]["horizons"][longest]["methods"][m["method"]].get("gap_share") or {}).get("cc")
+                  for n in names]
+        known = [s for s in shares if s is not None and math.isfinite(s)]
+        cost = [f"{row['params'] / 1e6:.2f}", f"{row['gflop_per_sample']['1']:.2f} / {row['gflop_per_sample'][str(costs['k'])]:.2f}",
+                _number(rates.get("fp32"), ".1f"), _number(rates.get("bf16"), ".1f")] if row else ["-"] * 4
+        lines.append(f"| {m['method']} | " + " | ".join(cost + [_number(s, ".2f") for s in shares]
+                                                        + [_number(sum(known) / len(known) if known else None, ".2f")]) + " |")
+    return "\n".join(lines)
+
+
 def results_markdown(results: dict) -> str:
     """results.md: the summary, a table per dataset, the statistics' meaning and the timings."""
     p = results["protocol"]["definition"]
