@@ -1,8 +1,9 @@
-"""The hostile-input table (issue 26): slow and failing servers, absurd lengths behind a URL, bad
-model cards, deep world files, signals to worker pools, concurrent writers and read-only stores,
-each against the commands a user runs, as real processes.
+"""The hostile-input table (issues 26, 52): slow and failing servers, absurd lengths behind a URL
+and on disk, bad model cards, deep world files, signals to worker pools and during zarr's I/O,
+concurrent writers, read-only stores and stores of hundreds of runs, each against the commands a
+user runs, as real processes.
 
-    python bench/bench_hostile.py [--imports 20] [--remote-timeout 10]
+    python bench/bench_hostile.py [--imports 20] [--remote-timeout 10] [--runs 400] [--cases length,many-runs]
 
 Prints one markdown row per (case, command): exit code, seconds, peak RSS, stderr lines, and the
 verdict: clean when the exit code is the expected one, stderr is at most one line (validate: one
@@ -246,15 +247,88 @@ def read_only_cases(store: Path, work: Path) -> None:
         subprocess.run(["umount", mnt])
 
 
+def length_cases(store: Path, work: Path) -> None:
+    """A run's length edited consistently (its ``n_frames`` and every array's shape) far beyond
+    the 150 frames stored, on disk (issue 52: full validate read every declared frame)."""
+    from tests.corruption_cases import _length
+
+    for n in (10**8, 10**9):
+        big = work / f"len-{n}.zarr"
+        shutil.copytree(store, big)
+        _length(n)(big)
+        for name in ("info", "validate", "validate --quick"):
+            row(f"local: {n:.0e} frames declared", name, run(reader_commands(str(big), work)[name]))
+
+
+def many_runs_cases(work: Path, runs: int) -> None:
+    """A store of ``runs`` runs of 20 frames on a 40 x 18 grid: its summary and checks cost per run
+    (issue 52: opening a run listed every run group), and a signal during ``info``, while zarr
+    opens run groups by the hundred, ends it with one line."""
+    import math
+
+    from sonarset.format.attrs import SensorGrid
+    from sonarset.store.store import create_store
+    from tests.conftest import make_run
+
+    grid = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=40, azimuth_min_rad=-math.pi / 2,
+                      azimuth_max_rad=math.pi / 2, n_azimuth=18)
+    path = work / f"runs-{runs}.zarr"
+    store = create_store(path, grid)
+    for i in range(runs):
+        store.write_run(f"run_{i:03d}", **make_run(20, i, grid=grid), consolidate=False)
+    store.consolidate()
+    case = f"{runs} runs of 20 frames"
+    for name in ("info", "validate", "validate --quick"):
+        row(case, name, run(reader_commands(str(path), work)[name]), expect=0)
+    for how, sig in (("Ctrl-C", signal.SIGINT), ("SIGTERM", signal.SIGTERM)):
+        row(f"{case}, {how} while zarr lists them", "info", interrupted(["info", path], sig),
+            expect={signal.SIGINT: 130, signal.SIGTERM: 143}[sig])
+
+
+def interrupted(args: list, sig: int) -> dict:
+    """Run the CLI with ``args`` and send ``sig`` (to its process group for SIGINT, as a terminal
+    does) 0.3 s after zarr's I/O threads came up; seconds are from the signal to the exit."""
+    proc = subprocess.Popen([*CLI, *map(str, args)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True, env=ENV)
+    t0 = time.perf_counter()
+    while _threads(proc.pid) < 4 and proc.poll() is None and time.perf_counter() - t0 < 60:
+        time.sleep(0.01)
+    time.sleep(0.3)
+    (os.killpg if sig == signal.SIGINT else os.kill)(proc.pid, sig)
+    t1 = time.perf_counter()
+    try:
+        stderr = proc.communicate(timeout=LIMIT_S)[1]
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        stderr = proc.communicate()[1] + "\nkilled: still running"
+    return {"rc": proc.returncode, "s": time.perf_counter() - t1, "mb": 0, "stderr": stderr}
+
+
+def _threads(pid: int) -> int:
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return 0
+    return int(next(line.split()[1] for line in status.splitlines() if line.startswith("Threads:")))
+
+
 GENERATE = ["--minutes", "0.5", "--runs", "1", "--seed", "5"]
 GENERATE_MORE = ["--minutes", "0.5", "--runs", "2", "--seed", "5"]
+
+
+CASES = ("remote", "cards", "worlds", "read-only", "concurrent", "signals", "length", "many-runs")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--imports", type=int, default=20, help="concurrent same-name import pairs")
     ap.add_argument("--remote-timeout", type=float, default=10.0)
+    ap.add_argument("--runs", type=int, default=400, help="runs in the many-runs store")
+    ap.add_argument("--cases", default=",".join(CASES), help=f"the groups of rows to run, of {', '.join(CASES)}")
     args = ap.parse_args()
+    cases = set(args.cases.split(","))
+    if cases - set(CASES):
+        ap.error(f"unknown --cases {', '.join(sorted(cases - set(CASES)))}; they are {', '.join(CASES)}")
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         store = work / "s.zarr"
@@ -262,12 +336,14 @@ def main() -> None:
         print(f"{time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores, {sys.platform}")
         print("| case | command | exit | s | peak MB | verdict | what it says |")
         print("|---|---|---|---|---|---|---|")
-        remote_cases(store, work, args.remote_timeout)
-        card_cases(store, work)
-        world_cases(work)
-        read_only_cases(store, work)
-        concurrent_cases(work, args.imports)
-        signal_cases(work)
+        groups = {"remote": lambda: remote_cases(store, work, args.remote_timeout),
+                  "cards": lambda: card_cases(store, work), "worlds": lambda: world_cases(work),
+                  "read-only": lambda: read_only_cases(store, work),
+                  "concurrent": lambda: concurrent_cases(work, args.imports), "signals": lambda: signal_cases(work),
+                  "length": lambda: length_cases(store, work), "many-runs": lambda: many_runs_cases(work, args.runs)}
+        for name in CASES:
+            if name in cases:
+                groups[name]()
         clean = sum("| clean |" in r for r in ROWS)
         print(f"\n{clean} of {len(ROWS)} rows clean")
 

@@ -61,21 +61,39 @@ app.command()(view.view)
 
 def main() -> None:
     from sonarset.perf import keep_freed_memory
-    from sonarset.pool import Terminated, terminated_as_interrupt
+    from sonarset.pool import Terminated, ending_on_signal, signal_exit_code, terminated_as_interrupt
 
     keep_freed_memory()
+    said = False  # whether the command printed the line that says it was interrupted
     try:
         with terminated_as_interrupt():  # SIGTERM cleans up as Ctrl-C does (sonarset.pool)
             app()
     except KeyboardInterrupt as exc:  # one that arrived outside a command's own handler
-        err.print(f"[bold red]error:[/] {'terminated' if isinstance(exc, Terminated) else 'interrupted'}")
-        sys.exit(143 if isinstance(exc, Terminated) else 130)
-    except Exception as exc:  # an unexpected error is a bug: say so in one line
-        if os.environ.get("SONARSET_DEBUG"):
+        if signal_exit_code() is None:  # not from a signal (raised by code): said and done here
+            err.print(f"[bold red]error:[/] {'terminated' if isinstance(exc, Terminated) else 'interrupted'}")
+            sys.exit(143 if isinstance(exc, Terminated) else 130)
+    except SystemExit as exc:
+        if signal_exit_code() is None:
             raise
-        err.print(f"[bold red]internal error:[/] {type(exc).__name__}: {exc} (set SONARSET_DEBUG=1 for details)",
-                  highlight=False, soft_wrap=True)
-        sys.exit(70)
+        # A command's handler says it (and exits 130 or 143); typer turns an interrupt that no
+        # handler caught into a silent exit 130, whose cause is the interrupt.
+        said = exc.code in (130, 143) and not isinstance(getattr(exc.__context__, "__cause__", None),
+                                                         KeyboardInterrupt)
+    except Exception as exc:  # an unexpected error is a bug: say so in one line
+        if signal_exit_code() is None:
+            if os.environ.get("SONARSET_DEBUG"):
+                raise
+            err.print(f"[bold red]internal error:[/] {type(exc).__name__}: {exc} (set SONARSET_DEBUG=1 for details)",
+                      highlight=False, soft_wrap=True)
+            sys.exit(70)
+    if signal_exit_code() is None:
+        return
+    code = ending_on_signal(None if said else lambda what: err.print(f"[bold red]error:[/] {what}"))
+    if "zarr" in sys.modules:  # its I/O loop, interrupted mid-request, would fill the exit with tracebacks
+        from sonarset.store.zarrio import release_event_loop
+
+        release_event_loop()
+    sys.exit(code)
 
 
 if __name__ == "__main__":

@@ -95,22 +95,94 @@ def _one_thread_per_worker() -> Iterator[None]:
                 os.environ.pop(k, None)
 
 
+#: After SIGTERM or Ctrl-C, the command's own clean-up (pools torn down, partial files removed)
+#: gets this long; then the process ends whatever still runs: a thread blocked in a read that
+#: never returns (a FIFO, a hung mount) or an interrupt swallowed where Python ignores exceptions
+#: (a ``__del__``) must not keep it alive until a SIGKILL.
+EXIT_GRACE_S = 10.0
+#: Once the command has ended, the interpreter's exit handlers (thread joins, atexit) get this long.
+EXIT_HANDLERS_S = 3.0
+_EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}
+
+
+class _Deadline:
+    """Ends the process at a deadline with the signal's exit status, unless it ends first."""
+
+    def __init__(self) -> None:
+        self.code: int | None = None  # the exit status of the first signal; None before one
+        self.said = False  # whether the one line saying so was printed
+        self.at = 0.0
+        self._thread: threading.Thread | None = None
+
+    def arm(self, code: int, seconds: float) -> None:
+        self.code = self.code or code
+        self.at = time.monotonic() + seconds
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._wait, daemon=True, name="exit-deadline")
+            self._thread.start()
+
+    def _wait(self) -> None:
+        while (left := self.at - time.monotonic()) > 0:
+            time.sleep(min(left, 0.1))
+        self.end_now()
+
+    def end_now(self) -> None:
+        if not self.said:
+            os.write(2, f"error: {'terminated' if self.code == 143 else 'interrupted'}\n".encode())
+        os._exit(self.code or 1)
+
+
+_deadline = _Deadline()
+
+
+def signal_exit_code() -> int | None:
+    """130 (SIGINT) or 143 (SIGTERM) once one arrived within ``terminated_as_interrupt``; else None."""
+    return _deadline.code
+
+
 @contextlib.contextmanager
 def terminated_as_interrupt() -> Iterator[None]:
     """Within: SIGTERM raises ``Terminated`` in the main thread, so the same clean-up as for Ctrl-C
-    runs (pools torn down, partial files removed) before the process exits."""
+    runs (pools torn down, partial files removed) before the process exits. Either signal also
+    sets a deadline (``EXIT_GRACE_S``) after which the process ends regardless, and a second one
+    ends it at once. After a signal the handlers stay: the process is on its way out
+    (``ending_on_signal``)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
-    def raise_terminated(signum, frame):
-        raise Terminated()
+    def on_signal(signum, frame):
+        if _deadline.code is not None:  # asked twice: the clean-up is not waited for
+            _deadline.end_now()
+        _deadline.arm(_EXIT_CODES[signum], EXIT_GRACE_S)
+        raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
-    old = signal.signal(signal.SIGTERM, raise_terminated)
+    # A SIGINT that is ignored (a shell's background job) stays ignored.
+    ours = [signal.SIGTERM] + ([signal.SIGINT] if signal.getsignal(signal.SIGINT) is signal.default_int_handler else [])
+    old = {sig: signal.signal(sig, on_signal) for sig in ours}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, old)
+        if _deadline.code is None:
+            for sig, handler in old.items():
+                signal.signal(sig, handler)
+
+
+def ending_on_signal(say: Callable[[str], None] | None) -> int:
+    """The process exits on the signal that arrived (``signal_exit_code``): returns its exit
+    status, after ``say`` printed the one line that says so ('terminated' or 'interrupted' its
+    argument; None: the command printed it). From here a further SIGINT or SIGTERM ends the
+    process at once, and the interpreter's exit handlers get ``EXIT_HANDLERS_S``."""
+    code = _deadline.code
+    if code is None:
+        raise RuntimeError("no signal arrived")
+    for sig in _EXIT_CODES:
+        signal.signal(sig, lambda signum, frame: _deadline.end_now())
+    _deadline.arm(code, EXIT_HANDLERS_S)
+    if say is not None:
+        say("terminated" if code == 143 else "interrupted")
+    _deadline.said = True
+    return code
 
 
 class Terminated(KeyboardInterrupt):

@@ -228,6 +228,44 @@ def test_metadata_fuzz_never_crashes(base_store, tmp_path):
     assert not failures, failures
 
 
+def test_validate_answers_an_absurd_length_at_once(base_store, tmp_path):
+    """A run whose shape and ``n_frames`` say 1e8 frames over 150 stored: the format checks refuse
+    it from the chunk counts, and the plausibility pass must not then read the 1e8 declared
+    commands (it took 86 s and 3.3 GB; 1e9 frames never answered). Run as a user would, with
+    memory capped at 2 GiB so that a regression fails instead of swapping."""
+    import resource
+    import subprocess
+    import sys
+    import time
+
+    from tests.corruption_cases import _length
+
+    store = tmp_path / "store.zarr"
+    shutil.copytree(base_store, store)
+    _length(10**8)(store)
+
+    def capped() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30))
+
+    with open(tmp_path / "stderr", "w+") as err:
+        t0 = time.monotonic()
+        proc = subprocess.Popen([sys.executable, "-m", "sonarset.cli", "validate", str(store)],
+                                stdout=subprocess.DEVNULL, stderr=err, preexec_fn=capped,
+                                env={**os.environ, "NO_COLOR": "1", "COLUMNS": "300"})
+        while not (done := os.wait4(proc.pid, os.WNOHANG))[0] and time.monotonic() - t0 < 60:
+            time.sleep(0.05)
+        seconds = time.monotonic() - t0
+        if not done[0]:
+            proc.kill()
+            done = os.wait4(proc.pid, 0)
+        err.seek(0)
+        lines = err.read().splitlines()
+    exit_code, peak_mb = os.waitstatus_to_exitcode(done[1]), done[2].ru_maxrss / 1024
+    assert exit_code == 1 and all(line.startswith("invalid:") for line in lines), lines
+    assert any("test_000/velocity: at least" in line for line in lines), lines
+    assert seconds < 20 and peak_mb < 500, (seconds, peak_mb)
+
+
 def test_remote_store_checks_each_chunk_as_it_is_read(base_store, tmp_path):
     """Over a URL the open check cannot fetch every chunk; the read that needs one checks it."""
     from sonarset.errors import FormatError

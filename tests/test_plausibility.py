@@ -211,3 +211,26 @@ def test_rules_accept_what_a_real_robot_records():
     [problem] = time_problems(np.arange(50) * 0.2e-3, None, 5.0)
     line = str(problem)
     assert "less than an echo from 5 m takes to return" in line and "seconds converted as milliseconds?" in line
+
+
+def test_stored_commands_are_judged_in_bounded_blocks(monkeypatch):
+    """``validate`` reads a run's commands a block of whole chunks at a time, and judges them as
+    the whole array: a peak in any block, a block of only NaN, or none, change nothing."""
+    import zarr
+
+    from sonarset.format import plausibility
+
+    v = np.c_[np.linspace(-0.3, 0.3, 50), np.linspace(-1, 1, 50)].astype(np.float32)
+    v[13, 0], v[41, 1] = 3.0, np.inf  # a peak in the second block, an infinite turn rate in the last
+    v[24:32] = np.nan  # a whole block of NaN
+    arr = zarr.create_array(store={}, shape=v.shape, chunks=(4, 2), dtype="float32", fill_value=np.nan)
+    arr[:] = v
+    seen = []
+    real = plausibility.command_peaks
+    monkeypatch.setattr(plausibility, "STREAM_ROWS", 9)  # blocks of 8 rows: two chunks
+    monkeypatch.setattr(plausibility, "command_peaks", lambda block: seen.append(len(block)) or real(block))
+    assert plausibility._streamed_peaks(arr) == real(v) == (3.0, 1.0)
+    assert seen == [8] * 6 + [2]
+    assert plausibility.peak_problems(real(v), RobotRig()) == command_problems(v, RobotRig())
+    [problem] = command_problems(v, RobotRig())  # the infinite turn rate is the format's to refuse
+    assert str(problem).startswith("velocity: linear speed up to 3 m/s exceeds the rig's limit 0.3 m/s")

@@ -199,3 +199,44 @@ def test_consolidating_a_read_only_store_with_a_current_snapshot_is_nothing_to_d
     monkeypatch.setattr(root.zarr, "consolidate_metadata", read_only)
     with pytest.raises(OSError, match="Read-only"):
         open_store(store.location, "r+").consolidate()
+
+
+def _store_of_runs(path, n: int):
+    """``n`` copies of one 2-frame run, consolidated: reading costs per run, so copies will do."""
+    import shutil
+
+    import zarr
+
+    create_store(path, TINY).write_run("run_000", **make_run(2))
+    for i in range(1, n):
+        shutil.copytree(path / "run_000", path / f"run_{i:03d}")
+    zarr.consolidate_metadata(str(path))
+    return path
+
+
+@pytest.mark.parametrize("command", [["info"], ["validate"], ["validate", "--quick"]])
+def test_reading_a_store_costs_the_same_for_each_run(tmp_path, monkeypatch, command):
+    """Opening one run used to list every run group (zarr parses each one's metadata to list it),
+    so ``info`` on 411 runs took 81 s: the files a command reads must grow with the runs, not
+    with their square."""
+    import zarr
+    from typer.testing import CliRunner
+
+    from sonarset.cli.app import app
+
+    reads = []
+    real_get = zarr.storage.LocalStore.get
+
+    async def counted(self, *args, **kwargs):
+        reads.append(1)
+        return await real_get(self, *args, **kwargs)
+
+    monkeypatch.setattr(zarr.storage.LocalStore, "get", counted)
+    per_store = {}
+    for n in (5, 20):
+        store = _store_of_runs(tmp_path / f"s{n}.zarr", n)
+        reads.clear()
+        result = CliRunner().invoke(app, [*command, str(store)])
+        assert result.exit_code == 0, result.output
+        per_store[n] = len(reads)
+    assert per_store[20] < 4.2 * per_store[5], per_store  # 4x the runs: under 4x the reads (linear)

@@ -99,21 +99,35 @@ def unit_hint(kind: str, value_si: float, ok: Callable[[float], bool], typical: 
     return f"{_NAMES[true]} converted as {_NAMES[claimed]}?"
 
 
+def command_peaks(velocity: np.ndarray) -> tuple[float | None, float | None]:
+    """The largest finite ``|v|`` and ``|omega|`` of commands ``(v, omega)`` (None where there is none):
+    all that the command rules look at, so a long run can be judged block by block."""
+    v = np.asarray(velocity)
+    if v.ndim != 2 or v.shape[-1] != 2 or v.shape[0] == 0:
+        return None, None
+    peaks = []
+    for col in range(2):
+        values = np.abs(v[:, col].astype(np.float64))
+        values = values[np.isfinite(values)]
+        peaks.append(float(values.max()) if values.size else None)
+    return peaks[0], peaks[1]
+
+
 def command_problems(velocity: np.ndarray, rig: RobotRig | None, declared: RecordingUnits | None = None) -> list[Problem]:
     """Commands ``(v, omega)`` in SI beyond the rig's limits (+ tolerance), else beyond any robot's."""
-    v = np.asarray(velocity, dtype=np.float64)
-    if v.ndim != 2 or v.shape[-1] != 2 or v.shape[0] == 0:
-        return []
+    return peak_problems(command_peaks(velocity), rig, declared)
+
+
+def peak_problems(peaks: tuple[float | None, float | None], rig: RobotRig | None,
+                  declared: RecordingUnits | None = None) -> list[Problem]:
+    """``command_problems`` of commands whose ``command_peaks`` are ``peaks``."""
     out = []
     rows = (("linear speed", "linear_velocity", "m/s", "v_max_m_s", MAX_SPEED_M_S),
             ("turn rate", "angular_velocity", "rad/s", "omega_max_rad_s", MAX_TURN_RAD_S))
     default = RobotRig()  # typical limits where the rig is unknown
-    for col, (name, kind, unit, field, absolute) in enumerate(rows):
-        values = np.abs(v[:, col])
-        values = values[np.isfinite(values)]
-        if not values.size:
+    for peak, (name, kind, unit, field, absolute) in zip(peaks, rows):
+        if peak is None:
             continue
-        peak = float(values.max())
         declared_limit = getattr(rig, field) if rig is not None else None
         limit = declared_limit * (1 + COMMAND_TOLERANCE) if declared_limit is not None else absolute
         if peak <= limit:
@@ -220,8 +234,15 @@ def metadata_conflicts(sidecar: dict, embedded: dict, sidecar_name: str, file_na
             for key in sorted(side.keys() & emb.keys()) if side[key] != emb[key]]
 
 
-def store_problems(store, check_data: bool = True) -> list[Implausible]:
-    """The grid and command rules, on every complete run of an open store, against its rig.
+#: Rows of commands judged at a time: memory stays bounded (1 MiB as float64) whatever a run's length.
+STREAM_ROWS = 65_536
+
+
+def store_problems(store, check_data: bool = True, runs: list[str] | None = None) -> list[Implausible]:
+    """The grid and command rules, on ``runs`` (default: every complete run) of an open store,
+    against its rig. ``validate`` passes the runs whose commands the format checks let through,
+    so that a declared length is plausible before it is read; each run is read ``STREAM_ROWS``
+    frames at a time.
 
     (Time stamps against the store's frame rate are a format check: ``sonarset.format.arrays``.)
     Never raises: what cannot be read is the format checks' to report.
@@ -232,17 +253,28 @@ def store_problems(store, check_data: bool = True) -> list[Implausible]:
         return out
     try:
         rig = store.rig
-        names = store.runs()
+        names = store.runs() if runs is None else runs
     except RemoteError:  # the server failed, not the store: never a finding
         raise
     except Exception:
         return out
     for name in names:
         try:
-            velocity = np.asarray(store.group[name]["velocity"][:])
+            peaks = _streamed_peaks(store.group[name]["velocity"])
         except RemoteError:
             raise
         except Exception:
             continue
-        out += [Implausible(p.where, p.message).at(f"{loc}/{name}") for p in command_problems(velocity, rig)]
+        out += [Implausible(p.where, p.message).at(f"{loc}/{name}") for p in peak_problems(peaks, rig)]
     return out
+
+
+def _streamed_peaks(velocity) -> tuple[float | None, float | None]:
+    """``command_peaks`` of a stored (zarr) velocity array, read in blocks of whole chunks."""
+    chunk = max(1, int(velocity.metadata.chunk_grid.chunk_shape[0]))
+    step = chunk * max(1, STREAM_ROWS // chunk)
+    peaks: tuple[float | None, float | None] = (None, None)
+    for start in range(0, velocity.shape[0], step):
+        block = command_peaks(velocity[start:start + step])
+        peaks = tuple(a if b is None else b if a is None else max(a, b) for a, b in zip(peaks, block))
+    return peaks

@@ -69,17 +69,17 @@ def read_store_attrs(group: zarr.Group, location: str) -> StoreAttrs:
     return attrs
 
 
-def run_groups(group: zarr.Group, location: str) -> tuple[list[str], list[Problem]]:
-    """The root's child groups, sorted, and a problem for each child whose metadata zarr cannot
-    parse (zarr lists children by parsing each one's metadata, so one broken ``zarr.json`` makes
-    its whole listing fail)."""
+def child_groups(group: zarr.Group, location: str) -> tuple[dict[str, zarr.Group], list[Problem]]:
+    """The root's child groups by name, sorted, opened by one listing (zarr parses each child's
+    metadata as it lists), and a problem for each child whose metadata zarr cannot parse (one
+    broken ``zarr.json`` makes the whole listing fail: then each child is opened on its own)."""
     try:
-        return sorted(group.group_keys()), []
+        return dict(sorted(group.groups())), []
     except RemoteError:  # the server failed, not the store: never a finding
         raise
     except Exception:
         pass
-    names, problems = [], []
+    nodes, problems = {}, []
     for name in child_names(group):
         try:
             node = group[name]
@@ -89,17 +89,43 @@ def run_groups(group: zarr.Group, location: str) -> tuple[list[str], list[Proble
             problems.append(Problem(f"{location}/{name}", f"unreadable zarr metadata ({one_line(exc)})"))
             continue
         if isinstance(node, zarr.Group):
-            names.append(name)
-    return names, problems
+            nodes[name] = node
+    return nodes, problems
 
 
-def run_group_attrs(group: zarr.Group, location: str, name: str) -> tuple[RunAttrs | None, list[Problem]]:
+def run_tree(group: zarr.Group) -> dict[str, tuple[zarr.Group, dict[str, zarr.Array]]] | None:
+    """{name: (group, {array name: array})} of the root's child groups, sorted, from one listing of
+    two levels: what a reader about to open every run needs, without a listing per run. None where
+    a node's metadata is unreadable (it fails the whole listing: open them one by one then)."""
+    try:
+        listed = dict(group.members(max_depth=1))
+    except RemoteError:
+        raise
+    except Exception:
+        return None
+    tree = {k: (v, {}) for k, v in sorted(listed.items()) if "/" not in k and isinstance(v, zarr.Group)}
+    for key, node in sorted(listed.items()):
+        parent, _, child = key.partition("/")
+        if child and parent in tree and isinstance(node, zarr.Array):
+            tree[parent][1][child] = node
+    return tree
+
+
+def run_groups(group: zarr.Group, location: str) -> tuple[list[str], list[Problem]]:
+    """The names of the root's child groups, sorted, and the problems of ``child_groups``."""
+    nodes, problems = child_groups(group, location)
+    return list(nodes), problems
+
+
+def run_group_attrs(group: zarr.Group, location: str, name: str,
+                    node: zarr.Group | None = None) -> tuple[RunAttrs | None, list[Problem]]:
     """Run group ``name``'s attributes, or None and every problem with the group: its name, its
-    metadata and its attributes."""
+    metadata and its attributes. ``node`` is the group where it is already open (a listing opens
+    every child): then nothing is read again."""
     where = f"{location}/{name}"
     problems = [p.at(where) for p in run_name_problems(name)]
     try:
-        raw = group[name].attrs.get(NAMESPACE)
+        raw = (group[name] if node is None else node).attrs.get(NAMESPACE)
     except RemoteError:
         raise
     except Exception as exc:
@@ -149,8 +175,8 @@ class StoreRoot:
 
     def _rig_from_provenance(self) -> RobotRig | None:
         rigs = set()
-        for name in self.runs():
-            src = self.run_attrs(name).source
+        for attrs in self.listed_runs().values():
+            src = attrs.source
             rig = RobotRig.from_provenance(src) if src.get("kind") == "simulator" else None
             if rig is None:
                 return None
@@ -167,31 +193,53 @@ class StoreRoot:
             return None
         return parse_run_attrs(raw)[0]
 
-    def group_names(self) -> list[str]:
-        """The root's child groups, sorted. A reader refuses a store with a child whose metadata
-        zarr cannot parse, naming it; a writer (``r+``) skips it, so that it can still replace or
-        add runs."""
-        names, problems = run_groups(self.group, self.location)
+    def run_groups(self) -> dict[str, zarr.Group]:
+        """The root's child groups by name, sorted, from one listing. A reader refuses a store
+        with a child whose metadata zarr cannot parse, naming it; a writer (``r+``) skips it, so
+        that it can still replace or add runs."""
+        nodes, problems = child_groups(self.group, self.location)
         if self.mode == "r":
             raise_first(problems)
-        return names
+        return nodes
+
+    def group_names(self) -> list[str]:
+        """The names of ``run_groups``."""
+        return list(self.run_groups())
+
+    def child_group(self, name: str) -> zarr.Group | None:
+        """The root's child group ``name``, opened alone (looking one run up by listing them all
+        would make opening every run cost the square of the runs); None when there is none.
+        FormatError when its metadata is unreadable."""
+        if name in ("", ".", "..") or "/" in name:  # not a child's name: a path
+            return None
+        try:
+            node = self.group[name]
+        except KeyError:
+            return None
+        except RemoteError:
+            raise
+        except Exception as exc:
+            raise FormatError(f"{self.location}/{name}: unreadable zarr metadata ({one_line(exc)})") from None
+        return node if isinstance(node, zarr.Group) else None
+
+    def listed_runs(self, include_incomplete: bool = False) -> dict[str, RunAttrs]:
+        """{name: attributes} of the runs (complete ones unless asked), sorted, from one listing;
+        groups whose attributes are unusable are left out."""
+        out = {}
+        for name, node in self.run_groups().items():
+            attrs = parse_run_attrs(node.attrs.get(NAMESPACE))[0]
+            if attrs is not None and (attrs.complete or include_incomplete):
+                out[name] = attrs
+        return out
 
     def runs(self, split: str | None = None, include_incomplete: bool = False,
              worlds: Iterable[str] | None = None) -> list[str]:
         """Names of the runs (complete ones unless asked), sorted, optionally of one split and of
         the world families (or world files) ``worlds`` that their ``source.world`` names."""
         wanted = None if worlds is None else set(worlds)
-        names = []
-        for name in self.group_names():
-            attrs = self.run_attrs(name)
-            if attrs is None or not (attrs.complete or include_incomplete):
-                continue
-            if split is not None and attrs.split != split:
-                continue
-            if wanted is not None and (attrs.source or {}).get("world") not in wanted:
-                continue
-            names.append(name)
-        return names
+        return [name for name, attrs in self.listed_runs(include_incomplete).items()
+                if (split is None or attrs.split == split)
+                and (wanted is None or (attrs.source or {}).get("world") in wanted)]
 
     # ---- writing --------------------------------------------------------------------------
     def require_writable(self) -> None:
@@ -271,6 +319,16 @@ def consolidated_staleness(root: zarr.Group, names: list[str]) -> str | None:
 def node_metadata(root: zarr.Group, names: list[str]) -> tuple[dict, set[str]]:
     """The metadata of every readable node under the root's run groups (runs and their arrays),
     and the keys of those whose metadata zarr cannot parse (the run checks report them)."""
+    try:  # one listing of the runs and their arrays, where every node's metadata parses
+        listed = dict(root.members(max_depth=1))
+    except RemoteError:
+        raise
+    except Exception:  # a node zarr cannot parse fails the whole listing: then node by node, below
+        listed = None
+    if listed is not None:
+        wanted = set(names)
+        return ({k: v.metadata for k, v in listed.items() if k.split("/")[0] in wanted},
+                {k for k in listed if "/" not in k and k not in wanted})  # children that are no group
     actual, unreadable = {}, set()
     for name in names:
         try:
@@ -294,13 +352,15 @@ def node_metadata(root: zarr.Group, names: list[str]) -> tuple[dict, set[str]]:
 
 def open_root(location: str, mode: str = "r", *, storage_options: dict | None = None,
               consolidated: bool | None = None, cache_bytes: int | None = None,
-              remote_limits=None) -> tuple[zarr.Group, str]:
+              remote_limits=None, root_checked: bool = False) -> tuple[zarr.Group, str]:
     """The root group at ``location`` (a local path or an fsspec URL) and the location as the
-    store names it, opened as ``open_store`` says; FormatError when it is not a zarr v3 group."""
+    store names it, opened as ``open_store`` says; FormatError when it is not a zarr v3 group.
+    ``root_checked``: the caller found no ``local_root_problems`` already (they walk the tree)."""
     loc = location
     if not is_url(loc):
         path = Path(loc.removeprefix("file://"))
-        raise_first(local_root_problems(path))
+        if not root_checked:
+            raise_first(local_root_problems(path))
         loc = str(path)
         if consolidated is None:
             consolidated = False

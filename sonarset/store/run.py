@@ -1,14 +1,14 @@
 """A run of a SonarSet store, read lazily and checked as it is read (spec/FORMAT.md §2).
 
-The helpers that open a run's arrays (``member_names``, ``open_array``, ``decode_problems``) are
+The helpers that open a run's arrays (``run_members``, ``open_array``, ``decode_problems``) are
 what ``validate`` walks a run with too: the reader raises the first of their problems.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import os
+from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 import zarr
@@ -26,27 +26,27 @@ from sonarset.store.root import StoreRoot
 from sonarset.store.zarrio import child_names
 
 
-def member_names(group: zarr.Group) -> set[str]:
-    """The arrays of a run group; where one member's metadata is unreadable, every child as stored
-    (opening each then says which)."""
+def run_members(group: zarr.Group) -> dict[str, zarr.Array | None]:
+    """The arrays of a run group by name, opened by one listing; where one member's metadata is
+    unreadable, every child as stored, unopened (None: ``open_array`` then says which)."""
     try:
-        return set(group.array_keys())
+        return dict(group.arrays())
     except RemoteError:  # the server failed, not the store: never a finding
         raise
     except Exception:
-        return set(child_names(group))
+        return dict.fromkeys(child_names(group))
 
 
 def open_array(group: zarr.Group, key: str, where: str, n_frames: int, grid_shape: tuple[int, int],
-               present: set[str]) -> tuple[zarr.Array | None, list[Problem]]:
-    """Array ``key`` of the run group at ``where`` (whose arrays are ``present``), and every problem
-    with its metadata; None where its values cannot be read (missing, unreadable, or a dtype or
-    shape the spec does not allow)."""
+               present: Mapping[str, zarr.Array | None]) -> tuple[zarr.Array | None, list[Problem]]:
+    """Array ``key`` of the run group at ``where`` (whose members are ``present``: ``run_members``),
+    and every problem with its metadata; None where its values cannot be read (missing,
+    unreadable, or a dtype or shape the spec does not allow)."""
     if key not in present:
         return None, [Problem(where, f"missing {'required' if ARRAYS[key].required else 'optional'} array {key!r}")]
     aw = f"{where}/{key}"
     try:
-        arr = group[key]
+        arr = present[key] if present[key] is not None else group[key]
         if not isinstance(arr, zarr.Array):
             return None, [Problem(aw, "is a group, not an array")]
         dims = tuple(arr.metadata.dimension_names or ())
@@ -102,18 +102,21 @@ class Run:
     run, the array and the chunk, instead of handing back fill values or garbage.
     """
 
-    def __init__(self, store: StoreRoot, name: str, attrs: RunAttrs):
+    def __init__(self, store: StoreRoot, name: str, attrs: RunAttrs, group: zarr.Group | None = None,
+                 members: dict[str, zarr.Array | None] | None = None):
+        """``group`` and ``members`` (``run_members``): the run's group and arrays where the caller
+        opened them already (a listing of the store opens them all at once)."""
         self.store, self.name, self.attrs = store, name, attrs
         #: Frames in the run (the length of every per-frame array), and the split it belongs to.
         self.n_frames, self.split = attrs.n_frames, attrs.split
         self.where = f"{store.location}/{name}"
         try:
-            self.group = store.group[name]
+            self.group = store.group[name] if group is None else group
         except RemoteError:
             raise
         except Exception as exc:
             raise FormatError(f"{self.where}: unreadable zarr metadata ({one_line(exc)})") from None
-        self._members: set[str] | None = None
+        self._members = members
         self._identity = self._folder_identity()
         self._arrays: dict[str, zarr.Array] = {}
         self._checkers: dict[str, ChunkChecker] = {}
@@ -131,19 +134,23 @@ class Run:
             return None
         return st.st_dev, st.st_ino
 
+    def replaced(self) -> bool:
+        """Whether the run's folder was replaced since the run was opened (a local store only)."""
+        return self._identity is not None and self._folder_identity() != self._identity
+
     def _unchanged(self) -> None:
         """FormatError when the run was replaced since it was opened: what was read may mix the two."""
-        if self._identity is not None and self._folder_identity() != self._identity:
+        if self.replaced():
             raise FormatError(f"{self.where}: run changed while reading (another writer replaced it); "
                               "open it again to read the new one")
 
-    def _member_names(self) -> set[str]:
+    def _member_arrays(self) -> dict[str, zarr.Array | None]:
         if self._members is None:
-            self._members = member_names(self.group)
+            self._members = run_members(self.group)
         return self._members
 
     def has(self, key: str) -> bool:
-        return key in self._member_names()
+        return key in self._member_arrays()
 
     def array(self, key: str) -> zarr.Array:
         """Array ``key`` after its metadata was checked against the spec (dtype, shape, dimension
@@ -153,7 +160,7 @@ class Run:
         if key not in ARRAYS:
             raise KeyError(key)
         arr, problems = open_array(self.group, key, self.where, self.n_frames, self.store.grid.shape,
-                                   self._member_names())
+                                   self._member_arrays())
         raise_first(problems)
         self._arrays[key] = arr
         return arr

@@ -20,7 +20,7 @@ from sonarset.format.arrays import OPTIONAL_ARRAYS, run_array_problems
 from sonarset.format.attrs import FORMAT_VERSION, NAMESPACE, Processing, RobotRig, SensorGrid, StoreAttrs
 from sonarset.format.problems import raise_first
 from sonarset.format.rules import run_state_problems, store_attrs_problems
-from sonarset.store.root import StoreRoot, open_root, run_group_attrs
+from sonarset.store.root import StoreRoot, open_root, run_group_attrs, run_tree
 from sonarset.store.run import Run
 from sonarset.store.remote import RemoteLimits
 from sonarset.store.writer import DEFAULT_CHUNK_FRAMES, RunWriter
@@ -33,28 +33,41 @@ __all__ = ["SonarStore", "create_store", "open_or_create_store", "open_store"]
 class SonarStore(StoreRoot):
     """A SonarSet store opened for reading (``mode='r'``) or writing (``'r+'``)."""
 
+    def __init__(self, group: zarr.Group, location: str, mode: str):
+        super().__init__(group, location, mode)
+        #: The runs ``check`` vetted in a read-only store: ``run`` hands them out again while their
+        #: folders stay, so a reader that checks a store and then reads it opens each run once.
+        self._checked: dict[str, Run] = {}
+
     def worlds(self, split: str | None = None) -> dict[str, list[str]]:
         """{world: its complete runs} of a split (or all), for the runs whose provenance names one."""
         out: dict[str, list[str]] = {}
-        for name in self.runs(split):
-            world = (self.run_attrs(name).source or {}).get("world")
-            if world is not None:
+        for name, attrs in self.listed_runs().items():
+            world = (attrs.source or {}).get("world")
+            if world is not None and (split is None or attrs.split == split):
                 out.setdefault(str(world), []).append(name)
         return out
 
     def splits(self) -> dict[str, list[str]]:
         out: dict[str, list[str]] = {}
-        for name in self.runs():
-            out.setdefault(self.run(name).split, []).append(name)
+        for name, attrs in self.listed_runs().items():
+            out.setdefault(attrs.split, []).append(name)
         return out
 
     def run(self, name: str) -> Run:
-        if name not in self.group_names():
+        checked = self._checked.get(name)
+        if checked is not None and not checked.replaced():
+            return checked
+        node = self.child_group(name)
+        if node is None:
             raise SonarSetError(f"{self.location}: no run named {name!r} (runs: {', '.join(self.runs()) or 'none'})")
-        attrs, problems = run_group_attrs(self.group, self.location, name)
+        return self._run(name, node)
+
+    def _run(self, name: str, node: zarr.Group, members: dict[str, zarr.Array] | None = None) -> Run:
+        attrs, problems = run_group_attrs(self.group, self.location, name, node)
         raise_first(problems)
         raise_first([p.at(f"{self.location}/{name}") for p in run_state_problems(attrs)])
-        return Run(self, name, attrs)
+        return Run(self, name, attrs, node, members)
 
     def check(self, runs: Iterable[str] | None = None, *, chunks: bool = True) -> "SonarStore":
         """The quick structural checks a reader makes before it trusts the store; returns self.
@@ -69,10 +82,19 @@ class SonarStore(StoreRoot):
         they are loaded (``Run.read``).
         """
         raise_first([p.at(self.location) for p in store_attrs_problems(self.attrs)])
-        for name in self.group_names():
-            raise_first(run_group_attrs(self.group, self.location, name)[1])
-        for name in (self.runs() if runs is None else runs):
-            self.run(name).check(chunks=chunks)
+        # One listing opens every run group and its arrays, not one (or one per run) per check.
+        tree = run_tree(self.group) or {name: (node, None) for name, node in self.run_groups().items()}
+        complete = []
+        for name, (node, _) in tree.items():
+            attrs, problems = run_group_attrs(self.group, self.location, name, node)
+            raise_first(problems)
+            if attrs.complete:
+                complete.append(name)
+        for name in (complete if runs is None else runs):
+            run = self._run(name, *tree[name]) if name in tree else self.run(name)
+            run.check(chunks=chunks)
+            if self.mode == "r":
+                self._checked[name] = run
         return self
 
     def __iter__(self) -> Iterator["Run"]:
@@ -85,7 +107,7 @@ class SonarStore(StoreRoot):
         return f"SonarStore({self.location!r}, runs={len(self)}, grid={self.grid.describe()})"
 
     def n_frames(self, split: str | None = None) -> int:
-        return sum(self.run(n).n_frames for n in self.runs(split))
+        return sum(attrs.n_frames for attrs in self.listed_runs().values() if split is None or attrs.split == split)
 
     def nbytes_stored(self) -> int | None:
         """Bytes on disk for a local store; None where it cannot be measured cheaply."""

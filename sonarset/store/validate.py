@@ -26,9 +26,9 @@ from sonarset.format.plausibility import Implausible, store_problems
 from sonarset.format.problems import Problem
 from sonarset.format.rules import command_limit_problems, run_state_problems, store_attrs_problems
 from sonarset.store.integrity import ChunkChecker
-from sonarset.store.root import (consolidated_staleness, local_root_problems, open_root, run_group_attrs, run_groups,
-                                 store_attrs)
-from sonarset.store.run import decode_problems, member_names, open_array
+from sonarset.store.root import (child_groups, consolidated_staleness, local_root_problems, open_root,
+                                 run_group_attrs, store_attrs)
+from sonarset.store.run import decode_problems, open_array, run_members
 from sonarset.store.store import SonarStore
 from sonarset.store.zarrio import is_url
 
@@ -65,13 +65,14 @@ def validate_store(location: str | os.PathLike, *, check_data: bool = True,
 
 
 def _validate(loc: str, check_data: bool, progress: ProgressFn | None, plausibility: bool) -> list[Problem]:
-    if not is_url(loc):
+    local = not is_url(loc)
+    if local:
         early = local_root_problems(Path(loc))
         if early:
             return early
     # Validation must see what is really there, not a consolidated snapshot.
     try:
-        root, loc = open_root(loc, "r", consolidated=False)
+        root, loc = open_root(loc, "r", consolidated=False, root_checked=local)
     except RemoteError:
         raise
     except SonarSetError as exc:
@@ -81,20 +82,24 @@ def _validate(loc: str, check_data: bool, progress: ProgressFn | None, plausibil
         return problems
     store = SonarStore(root, loc, "r")
     problems += [p.at(loc) for p in store_attrs_problems(attrs)]
-    names, listing = run_groups(root, loc)
+    nodes, listing = child_groups(root, loc)
     problems += listing
-    if not names and not listing:
+    if not nodes and not listing:
         return problems + [Problem(loc, "empty store: no run groups")]
-    for name in names:
-        problems += _guarded(f"{loc}/{name}", lambda: _check_run(store, name, check_data, progress))
-    problems += _guarded(loc, lambda: _check_consolidated(loc, root, names))
+    complete: list[str] = []
+    for name, node in nodes.items():
+        problems += _guarded(f"{loc}/{name}", lambda: _check_run(store, name, node, check_data, progress, complete))
+    problems += _guarded(loc, lambda: _check_consolidated(loc, root, list(nodes)))
     if plausibility:
-        # A value the format refuses is not also implausible: the format problem says it.
+        # A value the format refuses is not also implausible: the format problem says it. Nor are
+        # the commands of a run whose velocity the format refused read for it: their declared
+        # length may be absurd (a shape edited to 1e9 frames would be read as that many fill values).
         refused = {p.where for p in problems}
-        problems += [p for p in _guarded(loc, lambda: store_problems(store, check_data))
+        sound = [n for n in complete if not {f"{loc}/{n}", f"{loc}/{n}/velocity"} & refused]
+        problems += [p for p in _guarded(loc, lambda: store_problems(store, check_data, sound))
                      if not (isinstance(p, Implausible) and p.where in refused)]
-    if not problems:
-        problems += _guarded(loc, lambda: [] if store.runs() else [Problem(loc, "no complete run")])
+    if not problems and not complete:
+        problems.append(Problem(loc, "no complete run"))
     return problems
 
 
@@ -108,16 +113,18 @@ def _guarded(where: str, check: Callable[[], list[Problem]]) -> list[Problem]:
         return [Problem(where, f"cannot be checked: {one_line(exc)}")]
 
 
-def _check_run(store: SonarStore, name: str, check_data: bool, progress: ProgressFn | None) -> list[Problem]:
+def _check_run(store: SonarStore, name: str, group: zarr.Group, check_data: bool, progress: ProgressFn | None,
+               complete: list[str]) -> list[Problem]:
+    """The problems of run group ``name`` (opened: ``group``); appends it to ``complete`` if it is."""
     where = f"{store.location}/{name}"
-    attrs, out = run_group_attrs(store.group, store.location, name)
+    attrs, out = run_group_attrs(store.group, store.location, name, group)
     if attrs is None:
         return out
     out += [p.at(where) for p in run_state_problems(attrs)]
     if not attrs.complete:
         return out
-    group = store.group[name]
-    present = member_names(group)
+    complete.append(name)
+    present = run_members(group)
     for key, spec in ARRAYS.items():
         if key not in present and not spec.required:
             continue

@@ -94,3 +94,50 @@ def first_unreadable_node(root: zarr.Group) -> tuple[str, Exception] | None:
             except Exception as exc:
                 return f"{name}/{child}", exc
     return None
+
+
+def release_event_loop(timeout_s: float = 1.0) -> None:
+    """End zarr's I/O event loop now, quietly: for a process that exits on a signal.
+
+    zarr runs its I/O on an event loop in a thread and closes it at exit (``zarr.core.sync``'s
+    atexit ``cleanup_resources``). A command interrupted while that loop still has work (the
+    main thread waited in ``sync`` for a listing or a read) then exits noisily: the hook shuts the
+    executor down under the running tasks, each of which then fails and is logged ("Task
+    exception was never retrieved", thousands of tracebacks), and it cannot close the loop that
+    is still running ("RuntimeError: Cannot close a running event loop"). Here the tasks are
+    cancelled and awaited inside the loop, the loop stopped and closed, and the hook left with
+    nothing to do. A loop too busy to answer within ``timeout_s`` is left to die with the
+    process (its thread is a daemon), its remaining complaints silenced.
+    """
+    import asyncio
+    import sys
+
+    from zarr.core import sync as zsync
+
+    loop, thread = zsync.loop[0], zsync.iothread[0]
+    executor, zsync._executor = zsync._executor, None
+    zsync.loop[0] = zsync.iothread[0] = None  # cleanup_resources finds nothing to close
+    if executor is not None:
+        executor.shutdown(wait=False, cancel_futures=True)
+    if loop is None or loop.is_closed():
+        return
+    loop.set_exception_handler(lambda loop, context: None)  # nothing a task says now is news
+
+    async def cancel_all() -> None:
+        tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)  # retrieved: none is logged
+
+    running = thread is not None and thread.is_alive()
+    if running:
+        try:
+            asyncio.run_coroutine_threadsafe(cancel_all(), loop).result(timeout_s)
+            loop.call_soon_threadsafe(loop.stop)
+            thread.join(timeout_s)
+        except Exception:  # busy (a timeout) or already stopping: left to end with the process
+            pass
+    if not running or not thread.is_alive():
+        loop.close()
+    else:  # still running: coroutines it drops at exit would each print "Exception ignored in"
+        sys.unraisablehook = lambda unraisable: None
