@@ -13,6 +13,7 @@ the file, so memory does not grow with the run. Needs the ``view`` extra (rerun-
 
 from __future__ import annotations
 
+import errno
 import functools
 import os
 from pathlib import Path
@@ -82,8 +83,8 @@ def record_run(store: SonarStore, run_name: str | None, out: str | os.PathLike, 
     import rerun as rr
 
     from sonarset.models.registry import make_predictor
-    from sonarset.report.overview import simulated_world
 
+    _refuse_non_regular(Path(out))  # before any model loads
     name = run_name or (store.runs() or [None])[0]
     if name is None or name not in store.runs():
         raise SonarSetError(f"{store.location}: no complete run {name!r} (runs: {', '.join(store.runs())})",
@@ -109,8 +110,83 @@ def record_run(store: SonarStore, run_name: str | None, out: str | os.PathLike, 
             p = make_predictor(spec, grid, rig, device=device, precision=precision)
             preds[(p.label if p.label not in preds else spec) if p.name in preds else p.name] = p
     out = Path(out)
+    aside = _aside_file(out)
     rec = rr.RecordingStream("sonarset", recording_id=f"{Path(store.location).name}/{name}")
-    rec.save(out, default_blueprint=_blueprint(list(preds), pose is not None))
+    try:
+        rec.save(aside, default_blueprint=_blueprint(list(preds), pose is not None))
+        _record(rec, rr, name, run, store, preds, pose, extras, time_s, velocity, start, stop, horizon, block, progress)
+        rec.flush()
+        rec.disconnect()
+        os.replace(aside, out)
+    finally:
+        rec.disconnect()  # closes the file before it is removed (a no-op after the first)
+        aside.unlink(missing_ok=True)
+    return out
+
+
+def _aside_file(out: Path) -> Path:
+    """A new hidden file beside ``out`` to record into; renamed over ``out`` only once complete, so
+    an interrupted, killed or failing recording never replaces a good one nor looks like one.
+
+    Refuses an ``out`` that is not a regular file (a folder, a FIFO that would block the writer for
+    ever, a device) and says in one line why a file cannot be made there. Leftovers of killed
+    recorders of this host are removed.
+    """
+    import socket
+
+    _refuse_non_regular(out)
+    host = "".join(c if c.isalnum() or c == "-" else "_" for c in socket.gethostname())[:40] or "host"
+    _remove_dead_asides(out, host)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        for attempt in range(100):
+            aside = out.with_name(f".{out.name}.{host}-{os.getpid()}-{attempt}.tmp")
+            try:
+                os.close(os.open(aside, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+                return aside
+            except FileExistsError:
+                continue
+        raise FileExistsError(errno.EEXIST, "too many recordings of this process in flight")
+    except OSError as exc:
+        raise SonarSetError(f"{out}: cannot write the recording there ({exc.strerror or exc})",
+                            parameter="out") from None
+
+
+def _refuse_non_regular(out: Path) -> None:
+    import stat
+
+    try:
+        mode = out.stat().st_mode
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise SonarSetError(f"{out}: cannot write the recording there ({exc.strerror})", parameter="out") from None
+    if not stat.S_ISREG(mode):
+        what = "a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else "not a regular file"
+        raise SonarSetError(f"{out}: is {what}; the recording needs a .rrd file path", parameter="out")
+
+
+def _remove_dead_asides(out: Path, host: str) -> None:
+    import re
+
+    from sonarset.store.atomic import _alive
+
+    pattern = re.compile(re.escape(f".{out.name}.{host}-") + r"(\d+)-\d+\.tmp")
+    try:
+        entries = list(out.parent.iterdir())
+    except OSError:
+        return
+    for entry in entries:
+        m = pattern.fullmatch(entry.name)
+        if m is not None and not _alive(int(m.group(1))) and entry.is_file():
+            entry.unlink(missing_ok=True)
+
+
+def _record(rec, rr, name: str, run, store: SonarStore, preds: dict, pose, extras: dict, time_s, velocity, start: int,
+            stop: int, horizon: int, block: int, progress) -> None:
+    from sonarset.report.overview import simulated_world
+
+    grid = store.grid
     fan = FanMap(grid)
     world = simulated_world(run.attrs.source)
     _log_static(rec, rr, world, pose, grid, fan)
@@ -141,9 +217,6 @@ def record_run(store: SonarStore, run_name: str | None, out: str | os.PathLike, 
                     rec.log(f"predictions/{n}/error", rr.Image(_colour(_as_picture(np.abs(frame - img)))))
         if progress:
             progress(name, b - start, stop - start)
-    rec.flush()
-    rec.disconnect()
-    return out
 
 
 def _predict(p: CheckedPredictor, images: np.ndarray, velocity: np.ndarray, lo: int, a: int, b: int,

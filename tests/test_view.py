@@ -70,3 +70,58 @@ def test_view_cli_records_a_frame_range_and_says_how_to_open_it(sim, tmp_path):
     assert bad.exit_code == 1 and "--frames must be A:B" in bad.output
     missing = CliRunner().invoke(app, ["view", sim.location, "--run", "nope", "--out", str(tmp_path / "y.rrd")])
     assert missing.exit_code == 1 and "no complete run 'nope'" in missing.output
+
+
+def test_view_refuses_outputs_it_cannot_write_in_one_line(sim, tmp_path):
+    import os
+
+    folder = tmp_path / "a_folder.rrd"
+    folder.mkdir()
+    fifo = tmp_path / "pipe.rrd"
+    os.mkfifo(fifo)
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    a_file = tmp_path / "a_file"
+    a_file.write_text("not a folder")
+    cases = [(folder, "is a folder"), (fifo, "is a FIFO"), (a_file / "x.rrd", "cannot write the recording there")]
+    if os.geteuid() != 0:  # root writes into a read-only folder
+        cases.append((locked / "x.rrd", "cannot write the recording there (Permission denied)"))
+    try:
+        for target, problem in cases:
+            res = CliRunner().invoke(app, ["view", sim.location, "--frames", "0:3", "--out", str(target)])
+            assert res.exit_code == 1 and f"{target}: {problem}" in res.output, res.output
+            assert "Traceback" not in res.output and len(res.output.strip().splitlines()) == 1, res.output
+    finally:
+        locked.chmod(0o700)
+    deep = tmp_path / "new" / "folder" / "x.rrd"  # a missing parent is made, as a user expects
+    res = CliRunner().invoke(app, ["view", sim.location, "--frames", "0:3", "--out", str(deep)])
+    assert res.exit_code == 0 and deep.is_file(), res.output
+
+
+def test_a_failing_recording_leaves_the_previous_one_and_no_leftovers(sim, tmp_path, monkeypatch):
+    import sonarset.models.view as view
+
+    out = record_run(sim, "test_000", tmp_path / "v.rrd", frames=slice(0, 5))
+    good = out.read_bytes()
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("the model broke")
+
+    monkeypatch.setattr(view, "_predict", broken)
+    with pytest.raises(RuntimeError, match="the model broke"):
+        record_run(sim, "test_000", out, models=["naive"], frames=slice(0, 40), block=8)
+    assert out.read_bytes() == good
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v.rrd"]
+
+
+def test_a_killed_recorders_leftover_is_removed_by_the_next(sim, tmp_path):
+    import socket
+
+    host = "".join(c if c.isalnum() or c == "-" else "_" for c in socket.gethostname())[:40]
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True).stdout.strip()
+    leftover = tmp_path / f".v.rrd.{host}-{dead}-0.tmp"
+    leftover.write_bytes(b"half")
+    record_run(sim, "test_000", tmp_path / "v.rrd", frames=slice(0, 3))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v.rrd"]

@@ -8,6 +8,8 @@ EchoPT's), preset, config, grid, the training store's image processing and robot
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import os
 from pathlib import Path
@@ -25,17 +27,38 @@ from sonarset.models.echopt.networks import A_TITLE, KINDS, TITLES, from_config,
 PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained" / "echopt-small.safetensors"
 
 
+@contextlib.contextmanager
+def disk_errors(path: str | os.PathLike, what: str):
+    """A failed write of ``what`` to ``path`` (a full disk, a lost mount) as one line naming the file;
+    the write is atomic (sonarset/store/atomic.py), so the previous file is still whole."""
+    try:
+        yield
+    except OSError as exc:
+        code = exc.errno
+        reason = "no space left on the device" if code in (errno.ENOSPC, errno.EDQUOT) else \
+            exc.strerror or (os.strerror(code) if code else str(exc))
+        raise SonarSetError(f"{path}: cannot write the {what}: {reason}; the previous one is kept") from None
+    except Exception as exc:
+        if type(exc).__name__ != "SafetensorError":  # the Rust writer's I/O errors
+            raise
+        reason = "no space left on the device" if "os error 28" in str(exc) else str(exc)
+        raise SonarSetError(f"{path}: cannot write the {what}: {reason}; the previous one is kept") from None
+
+
 def save_checkpoint(path: str | os.PathLike, model: nn.Module, card: dict, after_weights=None) -> Path:
     """Weights, then the card (``after_weights(phase)`` is called between the two: tests kill there)."""
     kind = kind_of(model)
     path = Path(path).with_suffix(".safetensors")
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
-    atomic_write(path, lambda p: save_file(state, str(p), metadata={"format": kind, "card": path.with_suffix(".json").name}))
+    with disk_errors(path, "checkpoint"):
+        atomic_write(path, lambda p: save_file(state, str(p), metadata={"format": kind,
+                                                                        "card": path.with_suffix(".json").name}))
     if after_weights is not None:
         after_weights("best-weights")
     card = {**card, "model": kind, "config": model.cfg.to_dict(), "n_params": model.n_params()}
-    atomic_text(path.with_suffix(".json"), json.dumps(card, indent=2) + "\n")
+    with disk_errors(path.with_suffix(".json"), "model card"):
+        atomic_text(path.with_suffix(".json"), json.dumps(card, indent=2) + "\n")
     return path
 
 

@@ -110,6 +110,12 @@ class OnnxEchoPTPredictor(BasePredictor):
         if grid is not None and grid.shape != self.shape:
             raise GridMismatchError(f"{self.path}: the model takes {self.shape[0]}x{self.shape[1]} images, "
                                     f"the data has {grid.shape[0]}x{grid.shape[1]}")
+        declared = self.session.get_outputs()[0].shape
+        fixed = [d for d in declared[-2:] if isinstance(d, int)] if declared else []
+        if declared and (len(declared) != 3 or len(fixed) == 2 and tuple(fixed) != self.shape):
+            raise SonarSetError(f"{self.path}: the graph's {OUTPUT} has shape {_shape_text(declared)}, its card "
+                                f"says {self.shape[0]}x{self.shape[1]} images (batch, range, azimuth): "
+                                "a graph that does not match its card; export it again")
         self.grid = grid
         self.batch_size = batch_size
         self.name = "echopt"
@@ -120,8 +126,17 @@ class OnnxEchoPTPredictor(BasePredictor):
         for lo in range(0, len(frames), self.batch_size):
             feed = {"frames": np.ascontiguousarray(frames[lo:lo + self.batch_size], dtype=np.float32),
                     "commands": np.ascontiguousarray(commands[lo:lo + self.batch_size], dtype=np.float32)}
-            out[lo:lo + len(feed["frames"])] = self.session.run([OUTPUT], feed)[0]  # clamped in the graph
+            got = self.session.run([OUTPUT], feed)[0]  # clamped in the graph
+            if got.shape != (len(feed["frames"]), *self.shape):
+                raise SonarSetError(f"{self.path}: the graph's {OUTPUT} came out {_shape_text(got.shape)} for "
+                                    f"{len(feed['frames'])} windows, its card says {self.shape[0]}x{self.shape[1]} "
+                                    "images: a graph that does not match its card; export it again")
+            out[lo:lo + len(feed["frames"])] = got
         return out
+
+
+def _shape_text(shape) -> str:
+    return "x".join(str(d) if isinstance(d, int) else str(d or "?") for d in shape)
 
 
 def load_onnx_predictor(path: str | os.PathLike, grid: SensorGrid | None = None) -> OnnxEchoPTPredictor:

@@ -86,9 +86,7 @@ class TrainResult:
 def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, resume: bool = False,
           progress: Callable[[dict], None] | None = None) -> TrainResult:
     out = Path(out_dir)
-    if out.exists() and any(out.iterdir()) and not resume:
-        raise SonarSetError(f"{out}: exists and is not empty (resume the run in it, or train into another directory)",
-                            parameter="out_dir")
+    _refuse_a_used_directory(out, resume)
     # resuming a run killed before its first checkpoint (no state yet) starts it from step 0
     cfg.check()
     parse_loss(cfg.loss)
@@ -97,11 +95,48 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
         if cfg.batch_size % dist.world:
             raise SonarSetError(f"batch_size {cfg.batch_size} is not a multiple of the {dist.world} processes",
                                 parameter="batch_size")
-        dist.barrier()  # every rank has checked the run directory before rank 0 writes to it
-        return _train(store, out, cfg, resume, progress, dist, device)
+        lock = _lock_run(out) if dist.main else None
+        try:
+            if lock is not None:
+                _refuse_a_used_directory(out, resume)  # again, now that no other training can start in it
+            dist.barrier()  # every rank has checked the run directory before rank 0 writes to it
+            return _train(store, out, cfg, resume, progress, dist, device)
+        finally:
+            if lock is not None:
+                os.close(lock)  # releases the lock; the file stays (removing it would race a new taker)
     finally:
         if started:
             destroy_process_group()
+
+
+LOCK = ".lock"
+
+
+def _refuse_a_used_directory(out: Path, resume: bool) -> None:
+    if not resume and out.is_dir() and any(p.name != LOCK for p in out.iterdir()):
+        raise SonarSetError(f"{out}: exists and is not empty (resume the run in it, or train into another directory)",
+                            parameter="out_dir")
+
+
+def _lock_run(out: Path) -> int:
+    """An exclusive lock on the run directory (``OUT/.lock``, held while this training runs): two
+    trainings writing one run would replace each other's state and checkpoints."""
+    import fcntl
+
+    out.mkdir(parents=True, exist_ok=True)
+    fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
+        os.close(fd)
+        raise SonarSetError(f"{out}: another training is running in it (pid {holder})", parameter="out_dir") from None
+    except OSError:
+        os.close(fd)
+        raise
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    return fd
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ def init_from(model: nn.Module, spec: str, trained: nn.Module, card: dict, store
     trained on the same images (a fine-tune continues a model; it cannot change what it is, except
     how its inputs are prepared: ``WARM_START_FIELDS``; or add a branch it lacks, which starts at
     zero: ``ADDABLE_FIELDS``)."""
-    from sonarset.models.echopt.cards import card_processing
+    from sonarset.models.echopt.card_images import card_processing, describe_images
 
     differ = [k for k in model.cfg.__dataclass_fields__ if getattr(trained.cfg, k) != getattr(model.cfg, k)]
     added = [k for k in differ if k in ADDABLE_FIELDS and not getattr(trained.cfg, k)]
@@ -30,9 +30,14 @@ def init_from(model: nn.Module, spec: str, trained: nn.Module, card: dict, store
         diff = ", ".join(f"{k}: {getattr(trained.cfg, k)!r} vs {getattr(model.cfg, k)!r}" for k in differ)
         raise SonarSetError(f"init {spec}: another network than this preset and prior make here ({diff})",
                             parameter="init")
-    if not card_processing(card).same_images(store.processing):
-        raise SonarSetError(f"init {spec}: trained on {card_processing(card).profile} images, "
-                            f"{store.location} has {store.processing.profile}", parameter="init")
+    trained_on = card_processing(card)
+    if not trained_on.same_images(store.processing):
+        way_out = "train from scratch, or write them to a store that makes its images the same way"
+        if store.processing.unknown:  # the user may know what the import did not record
+            way_out = (f"if they are made as {trained_on.profile}'s are, say so in the processing block of the "
+                       "import's metadata and import them again; else train from scratch")
+        raise SonarSetError(f"init {spec}: trained on {describe_images(trained_on)}, {store.location} has "
+                            f"{describe_images(store.processing)}; {way_out}", parameter="init")
     missing, unexpected = model.load_state_dict(trained.state_dict(), strict=not added)
     if unexpected or any(not k.startswith(GEOMETRY_PREFIX) for k in missing):  # only the added branch may be new
         raise SonarSetError(f"init {spec}: its weights do not fit this network ({', '.join(unexpected + missing)})",

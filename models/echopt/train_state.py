@@ -17,6 +17,8 @@ from safetensors.torch import load_file, save_file
 from sonarset.store.atomic import atomic_text, atomic_write
 from sonarset.errors import SonarSetError
 
+from sonarset.models.echopt.checkpoint import disk_errors
+
 STATE = "state.safetensors"
 METRICS = "metrics.jsonl"
 
@@ -30,7 +32,8 @@ def save_state(out: Path, model: torch.nn.Module, opt: torch.optim.Optimizer, me
         for k, v in st.items():
             tensors[f"opt.{idx}.{k}"] = (v if torch.is_tensor(v) else torch.tensor(v)).detach().cpu().contiguous()
     meta = {**meta, "param_groups": [{k: v for k, v in g.items() if k != "params"} for g in sd["param_groups"]]}
-    atomic_write(out / STATE, lambda p: save_file(tensors, str(p), metadata={"state": json.dumps(meta)}))
+    with disk_errors(out / STATE, "training state"):
+        atomic_write(out / STATE, lambda p: save_file(tensors, str(p), metadata={"state": json.dumps(meta)}))
 
 
 def load_state(out: Path, model: torch.nn.Module, opt: torch.optim.Optimizer) -> dict:
@@ -59,4 +62,5 @@ def load_state(out: Path, model: torch.nn.Module, opt: torch.optim.Optimizer) ->
 
 
 def write_metrics(out: Path, history: list[dict]) -> None:
-    atomic_text(out / METRICS, "".join(json.dumps(h) + "\n" for h in history))
+    with disk_errors(out / METRICS, "metrics"):
+        atomic_text(out / METRICS, "".join(json.dumps(h) + "\n" for h in history))

@@ -146,7 +146,7 @@ def _predictors(store: SonarStore, model_specs: list[str], rig: RobotRig, device
     """The predictors by name (``given`` first, under their keys, then ``model_specs``), checked
     against the protocol, and notes on learned models meeting other images than they were trained
     on and on plugins a built-in name shadows."""
-    from sonarset.models.echopt.cards import training_notices
+    from sonarset.models.echopt.card_images import training_notices
     from sonarset.models.registry import make_predictor, shadowed_plugins
 
     preds: dict[str, CheckedPredictor] = {}

@@ -155,11 +155,32 @@ def undefined_counts(res: EvalResult) -> dict[str, dict[int, dict[str, int]]]:
     return out
 
 
+def _non_finite_predictions(res: EvalResult) -> dict[str, dict[int, np.ndarray]]:
+    """Per predicting method and horizon: the windows whose prediction holds a NaN or an infinity
+    (its peak pixel is not finite). Every metric of such a window is undefined through the model,
+    not through the target, and the note must say so."""
+    return {m: {h: ~np.isfinite(res.step_peak[m][:, h - 1]) for h in res.horizons}
+            for m in res.methods if m in res.step_peak and res.step_peak[m].shape[-1] >= max(res.horizons)}
+
+
 def undefined_notes(res: EvalResult) -> list[str]:
     """One line per metric saying for how many windows it is undefined, and why."""
     counts = undefined_counts(res)
     n = len(res.window_ids)
     notes = []
+    broken = _non_finite_predictions(res)
+    counts = {m: {h: dict(per) for h, per in by_h.items()} for m, by_h in counts.items()}
+    nan_parts = []
+    for m, by_h in broken.items():
+        for h, bad in by_h.items():
+            if not bad.any():
+                continue
+            nan_parts.append(f"{m} {int(bad.sum())} of {n} windows at {horizon_name(h)}")
+            for k, c in counts.get(m, {}).get(h, {}).items():  # the rest are the target's doing
+                counts[m][h][k] = c - int(np.sum(bad & ~np.isfinite(res.per_window[m][h][k])))
+    if nan_parts:
+        notes.append(f"note: the prediction is NaN (not finite): {'; '.join(nan_parts)}; every metric of those "
+                     "windows is left out of its means, stds and tests")
     why = {"cc": "CC is undefined where the target frame or the prediction is constant",
            "nrmsd": "NRMSD is undefined where the target frame is all zero"}
     for k in IMAGE_METRICS:  # the echo metrics' defined windows are the n of the echo table

@@ -167,6 +167,8 @@ def _uniform_edges(centres: np.ndarray, name: str) -> tuple[float, float]:
 
 #: The named processing settings: each is the ``Processing`` classmethod of that name.
 PROCESSING_PROFILES = ("ertis", "raw")
+#: The profile of images whose processing was not recorded (an import without a processing block).
+UNKNOWN_PROFILE = "unknown"
 #: The beamformers an energyscape can be made with (the simulator and import-raw implement each).
 Beamformer = Literal["das", "dmas3-cf"]
 BEAMFORMERS: tuple[str, ...] = get_args(Beamformer)
@@ -225,11 +227,23 @@ class Processing(BaseModel):
         return bool(self.smoothing_range_m or self.smoothing_azimuth_deg or self.azimuth_mean_factor
                     or self.clip_at_zero or self.floor_offset)
 
+    @property
+    def unknown(self) -> bool:
+        """Images whose making was not recorded (an import without a processing block): their fields
+        are defaults, not a description, so they are a kind of images of their own."""
+        return self.profile == UNKNOWN_PROFILE
+
     def same_images(self, other: "Processing") -> bool:
-        """True when both settings make the same images (the profile name aside)."""
+        """True when both settings make the same images (the profile name aside). Images of unknown
+        making are the same only as other images of unknown making (more recordings of one's own),
+        never as a recorded processing: a model of 'raw' images is not silently fine-tuned on them."""
+        if self.unknown or other.unknown:
+            return self.unknown and other.unknown
         return self.model_dump(exclude={"profile"}) == other.model_dump(exclude={"profile"})
 
     def describe(self) -> str:
+        if self.unknown:
+            return f"{self.profile} (not recorded how they were made)"
         if not self.post_processed:
             return f"{self.profile} ({self.beamformer}, no post-processing)"
         return (f"{self.profile} ({self.beamformer}, smoothing {self.smoothing_range_m:g} m x "

@@ -48,6 +48,7 @@ def export_bag(store: str | os.PathLike | SonarStore, out: str | os.PathLike, *,
     out = Path(out)
     if out.suffix != ".mcap":
         raise SonarSetError(f"{out}: the output is an MCAP file: name it *.mcap", parameter="out")
+    _refuse_non_regular(out)
     ts = m.writing_typestore()
     tmp = aside_dir(out)
     try:
@@ -63,6 +64,22 @@ def export_bag(store: str | os.PathLike | SonarStore, out: str | os.PathLike, *,
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out
+
+
+def _refuse_non_regular(out: Path) -> None:
+    """Only a regular file is replaced: a folder, a FIFO or a device at ``out`` is the user's, and
+    the rename over it would fail naming the hidden file it was written to."""
+    import stat
+
+    try:
+        mode = out.stat().st_mode
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise SonarSetError(f"{out}: cannot write the MCAP file there ({exc.strerror})", parameter="out") from None
+    if not stat.S_ISREG(mode):
+        what = "a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else "not a regular file"
+        raise SonarSetError(f"{out}: is {what}; the output needs an .mcap file path", parameter="out")
 
 
 def _write_run(writer, ts, store: SonarStore, name: str, prefix: str, clock: int, static, progress) -> int:
