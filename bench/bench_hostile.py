@@ -1,6 +1,6 @@
 """The hostile-input table (issues 26, 52): slow and failing servers, absurd lengths behind a URL
 and on disk, bad model cards, deep world files, signals to worker pools and during zarr's I/O,
-concurrent writers, read-only stores and stores of hundreds of runs, each against the commands a
+concurrent writers, read-only stores, stores of hundreds of runs and hostile ROS bags, each against the commands a
 user runs, as real processes.
 
     python bench/bench_hostile.py [--imports 20] [--remote-timeout 10] [--runs 400] [--cases length,many-runs]
@@ -312,11 +312,51 @@ def _threads(pid: int) -> int:
     return int(next(line.split()[1] for line in status.splitlines() if line.startswith("Threads:")))
 
 
+def bag_cases(work: Path) -> None:
+    """ROS bags (issue 52): a real sensor's drive in miniature (BatSLAM2's eRTIS: 7.1 Hz, jitter,
+    8 % of pings lost), an import SIGKILLed and run again, ranges below zero, MCAP chunks that
+    inflate to gigabytes (said or hidden), and 20,000 images of 200 x 90 uint8."""
+    import math
+
+    from sonarset.format.attrs import SensorGrid
+    from tests.test_bag import Drive, jittery_times, with_zero_chunk
+
+    grid = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=200, azimuth_min_rad=-math.pi / 2,
+                      azimuth_max_rad=math.pi / 2, n_azimuth=90)
+    drive = Drive(times_s=jittery_times(1500, seed=1), grid=grid).write(work / "jitter.mcap")
+    row("bag: 1,500 frames, 7.1 Hz, 5 % jitter, 8 % pings lost", "import-bag",
+        run(["import-bag", drive, work / "jit.zarr"]), expect=0)
+    row("bag: 1,500 frames, 7.1 Hz, 5 % jitter, 8 % pings lost", "validate",
+        run(["validate", work / "jit.zarr"]), expect=0)
+    proc = subprocess.Popen([*CLI, "import-bag", drive, work / "kill.zarr", "--name", "j"], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, env=ENV)
+    time.sleep(4)
+    proc.kill()
+    proc.wait()
+    row("bag: import-bag SIGKILLed after 4 s", "the same import again", run(["import-bag", drive, work / "kill.zarr",
+                                                                           "--name", "j"]), expect=0)
+    row("bag: import-bag SIGKILLed after 4 s", "validate", run(["validate", work / "kill.zarr"]), expect=0)
+
+    def below_zero(k, msg):
+        msg["ranges"] = [r - 1.0 for r in msg["ranges"]]
+        return msg
+
+    small = Drive(n_frames=10)
+    row("bag: ranges below zero", "import-bag", run(["import-bag", small.write(work / "neg.mcap", edit=below_zero),
+                                                     work / "neg.zarr"]))
+    for label, zeros, declared in (("2 GB", 2 * 10**9, None), ("5 GB", 5 * 10**9, None),
+                                   ("2 GB, declaring 1 kB", 2 * 10**9, 1000)):
+        bag = with_zero_chunk(small.write(work / "bomb.mcap"), zeros, declared)
+        row(f"bag: a zstd chunk of {label} of zeros", "import-bag", run(["import-bag", bag, work / "bomb.zarr"]))
+    big = Drive(n_frames=20_000, grid=grid).write(work / "big.mcap")
+    row("bag: 20,000 images of 200 x 90 uint8", "import-bag", run(["import-bag", big, work / "big.zarr"]), expect=0)
+
+
 GENERATE = ["--minutes", "0.5", "--runs", "1", "--seed", "5"]
 GENERATE_MORE = ["--minutes", "0.5", "--runs", "2", "--seed", "5"]
 
 
-CASES = ("remote", "cards", "worlds", "read-only", "concurrent", "signals", "length", "many-runs")
+CASES = ("remote", "cards", "worlds", "read-only", "concurrent", "signals", "length", "many-runs", "bags")
 
 
 def main() -> None:
@@ -340,7 +380,8 @@ def main() -> None:
                   "cards": lambda: card_cases(store, work), "worlds": lambda: world_cases(work),
                   "read-only": lambda: read_only_cases(store, work),
                   "concurrent": lambda: concurrent_cases(work, args.imports), "signals": lambda: signal_cases(work),
-                  "length": lambda: length_cases(store, work), "many-runs": lambda: many_runs_cases(work, args.runs)}
+                  "length": lambda: length_cases(store, work), "many-runs": lambda: many_runs_cases(work, args.runs),
+                  "bags": lambda: bag_cases(work)}
         for name in CASES:
             if name in cases:
                 groups[name]()

@@ -71,11 +71,13 @@ def twist(v: float, w: float) -> dict:
 class Drive:
     """A small drive: frames on a grid, commands at their own rate, odometry."""
 
-    def __init__(self, n_frames=30, hz=5.0, grid=None, command_hz=20.0, seed=0):
+    def __init__(self, n_frames=30, hz=5.0, grid=None, command_hz=20.0, seed=0, times_s=None):
         self.grid = grid or SensorGrid(range_min_m=0.5, range_max_m=3.0, n_range=20, azimuth_min_rad=-1.0,
                                        azimuth_max_rad=1.0, n_azimuth=10)
         rng = np.random.default_rng(seed)
-        self.frame_ns = BASE_NS + np.round(np.arange(n_frames) / hz * 1e9).astype(np.int64)
+        times_s = np.arange(n_frames) / hz if times_s is None else np.asarray(times_s)
+        n_frames = len(times_s)
+        self.frame_ns = BASE_NS + np.round(times_s * 1e9).astype(np.int64)
         self.images = rng.integers(0, 256, (n_frames, *self.grid.shape), dtype=np.uint8)
         t0, t1 = self.frame_ns[0] - 10**9, self.frame_ns[-1]
         self.command_ns = np.arange(t0, t1 + 1, int(1e9 / command_hz), dtype=np.int64)
@@ -187,8 +189,9 @@ def test_twist_without_header_takes_bag_time_and_dropped_pings_split_the_run(tmp
                       note=notes.append)
     assert [r.name for r in runs] == ["drive_000", "drive_001"]
     assert [r.n_frames for r in runs] == [15, 20]
-    assert any("split at frame 15" in n and "2 ping(s) dropped" in n for n in notes), notes
-    assert any("dropped: 2 frame(s) between gaps" in n for n in notes), notes
+    [summary] = [n for n in notes if "lost ping" in n]  # one line, however many pings were lost
+    assert "3 lost ping(s) at 2 gap(s)" in summary and "2 run(s) split at the gaps" in summary, summary
+    assert "2 frame(s) dropped in 1 stretch(es)" in summary, summary
 
 
 def test_export_then_import_gives_back_the_run_and_eval_runs_on_it(tmp_path):
@@ -305,6 +308,25 @@ def _beam_count(k, msg):
     return msg
 
 
+def _ranges_below_zero(k, msg):
+    msg["ranges"] = [r - 1.0 for r in msg["ranges"]]
+    return msg
+
+
+def _nan_pixel(k, msg):
+    pixels = np.frombuffer(msg["image"]["data"], np.uint8) / np.float32(255)
+    pixels[7] = np.nan if k == 4 else pixels[7]
+    msg["image"]["data"], msg["image"]["dtype"] = pixels.astype(np.float32).tobytes(), 8
+    return msg
+
+
+def _pixel_type_changes(k, msg):
+    if k == 5:
+        msg["image"]["data"] = np.frombuffer(msg["image"]["data"], np.uint8).astype(np.uint16).tobytes()
+        msg["image"]["dtype"] = 2
+    return msg
+
+
 def _grid_changes(k, msg):
     if k == 5:
         msg["ranges"] = [r * 1.1 for r in msg["ranges"]]
@@ -322,6 +344,9 @@ MALFORMED = {
     "unknown pixel type": (_bad_dtype, [], "unknown SonarImageData dtype 12"),
     "beam_count disagrees": (_beam_count, [], "beam directions for beam_count 9"),
     "grid changes mid-run": (_grid_changes, [], "differ from the first message"),
+    "a NaN pixel": (_nan_pixel, [], "message 4: NaN or infinite pixel values"),
+    "pixel type changes mid-run": (_pixel_type_changes, [], "message 5: pixels are uint16, the first message's uint8"),
+    "ranges below zero": (_ranges_below_zero, [], "ranges -0.4375..1.9375 m (20 bins) put the first bin's near edge"),
     "commands a minute late": (None, ["--cmd-offset", "60"], "no command reaches any frame interval"),
     "command timeout of zero": (None, ["--cmd-timeout", "0"], "command timeout must be > 0"),
 }
@@ -422,3 +447,144 @@ def test_microphone_pings_in_a_bag_beamform_as_import_raw_does(tmp_path):
     np.testing.assert_array_equal(by_bag.read("images"), by_file.read("images"))
     np.testing.assert_allclose(by_bag.read("velocity"), by_file.read("velocity"), atol=1e-6)
     assert validate_store(tmp_path / "bag.zarr") == []
+
+
+def jittery_times(n: int, hz: float = 7.1, jitter: float = 0.05, lost: float = 0.08, seed: int = 0) -> np.ndarray:
+    """Frame times of a real sensor's drive (BatSLAM2's public eRTIS drive: 7.1 Hz, 95 of 1,186
+    pings lost): every stamp off by ``jitter`` of a frame (normal), ``lost`` of the pings missing."""
+    rng = np.random.default_rng(seed)
+    total = int(n / (1 - lost)) + 20
+    t = np.arange(total) / hz + rng.normal(0.0, jitter / hz, total)
+    return np.sort(t[rng.random(total) > lost])[:n]
+
+
+def test_a_jittery_drive_with_lost_pings_splits_only_at_them_in_one_line_and_validates(tmp_path):
+    t = jittery_times(160, seed=3)
+    dt = np.diff(t)
+    lost_at = int(np.sum(dt > 1.5 * np.median(dt)))
+    bag = Drive(times_s=t).write(tmp_path / "drive.mcap")
+    res = CliRunner().invoke(app, ["import-bag", str(bag), str(tmp_path / "s.zarr"), "--name", "drive"])
+    assert res.exit_code == 0, res.output
+    [summary] = [ln for ln in res.output.splitlines() if "lost ping" in ln]  # one line, not one per gap
+    assert f"at {lost_at} gap(s)" in summary, summary
+    assert len([ln for ln in res.output.splitlines() if ln.strip()]) == 2, res.output  # the note, the result
+    store = open_store(tmp_path / "s.zarr")
+    assert validate_store(tmp_path / "s.zarr") == []
+    interval = float(np.median(dt[dt < 1.5 * np.median(dt)]))
+    assert abs(1 / store.attrs.frame_rate_hz - interval) < 0.01 * interval  # the median, gaps left out
+    runs = [store.run(n) for n in store.runs()]
+    assert 1 < len(runs) <= lost_at + 1
+    for run in runs:  # no run, so no window, spans a lost ping
+        assert np.diff(run.read("time")).max() < 1.5 * interval, run.name
+
+
+def test_an_off_rate_stretch_between_lost_pings_is_dropped_not_written_invalid():
+    from sonarset.ingest.bag.align import split_at_gaps
+
+    steady = np.arange(12) * 0.14
+    wobbly = steady[-1] + 0.28 + np.array([0.0, 0.17, 0.34, 0.51])  # 4 frames 0.17 s apart: 21 % slow
+    after = wobbly[-1] + 0.28 + np.arange(10) * 0.14
+    segments, [note], interval = split_at_gaps(np.concatenate([steady, wobbly, after]))
+    assert [(s.start, s.stop) for s in segments] == [(0, 12), (16, 26)]
+    assert abs(interval - 0.14) < 1e-9
+    assert "4 frame(s) dropped in 1 stretch(es)" in note and "1 whose jitter" in note, note
+
+
+KILL_ON_SECOND_RUN = """
+import os, signal, sys
+from sonarset.ingest.bag import importer
+write, calls = importer.ImageRunWriter.__call__, []
+def dying(self, store, replace):
+    calls.append(self.name)
+    if len(calls) == 2:
+        os.kill(os.getpid(), signal.SIGKILL)
+    write(self, store, replace)
+importer.ImageRunWriter.__call__ = dying
+from sonarset.cli.app import app
+app(sys.argv[1:])
+"""
+
+
+@pytest.mark.parametrize("into", ["a new store", "an existing store"])
+def test_an_import_of_several_runs_killed_midway_leaves_the_store_as_it_was_and_reruns(tmp_path, into):
+    import subprocess
+    import sys
+
+    keep = np.ones(30, bool)
+    keep[14] = False  # a lost ping: two runs
+    drive = Drive()
+    drive.frame_ns, drive.images = drive.frame_ns[keep], drive.images[keep]
+    bag = drive.write(tmp_path / "d.mcap")
+    out = tmp_path / "s.zarr"
+    if into == "an existing store":
+        import_bag(Drive(n_frames=10).write(tmp_path / "first.mcap"), out, name="first")
+    args = ["import-bag", str(bag), str(out), "--name", "j"]
+    killed = subprocess.run([sys.executable, "-c", KILL_ON_SECOND_RUN, *args], capture_output=True, text=True)
+    assert killed.returncode == -9, killed.stderr
+    if into == "a new store":
+        assert not out.exists()
+    else:
+        assert open_store(out).runs() == ["first"] and validate_store(out) == []
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert sorted(open_store(out).runs()) == sorted(["j_000", "j_001"] + (["first"] if into != "a new store" else []))
+    assert validate_store(out) == []
+    assert not [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")]  # the killed run's aside: gone
+
+
+def with_zero_chunk(bag: Path, zeros: int, declared: int | None = None) -> Path:
+    """``bag`` (an MCAP file) with one more chunk that inflates to ``zeros`` zero bytes and says it
+    holds ``declared`` (default: the truth), its summary dropped so that a reader meets the chunk."""
+    import struct
+
+    from backports import zstd
+
+    data = bag.read_bytes()
+    at = 8
+    while data[at] != 0x0F:  # up to DataEnd: header and chunks stay
+        at += 9 + struct.unpack_from("<Q", data, at + 1)[0]
+    packer, block = zstd.ZstdCompressor(level=1), bytes(2**20)
+    body = b"".join(packer.compress(block[:min(2**20, zeros - k)]) for k in range(0, zeros, 2**20))
+    body += packer.flush()
+    chunk = struct.pack("<QQQI", BASE_NS, BASE_NS, zeros if declared is None else declared, 0)
+    chunk += struct.pack("<I", 4) + b"zstd" + struct.pack("<Q", len(body)) + body
+    tail = struct.pack("<BQI", 0x0F, 4, 0) + struct.pack("<BQQQI", 0x02, 20, 0, 0, 0) + data[:8]
+    bag.write_bytes(data[:at] + struct.pack("<BQ", 0x06, len(chunk)) + chunk + tail)
+    return bag
+
+
+@pytest.mark.parametrize("declared", ["truly", "lying"])
+def test_a_chunk_that_inflates_too_far_is_refused_in_one_line(tmp_path, monkeypatch, declared):
+    import sonarset.ingest.bag.reader as reader
+
+    monkeypatch.setattr(reader, "MAX_CHUNK_BYTES", 2**20)
+    bag = with_zero_chunk(Drive(n_frames=10).write(tmp_path / "d.mcap"), 2 * 2**20,
+                          declared=None if declared == "truly" else 1000)
+    res = CliRunner().invoke(app, ["import-bag", str(bag), str(tmp_path / "s.zarr")])
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert res.exit_code == 1 and len(lines) == 1 and "Traceback" not in res.output, res.output
+    assert str(bag) in lines[0]
+    # said before inflating; one that lies is inflated no further than it says (a byte more)
+    assert ("declares 2 MiB uncompressed" if declared == "truly" else "got 1001") in lines[0], lines[0]
+    assert not (tmp_path / "s.zarr").exists()
+
+
+def test_a_long_drive_is_held_in_its_pixel_type_and_written_a_chunk_at_a_time(tmp_path):
+    import tracemalloc
+
+    from sonarset.ingest.bag.reader import read_streams
+
+    grid = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=200, azimuth_min_rad=-1.5, azimuth_max_rad=1.5,
+                      n_azimuth=90)
+    drive = Drive(n_frames=400, grid=grid)
+    bag = drive.write(tmp_path / "d.mcap")
+    assert read_streams(bag).frames.values["images"][0].dtype == np.uint8
+    tracemalloc.start()
+    try:
+        [run] = import_bag(bag, tmp_path / "s.zarr")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    as_float32 = 400 * 200 * 90 * 4  # 29 MB: the whole drive as float32, once
+    assert peak < as_float32, f"{peak / 1e6:.1f} MB"
+    np.testing.assert_allclose(run.read("images", 390, 400), drive.images[390:] / 255.0, atol=1e-6)

@@ -49,7 +49,8 @@ def import_bag_(
                       split=split, overwrite=overwrite, processing=processing.value, beamformer=value(beamformer),
                       workers=workers, note=note)
     frames = sum(r.n_frames for r in runs)
-    out.print(f"imported {bag} -> {out_store}: {len(runs)} run(s) ({', '.join(r.name for r in runs)}), "
+    names = ", ".join(r.name for r in runs) if len(runs) <= 4 else f"{runs[0].name} .. {runs[-1].name}"
+    out.print(f"imported {bag} -> {out_store}: {len(runs)} run(s) ({names}), "
               f"{frames} frames, split {runs[0].split}", highlight=False)
 
 

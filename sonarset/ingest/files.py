@@ -69,7 +69,7 @@ def regular_file_problem(path: Path) -> str | None:
 
 
 @dataclass
-class _Member:
+class ArrayMember:
     """One array of the input: its header, and how to read it."""
 
     shape: tuple
@@ -93,7 +93,7 @@ class RawSource:
 
     def __init__(self, src: Path):
         self.src = src
-        self.members: dict[str, _Member] = {}
+        self.members: dict[str, ArrayMember] = {}
         self.problems: list[str] = []
         if src.is_dir():
             for path in sorted(src.glob("*.npy")):
@@ -104,7 +104,7 @@ class RawSource:
                     need = offset + int(np.prod(shape)) * dtype.itemsize
                     if path.stat().st_size < need:
                         raise ValueError(f"truncated: {path.stat().st_size} bytes, the header needs {need}")
-                    self.members[path.stem] = _Member(tuple(shape), dtype, fortran, path)
+                    self.members[path.stem] = ArrayMember(tuple(shape), dtype, fortran, path)
                 except Exception as exc:
                     self.problems.append(f"{path.name}: not a readable .npy file ({short_reason(exc)})")
             if not self.members and not self.problems:
@@ -121,7 +121,7 @@ class RawSource:
                         try:
                             with zf.open(info) as f:
                                 shape, fortran, dtype = _npy_header(f)
-                            self.members[key] = _Member(tuple(shape), dtype, fortran, src, info.filename)
+                            self.members[key] = ArrayMember(tuple(shape), dtype, fortran, src, info.filename)
                         except Exception as exc:
                             self.problems.append(f"array {key!r}: unreadable ({short_reason(exc)})")
             except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:

@@ -85,7 +85,7 @@ def load_recording(src: str | os.PathLike, meta_path: str | os.PathLike | None =
         if "time" in out:
             _check_times(out["time"], meta, grid, frame_interval_s, problems, implausible)
     if images is not None and images.ndim == 3:
-        img = _encode_images(images, meta, problems)
+        img = encode_images(images, meta, problems)
         if img is not None:
             out["images"] = img
         if meta.velocity_alignment == "next" and shapes_ok:
@@ -252,7 +252,9 @@ def _unit_hint(line: str, meta: RecordingMeta) -> str:
     return line
 
 
-def _encode_images(images: np.ndarray, meta: RecordingMeta, problems: list[str]) -> np.ndarray | None:
+def encode_images(images: np.ndarray, meta: RecordingMeta, problems: list[str]) -> np.ndarray | None:
+    """Images in the sidecar's ``image_encoding`` as the store's [0, 1] energyscape, or None and a
+    problem when their values do not fit that encoding (the bag importer checks its extremes here)."""
     dr = meta.dynamic_range_db
     if images.size == 0:
         return None

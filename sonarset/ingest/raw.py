@@ -98,11 +98,11 @@ def load_raw(src: str | os.PathLike, meta_path: str | os.PathLike | None = None,
     sweep = emitted_sweep(meta, reader, problems)
     out_grid = raw_grid(meta, grid, problems)
     if out_grid is not None:
-        problems += _grid_time_and_echo_problems(meta, out_grid, small.get("time"), n, sweep)
+        problems += grid_time_and_echo_problems(meta, out_grid, small.get("time"), n, sweep)
     if T is not None and meta.velocity_alignment == "next" and T < 2:
         problems.append("velocity_alignment 'next' needs at least 2 measurements")
     if not problems and scan:
-        problems += _scan(reader, where)
+        problems += signal_problems(reader, where)
     if problems:
         raise InputValidationError(where, problems)
     first = 1 if meta.velocity_alignment == "next" else 0
@@ -169,7 +169,7 @@ def _small_to_si(small: dict[str, np.ndarray], meta: RawRecordingMeta, problems:
         small["pose"] = pose_to_si(small["pose"], u)
 
 
-def _grid_time_and_echo_problems(meta: RawRecordingMeta, grid: SensorGrid, time: np.ndarray | None,
+def grid_time_and_echo_problems(meta: RawRecordingMeta, grid: SensorGrid, time: np.ndarray | None,
                                  n_samples: int | None, sweep: np.ndarray | None) -> list[str]:
     """The declared grid's and the time stamps' plausibility, and whether every measurement holds
     the echoes from the grid's first to its last range."""
@@ -191,7 +191,7 @@ def _grid_time_and_echo_problems(meta: RawRecordingMeta, grid: SensorGrid, time:
     return out
 
 
-def _scan(reader: RawSource, where: str) -> list[str]:
+def signal_problems(reader: RawSource, where: str) -> list[str]:
     """One streamed pass over the signals: non-finite values, silent channels, a truncated archive."""
     m = reader.members["signals"]
     loud = np.zeros(m.shape[1], bool)
@@ -283,7 +283,7 @@ def import_raw(src: str | os.PathLike, out: str | os.PathLike, *, meta_path: str
               "speed_of_sound_m_s": meta.speed_of_sound_m_s, "microphones": int(len(rec.positions)),
               "beamformer": proc.beamformer, "processing": proc.profile,
               "velocity_alignment": meta.velocity_alignment, "source": meta.source}
-    writer = _RawRunWriter(rec, out_grid, proc, run_name_for(src, name, meta.name), split or meta.split, source,
+    writer = RawRunWriter(rec, out_grid, proc, run_name_for(src, name, meta.name), split or meta.split, source,
                            workers, block, progress)
     return target.write(writer.name, writer, overwrite=overwrite, grid=out_grid, processing=proc, rig=meta.rig,
                         new_store={"processing": proc, "frame_rate_hz": nominal_frame_rate(rec.arrays["time"], meta.rig),
@@ -291,7 +291,7 @@ def import_raw(src: str | os.PathLike, out: str | os.PathLike, *, meta_path: str
 
 
 @dataclass
-class _RawRunWriter:
+class RawRunWriter:
     """Beamforms a raw recording into the run ``name`` of a store, whole store chunks at a time."""
 
     rec: RawRecording

@@ -14,7 +14,7 @@ import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -83,6 +83,51 @@ class ImportTarget:
             return self._write_locked(run_name, write, overwrite=overwrite, grid=grid, processing=processing,
                                       rig=rig, new_store=new_store)
 
+    def write_runs(self, writers: Sequence[tuple[str, WriteRun]], *, overwrite: bool, grid: SensorGrid,
+                   processing: Processing | None, rig: RobotRig | None, new_store: Mapping[str, Any]) -> list[Run]:
+        """Write several runs (``(name, write)`` pairs) as one import; returns them, read back.
+
+        A recording that splits into many runs (a drive with lost pings) must not be left half
+        imported: a new store is built aside whole and renamed into place; into an existing local
+        store all the runs are built aside, then renamed in together and consolidated once. An
+        import killed or failed while it builds leaves the store as it was, so the same command
+        can simply be run again. (An object store has no rename: there runs go in one by one.)
+        """
+        if len(writers) == 1:
+            [(name, write)] = writers
+            return [self.write(name, write, overwrite=overwrite, grid=grid, processing=processing, rig=rig,
+                               new_store=new_store)]
+        names = [name for name, _ in writers]
+        with writer_lock(self.location):
+            loc = self.location
+            existing = self.existing
+            if existing is None and (Path(loc) / "zarr.json").exists():
+                existing = open_store(loc)  # another writer made the store since ``at`` looked
+            if existing is None:
+                def write_all(store: SonarStore) -> None:
+                    for _, write in writers:
+                        write(store, False)
+
+                dest = write_new_store(loc, names[0], write_all, grid=grid, rig=rig, **new_store)
+                store = open_store(dest)
+                return [store.run(name) for name in names]
+            store = open_or_create_store(loc, grid, processing=processing, rig=rig)
+            taken = [name for name in names if name in store.runs()]
+            if taken and not overwrite:
+                raise SonarSetError(f"{loc}: run(s) {_listing(taken)} already exist (overwrite them, or give another "
+                                    "name)", parameter="overwrite")
+            if is_url(loc):
+                for name, write in writers:
+                    replaced = overwrite and name in store.group.group_keys()
+                    with write_failure(loc, name, "the run it replaced is gone" if replaced else "the runs before it "
+                                       "were written"):
+                        write(store, overwrite)
+                store.consolidate()
+            else:
+                move_runs_in(store, names, lambda side: [write(side, False) for _, write in writers])
+            store = open_store(loc)
+            return [store.run(name) for name in names]
+
     def _write_locked(self, run_name: str, write: WriteRun, *, overwrite: bool, grid: SensorGrid,
                       processing: Processing | None, rig: RobotRig | None, new_store: Mapping[str, Any]) -> Run:
         loc = self.location
@@ -129,34 +174,50 @@ def write_new_store(out_s: str, run_name: str, write: Callable[[SonarStore], Non
 
 def move_run_in(store: SonarStore, run_name: str, write: Callable[[SonarStore], None]) -> None:
     """Build the run in a store beside ``store``, then rename it in, or swap it for the run it replaces."""
+    move_runs_in(store, [run_name], write)
+
+
+def move_runs_in(store: SonarStore, run_names: Sequence[str], write: Callable[[SonarStore], None]) -> None:
+    """Build the runs ``run_names`` in a store beside ``store`` (``write`` writes them all), then
+    rename each in, or swap it for the run it replaces, and consolidate once."""
     root = Path(store.location)
     tmp = aside_dir(root)
+    label = run_names[0] if len(run_names) == 1 else f"{run_names[0]}..{run_names[-1]}"
+    moved: list[tuple[Path, Path, bool]] = []
     try:
-        with write_failure(store.location, run_name):
+        with write_failure(store.location, label):
             side = create_store(tmp / "store.zarr", store.grid, processing=store.processing, rig=store.attrs.rig,
                                 frame_rate_hz=store.attrs.frame_rate_hz)
             write(side)
-        new, target = tmp / "store.zarr" / run_name, root / run_name
-        # Anything at the run's path (the run replaced, or what a killed writer left) is swapped
-        # out whole and deleted with the aside directory.
-        swapped = target.exists() or target.is_symlink()
-        if swapped:
-            exchange(new, target)
-        else:
-            os.rename(new, target)
         try:
-            with write_failure(store.location, run_name):
+            for run_name in run_names:
+                new, target = tmp / "store.zarr" / run_name, root / run_name
+                # Anything at the run's path (the run replaced, or what a killed writer left) is
+                # swapped out whole and deleted with the aside directory.
+                swapped = target.exists() or target.is_symlink()
+                if swapped:
+                    exchange(new, target)
+                else:
+                    os.rename(new, target)
+                moved.append((new, target, swapped))
+            with write_failure(store.location, label):
                 store.consolidate()
         except BaseException:
-            # Without its consolidated metadata the store would list another run than it holds:
+            # Without its consolidated metadata the store would list other runs than it holds:
             # put back what was there.
-            if swapped:
-                exchange(new, target)
-            else:
-                os.rename(target, new)
+            for new, target, swapped in reversed(moved):
+                if swapped:
+                    exchange(new, target)
+                else:
+                    os.rename(target, new)
             raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _listing(names: Sequence[str], most: int = 5) -> str:
+    shown = ", ".join(repr(n) for n in names[:most])
+    return shown + (f" and {len(names) - most} more" if len(names) > most else "")
 
 
 class write_failure:

@@ -65,6 +65,10 @@ class FrameDecoder:
             problems.append(f"{where}: the ranges or beams differ from the first message's; "
                             "a run has one sensor grid")
             return None
+        if dtype != np.dtype(self.dtype):
+            problems.append(f"{where}: pixels are {dtype.name}, the first message's {np.dtype(self.dtype).name}; "
+                            "a run has one pixel type")
+            return None
         raw = np.asarray(data.data, np.uint8)
         need = len(ranges) * beams * dtype.itemsize
         if raw.size != need:
@@ -72,7 +76,7 @@ class FrameDecoder:
                             f"of {dtype.name} need {need}")
             return None
         image = raw.view(dtype).reshape(len(ranges), beams)
-        return self._to_grid(image.astype(np.float32))
+        return self._to_grid(image.astype(dtype.newbyteorder("="), copy=False))
 
     def _plain_image(self, where: str, msg, problems: list[str]) -> np.ndarray | None:
         if self.grid is None:
@@ -97,7 +101,7 @@ class FrameDecoder:
             return None
         self.dtype = dtype.str
         image = raw.reshape(rows, step)[:, :cols * dtype.itemsize].copy().view(dtype)
-        return image.astype(np.float32)
+        return image.astype(dtype.newbyteorder("="), copy=False)
 
     def _set_geometry(self, where: str, ranges: np.ndarray, azimuths: np.ndarray, problems: list[str]) -> bool:
         if len(ranges) < 2 or len(azimuths) < 2:
@@ -118,14 +122,10 @@ class FrameDecoder:
         az = azimuths[order]
         self._ranges, self._azimuths, self._order = ranges, az, order
         uniform_r, uniform_a = _uniform(ranges), _uniform(az)
-        grid = SensorGrid(range_min_m=float(ranges[0] - (ranges[-1] - ranges[0]) / (len(ranges) - 1) / 2),
-                          range_max_m=float(ranges[-1] + (ranges[-1] - ranges[0]) / (len(ranges) - 1) / 2),
-                          n_range=len(ranges), n_azimuth=len(az),
-                          azimuth_min_rad=float(az[0] - (az[-1] - az[0]) / (len(az) - 1) / 2),
-                          azimuth_max_rad=float(az[-1] + (az[-1] - az[0]) / (len(az) - 1) / 2))
-        if uniform_r and uniform_a:
-            grid = SensorGrid.from_centres(ranges, az)
-        else:
+        grid = _grid_of(where, ranges, az, uniform_r and uniform_a, problems)
+        if grid is None:
+            return False
+        if not (uniform_r and uniform_a):
             self._resample = (None if uniform_r else (ranges, grid.range_centres()),
                               None if uniform_a else (az, grid.azimuth_centres()))
             which = " and ".join(w for w, u in (("range bins", uniform_r), ("beams", uniform_a)) if not u)
@@ -138,18 +138,51 @@ class FrameDecoder:
         return True
 
     def _to_grid(self, image: np.ndarray) -> np.ndarray:
+        """The image on the store's grid, in its own pixel type (a long drive of uint8 frames is held
+        as uint8 until it is written, a chunk at a time); float32 where it had to be resampled."""
         image = image[:, self._order]
-        if self._resample is not None:
-            from scipy.interpolate import interp1d
+        if self._resample is None:
+            return np.ascontiguousarray(image)
+        from scipy.interpolate import interp1d
 
-            along_r, along_a = self._resample
-            if along_a is not None:
-                image = interp1d(along_a[0], image, axis=1, bounds_error=False,
-                                 fill_value=(image[:, 0], image[:, -1]))(along_a[1])
-            if along_r is not None:
-                image = interp1d(along_r[0], image, axis=0, bounds_error=False,
-                                 fill_value=(image[0], image[-1]))(along_r[1])
+        image = image.astype(np.float32)
+        along_r, along_a = self._resample
+        if along_a is not None:
+            image = interp1d(along_a[0], image, axis=1, bounds_error=False,
+                             fill_value=(image[:, 0], image[:, -1]))(along_a[1])
+        if along_r is not None:
+            image = interp1d(along_r[0], image, axis=0, bounds_error=False,
+                             fill_value=(image[0], image[-1]))(along_r[1])
         return np.ascontiguousarray(image, np.float32)
+
+
+def _grid_of(where: str, ranges: np.ndarray, az: np.ndarray, uniform: bool, problems: list[str]) -> SensorGrid | None:
+    """The grid whose bin centres are ``ranges`` and ``az`` (edges half a bin beyond the outer
+    centres), or None and a problem naming the ranges or beams that make none."""
+    from pydantic import ValidationError
+
+    r_half = (ranges[-1] - ranges[0]) / (len(ranges) - 1) / 2
+    a_half = (az[-1] - az[0]) / (len(az) - 1) / 2
+    edges = (float(ranges[0] - r_half), float(ranges[-1] + r_half), float(az[0] - a_half), float(az[-1] + a_half))
+    span = f"ranges {ranges[0]:g}..{ranges[-1]:g} m ({len(ranges)} bins)"
+    if edges[0] < 0:
+        problems.append(f"{where}: {span} put the first bin's near edge at {edges[0]:g} m, below zero; a sonar's "
+                        "ranges are distances from it")
+        return None
+    if edges[2] < -np.pi - 1e-9 or edges[3] > np.pi + 1e-9:
+        problems.append(f"{where}: beams at {np.degrees(az[0]):g}..{np.degrees(az[-1]):g} deg ({len(az)}) put the "
+                        "outer bins' edges beyond -180..180 deg")
+        return None
+    try:
+        if uniform:
+            return SensorGrid.from_centres(ranges, az)
+        return SensorGrid(range_min_m=edges[0], range_max_m=edges[1], n_range=len(ranges), n_azimuth=len(az),
+                          azimuth_min_rad=edges[2], azimuth_max_rad=edges[3])
+    except (ValidationError, ValueError) as exc:
+        errors = exc.errors() if isinstance(exc, ValidationError) else [{"msg": str(exc)}]
+        why = "; ".join(str(e.get("msg", "invalid")).removeprefix("Value error, ") for e in errors)
+        problems.append(f"{where}: {span} and {len(az)} beams make no sensor grid: {why}")
+        return None
 
 
 def _uniform(centres: np.ndarray) -> bool:

@@ -2,8 +2,10 @@
 
 Everything is read and checked before anything is written, as ``import`` does: the bag's topics
 (``reader``), the frames on one grid (``frames``), commands and poses on the frames and the
-splits at dropped pings (``align``), then every run's arrays against the format. Each run is
-then written as ``import`` writes one (built aside, moved in whole).
+splits at lost pings (``align``). Then the runs are written together, a store chunk of frames at
+a time (each block checked against the format as it is written), built aside and published at
+the end (``ImportTarget.write_runs``): a drive split into a hundred runs is imported whole or not
+at all.
 
 Pixel values become the store's [0, 1] energyscape by one recorded rule (``source.value_rule``):
 integer pixels are divided by their type's full scale (255 for uint8); float pixels are taken as
@@ -22,16 +24,17 @@ import numpy as np
 from pydantic import ValidationError
 
 from sonarset.errors import InputValidationError, SonarSetError
-from sonarset.format.arrays import FRAME_INTERVAL_TOLERANCE, run_array_problems
+from sonarset.format.arrays import FRAME_INTERVAL_TOLERANCE
 from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.format.problems import pydantic_problems
 from sonarset.format.units import grid_to_si
 import sonarset.ingest.bag.align as align
 from sonarset.ingest.bag.reader import BagStreams, read_streams
-from sonarset.ingest.images import _encode_images
+from sonarset.ingest.images import encode_images
 from sonarset.ingest.metadata import recording_meta
 from sonarset.ingest.target import ImportTarget, check_run_options, run_name_for
 from sonarset.store.run import Run
+from sonarset.store.writer import DEFAULT_CHUNK_FRAMES
 
 
 @dataclass
@@ -47,16 +50,19 @@ class BagRecording:
     #: each run's frames as message indices start..stop-1 of the frame topic
     frames: dict[str, tuple[int, int]] = field(default_factory=dict)
     streams: BagStreams | None = None
+    #: maps a block of frames (their pixel type) to the store's energyscape; None for signals
+    to_energyscape: Callable[[np.ndarray], np.ndarray] | None = None
 
 
 def load_bag(bag: str | os.PathLike, *, images: str | None = None, commands: str | None = None,
              odometry: str | None = None, stamps: str = "header", command_offset_s: float = 0.0,
              command_timeout_s: float = align.COMMAND_TIMEOUT_S, meta_path: str | os.PathLike | None = None,
              name: str | None = None, grid: SensorGrid | None = None, raw: str | None = None,
-             sidecar_meta=None) -> tuple[BagRecording, object]:
+             sidecar_meta=None, frame_interval_s: float | None = None) -> tuple[BagRecording, object]:
     """Read and check a bag into runs; InputValidationError listing every problem. Returns the runs
     and the sidecar's metadata (``RecordingMeta``; for microphone signals, ``sidecar_meta``, the
-    raw sidecar already read)."""
+    raw sidecar already read). ``frame_interval_s``: the interval the store to be written declares,
+    which every run must keep to (default: the bag's median)."""
     bag = Path(bag)
     where = str(bag)
     problems: list[str] = []
@@ -76,7 +82,9 @@ def load_bag(bag: str | os.PathLike, *, images: str | None = None, commands: str
     streams = read_streams(bag, images=images, commands=commands, odometry=odometry, stamps=stamps, grid=grid,
                            raw=raw)
     base = run_name_for(bag, name, meta.name)
-    runs, frames, notes, interval = _runs(streams, meta, base, command_offset_s, command_timeout_s, problems)
+    to_energyscape = _energyscape_rule(streams, meta, problems) if streams.grid is not None else None
+    runs, frames, notes, interval = _runs(streams, base, command_offset_s, command_timeout_s, frame_interval_s,
+                                          problems)
     if problems:
         raise InputValidationError(where, problems)
     attrs = {"kind": "import-bag", "file": bag.name, "images_topic": streams.frames.topic,
@@ -87,13 +95,14 @@ def load_bag(bag: str | os.PathLike, *, images: str | None = None, commands: str
         attrs["value_rule"] = _value_rule(streams, meta)
     if streams.odometry is not None:
         attrs["odometry_topic"] = streams.odometry.topic
-    return BagRecording(where, streams.grid, runs, interval, streams.notes + notes, attrs, frames, streams), meta
+    return BagRecording(where, streams.grid, runs, interval, streams.notes + notes, attrs, frames, streams,
+                        to_energyscape), meta
 
 
-def _runs(streams: BagStreams, meta, base: str, offset_s: float, timeout_s: float,
+def _runs(streams: BagStreams, base: str, offset_s: float, timeout_s: float, reference_s: float | None,
           problems: list[str]) -> tuple[dict, dict, list[str], float]:
+    """Each run's small arrays (velocity, time, pose) and its frames' span of the frame topic."""
     times = streams.frames.times
-    images = _energyscape(streams, meta, problems) if streams.grid is not None else None
     cmd_t = streams.commands.times + offset_s
     notes: list[str] = []
     if len(times) < align.MIN_SEGMENT:
@@ -128,16 +137,19 @@ def _runs(streams: BagStreams, meta, base: str, offset_s: float, timeout_s: floa
                             f"at {times[k]:.3f} s")
         else:
             pose = align.poses_at(times, ot, streams.odometry.values["pose"])
-    segments, split_notes = align.split_at_gaps(times[first:])
+    # a hair inside the format's tolerance: the store declares the rate rounded to 4 digits
+    segments, split_notes, interval = align.split_at_gaps(times[first:], FRAME_INTERVAL_TOLERANCE - 1e-3,
+                                                          reference_s)
     notes += split_notes
-    interval = float(np.median(np.diff(times[first:])))
+    if not segments:
+        problems.append(f"topic {streams.frames.topic!r}: no stretch of {align.MIN_SEGMENT} frames without a lost ping "
+                        f"({split_notes[0] if split_notes else 'too few frames'})")
+        return {}, {}, notes, 0.0
     runs: dict[str, dict[str, np.ndarray]] = {}
     frames: dict[str, tuple[int, int]] = {}
     for i, seg in enumerate(segments):
         a, b = seg.start + first, seg.stop + first
         run = {"velocity": velocity[a:b], "time": times[a:b] - times[first]}
-        if images is not None:
-            run["images"] = images[a:b]
         if pose is not None:
             run["pose"] = pose[a:b]
         name = base if len(segments) == 1 else f"{base}_{i:03d}"
@@ -149,16 +161,39 @@ def _span(t: np.ndarray) -> str:
     return f"{t[0]:.3f}..{t[-1]:.3f} s" if t.size else "none"
 
 
-def _energyscape(streams: BagStreams, meta, problems: list[str]) -> np.ndarray | None:
-    images = streams.frames.values["images"]
+def _energyscape_rule(streams: BagStreams, meta, problems: list[str]) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The mapping of a block of frames to the store's [0, 1] energyscape (``source.value_rule``),
+    fixed over the whole topic (linear energy is normalised to the topic's peak) and checked as
+    ``import`` checks images, without holding the frames as float at once: the blocks are mapped
+    as they are written."""
+    frames = streams.frames.values["images"]
     dtype = np.dtype(str(streams.frames.values["dtype"]) or "f4")
     if dtype.kind in "iu":
-        full = float(np.iinfo(dtype).max)
-        images = np.clip(images / np.float32(full), 0.0, 1.0)
+        full = np.float32(np.iinfo(dtype).max)
+        return lambda block: np.clip(block / full, 0.0, 1.0, dtype=np.float32)
+    if not frames:
+        return None
+    bad = next((k for k, f in enumerate(frames) if not np.isfinite(f).all()), None)
+    if bad is not None:
+        problems.append(f"topic {streams.frames.topic!r}, message {bad}: NaN or infinite pixel values")
+        return None
+    lo, hi = min(float(np.min(f)) for f in frames), max(float(np.max(f)) for f in frames)
     found: list[str] = []
-    out = _encode_images(images, meta, found)
+    encode_images(np.array([[[lo, hi]]], np.float32), meta, found)  # the same checks, on the extremes
     problems += [f"topic {streams.frames.topic!r}: {p}" for p in found]
-    return out
+    if found:
+        return None
+    dr = meta.dynamic_range_db
+    if meta.image_encoding == "db":  # as ``encode_images`` maps a whole recording
+        return lambda block: np.clip((block.astype(np.float64) + dr) / dr, 0.0, 1.0).astype(np.float32)
+    if meta.image_encoding == "linear":
+        def linear(block: np.ndarray) -> np.ndarray:
+            with np.errstate(divide="ignore"):
+                db = 10.0 * np.log10(block.astype(np.float64) / hi)
+            return np.clip((db + dr) / dr, 0.0, 1.0).astype(np.float32)
+
+        return linear
+    return lambda block: block.astype(np.float32)
 
 
 def _value_rule(streams: BagStreams, meta) -> str:
@@ -189,8 +224,9 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
     (``meta_path``, default ``BAG.json``) gives what ``import`` (or ``import-raw``) takes from one:
     name, split, grid (needed for ``sensor_msgs/Image``), rig, processing, image encoding. A new
     store records the measured frame interval (in the sidecar's rig, if it gives one); an existing
-    one must have the same grid and frame rate. ``note`` receives what was done to fit the data
-    (splits, dropped frames, resampling).
+    one must have the same grid and frame rate. ``note`` receives, in one line, what was done to fit
+    the data (splits at lost pings, dropped frames, resampling). Every run is built aside and the
+    runs are published together: an import killed or failed midway leaves ``out`` as it was.
     """
     from sonarset.ingest.bag.reader import default_raw_topic
     from sonarset.ingest.raw import resolve_processing
@@ -209,7 +245,8 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
     rec, meta = load_bag(bag, images=images, commands=commands, odometry=odometry, stamps=stamps,
                          command_offset_s=command_offset_s, command_timeout_s=command_timeout_s,
                          meta_path=meta_path, name=name, grid=have.grid if have is not None else None,
-                         raw=raw, sidecar_meta=sidecar_meta)
+                         raw=raw, sidecar_meta=sidecar_meta,
+                         frame_interval_s=1.0 / have.attrs.frame_rate_hz if have is not None else None)
     rig = meta.rig.model_copy(update={"frame_interval_s": rec.frame_interval_s}) if meta.rig is not None else None
     if meta.rig is not None and abs(meta.rig.frame_interval_s - rec.frame_interval_s) > \
             FRAME_INTERVAL_TOLERANCE * meta.rig.frame_interval_s:
@@ -231,29 +268,39 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
         description = f"imported from raw microphone signals in the ROS bag {bag.name}"
     else:
         proc, grid = meta.processing, rec.grid
-        writers = [(n, _image_writer(n, arrays, run_split, rec.attrs)) for n, arrays in rec.runs.items()]
+        writers = [(n, ImageRunWriter(n, arrays, rec.frames[n], rec.streams.frames.values["images"],
+                                      rec.to_energyscape, run_split, rec.attrs)) for n, arrays in rec.runs.items()]
         description = f"imported from the ROS bag {bag.name}"
-    # images are checked here; beamformed ones as the run writer writes them
-    problems = [f"run {n!r}: {p}" for n, arrays in rec.runs.items() if raw is None
-                for p in run_array_problems(grid, arrays)]
-    if problems:
-        raise InputValidationError(rec.source, problems)
-    for line in rec.notes:
-        if note is not None:
-            note(f"{bag}: {line}")
-    written = []
-    for run_name, write in writers:
-        written.append(target.write(run_name, write, overwrite=overwrite, grid=grid, processing=proc,
-                                    rig=rig if have is None else None,
-                                    new_store={"frame_rate_hz": float(f"{1.0 / rec.frame_interval_s:.4g}"),
-                                               "processing": proc or Processing(profile="unknown"),
-                                               "description": description}))
-        target = ImportTarget.at(out)  # the first run may have created the store
-    return written
+    if note is not None and rec.notes:  # one line, however much was done: a drive can lose a hundred pings
+        note(f"{bag}: {'; '.join(rec.notes)}")
+    # every run is built aside and published at the end: a killed import leaves the store as it was
+    return target.write_runs(writers, overwrite=overwrite, grid=grid, processing=proc,
+                             rig=rig if have is None else None,
+                             new_store={"frame_rate_hz": float(f"{1.0 / rec.frame_interval_s:.4g}"),
+                                        "processing": proc or Processing(profile="unknown"),
+                                        "description": description})
 
 
-def _image_writer(run_name: str, arrays: dict, split: str, source: dict):
-    def write(store, replace: bool) -> None:
-        store.write_run(run_name, split=split, source=source, overwrite=replace, consolidate=False, **arrays)
+@dataclass
+class ImageRunWriter:
+    """Writes one run of a bag's frames (``span`` of the topic's ``frames``), a store chunk at a
+    time, each block mapped to the energyscape as it goes: a long drive is never float32 at once."""
 
-    return write
+    name: str
+    arrays: dict[str, np.ndarray]  # velocity, time and pose, if any
+    span: tuple[int, int]
+    frames: list[np.ndarray]
+    to_energyscape: Callable[[np.ndarray], np.ndarray]
+    split: str
+    source: dict
+
+    def __call__(self, store, replace: bool) -> None:
+        a, n = self.span[0], self.span[1] - self.span[0]
+        optional = ("pose",) if "pose" in self.arrays else ()
+        with store.run_writer(self.name, n, split=self.split, source=self.source, optional=optional,
+                              image_dtype="float32", overwrite=replace, consolidate=False) as w:
+            for start in range(0, n, DEFAULT_CHUNK_FRAMES):
+                stop = min(n, start + DEFAULT_CHUNK_FRAMES)
+                images = self.to_energyscape(np.stack(self.frames[a + start:a + stop]))
+                w.write(start, images=images, **{k: v[start:stop] for k, v in self.arrays.items()})
+            w.commit()

@@ -11,9 +11,9 @@ import numpy as np
 
 from sonarset.errors import InputValidationError
 from sonarset.format.attrs import Processing, SensorGrid
-from sonarset.ingest.files import _Member
+from sonarset.ingest.files import ArrayMember
 from sonarset.ingest.metadata import emitted_sweep, microphone_layout, raw_grid, raw_meta, sidecar_for
-from sonarset.ingest.raw import RawRecording, _grid_time_and_echo_problems, _RawRunWriter, _scan
+from sonarset.ingest.raw import RawRecording, RawRunWriter, grid_time_and_echo_problems, signal_problems
 
 
 class BagSignals:
@@ -22,7 +22,7 @@ class BagSignals:
 
     def __init__(self, bag: Path, topic: str, start: int, stop: int, shape: tuple[int, int]):
         self.bag, self.topic, self.start, self.stop = bag, topic, start, stop
-        self.members = {"signals": _Member((stop - start, *shape), np.dtype(np.float32), False, bag)}
+        self.members = {"signals": ArrayMember((stop - start, *shape), np.dtype(np.float32), False, bag)}
         self.problems: list[str] = []
 
     def read(self, key: str) -> np.ndarray:
@@ -64,7 +64,7 @@ def raw_sidecar(bag: Path, meta_path) -> tuple[object, Path]:
 
 
 def raw_runs(rec, meta, sidecar: Path, grid: SensorGrid | None, processing: Processing, split: str,
-             workers: int, progress) -> tuple[SensorGrid, list[tuple[str, _RawRunWriter]]]:
+             workers: int, progress) -> tuple[SensorGrid, list[tuple[str, RawRunWriter]]]:
     """One ``import-raw`` run writer per run of the bag recording ``rec`` (``importer.BagRecording``),
     after the checks ``import-raw`` makes: the sidecar against the pings, the grid, every signal."""
     frames = rec.streams.frames
@@ -82,9 +82,9 @@ def raw_runs(rec, meta, sidecar: Path, grid: SensorGrid | None, processing: Proc
     sweep = emitted_sweep(meta, all_pings, problems)
     out_grid = raw_grid(meta, grid, problems)
     if out_grid is not None:
-        problems += _grid_time_and_echo_problems(meta, out_grid, None, samples, sweep)
+        problems += grid_time_and_echo_problems(meta, out_grid, None, samples, sweep)
     if not problems:
-        problems += [f"topic {frames.topic!r}: {p}" for p in _scan(all_pings, frames.topic)]
+        problems += [f"topic {frames.topic!r}: {p}" for p in signal_problems(all_pings, frames.topic)]
     if problems:
         raise InputValidationError(rec.source, problems)
     source = {**rec.attrs, "sample_rate_hz": meta.sample_rate_hz, "speed_of_sound_m_s": meta.speed_of_sound_m_s,
@@ -95,5 +95,5 @@ def raw_runs(rec, meta, sidecar: Path, grid: SensorGrid | None, processing: Proc
         a, b = rec.frames[name]
         pings = BagSignals(Path(rec.source), frames.topic, a, b, (channels, samples))
         one = RawRecording(rec.source, meta, pings, positions, sweep, 0, dict(arrays))
-        writers.append((name, _RawRunWriter(one, out_grid, processing, name, split, source, workers, 8, progress)))
+        writers.append((name, RawRunWriter(one, out_grid, processing, name, split, source, workers, 8, progress)))
     return out_grid, writers

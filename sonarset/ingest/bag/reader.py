@@ -27,7 +27,8 @@ class Stream:
     topic: str
     msgtype: str
     times: np.ndarray
-    values: dict[str, np.ndarray] = field(default_factory=dict)
+    #: per kind; a frame topic's "images" is a list of (range, azimuth) frames in their pixel type
+    values: dict[str, np.ndarray | list[np.ndarray]] = field(default_factory=dict)
 
 
 @dataclass
@@ -45,6 +46,14 @@ class BagStreams:
     origin_ns: int = 0
 
 
+#: The most one MCAP chunk may inflate to. Writers cut chunks at 1-4 MiB (mcap's writers 1 MiB,
+#: rosbag2 4 MiB); a chunk holds at least one message, so a large microphone ping makes one larger,
+#: but a chunk declaring hundreds of megabytes is a decompression bomb (2 GB of zeros fit in 64 KB of
+#: zstd), refused before anything is inflated.
+MAX_CHUNK_BYTES = 256 * 2**20
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
 def open_reader(bag: Path):
     """An open AnyReader of ``bag``; InputValidationError naming the bag when it cannot be read."""
     from rosbags.highlevel import AnyReader
@@ -54,6 +63,11 @@ def open_reader(bag: Path):
         raise InputValidationError(str(bag), ["no such file or directory"])
     if not (bag.is_dir() or bag.is_file()):
         raise InputValidationError(str(bag), ["not a regular file or a bag directory"])
+    for path in [bag] if bag.is_file() else sorted(bag.glob("*.mcap")):
+        problem = mcap_chunk_problem(path)
+        if problem is not None:
+            raise InputValidationError(str(path), [problem])
+    _bound_decompression()
     store = get_typestore(Stores.ROS2_JAZZY)
     try:
         reader = AnyReader([bag], default_typestore=store)
@@ -64,6 +78,70 @@ def open_reader(bag: Path):
     if missing:  # a bag that does not define them (sqlite3 bags before Iron): the shipped definitions
         reader.typestore.register(missing)
     return reader
+
+
+def mcap_chunk_problem(path: Path, limit: int | None = None) -> str | None:
+    """The first chunk of the MCAP file ``path`` that declares more than ``limit`` bytes (default
+    ``MAX_CHUNK_BYTES``) uncompressed, said in one line; None when every chunk is within it or
+    the file is no MCAP. Only record headers are read, seeking over their bodies."""
+    import struct
+
+    limit = MAX_CHUNK_BYTES if limit is None else limit
+    try:
+        with open(path, "rb") as f:
+            if f.read(8) != MCAP_MAGIC:
+                return None
+            end = path.stat().st_size
+            at = 8
+            while at + 9 <= end:
+                f.seek(at)
+                op, length = struct.unpack("<BQ", f.read(9))
+                if op == 0x06:  # Chunk: message_start_time, message_end_time, uncompressed_size (u64 each)
+                    declared = struct.unpack("<QQQ", f.read(24))[2] if length >= 24 else 0
+                    if declared > limit:
+                        return (f"its chunk at byte {at} declares {declared / 2**20:,.0f} MiB uncompressed, over the "
+                                f"{limit / 2**20:g} MiB a chunk may hold (a decompression bomb?); not inflated")
+                if op == 0x0F or op == 0x02:  # DataEnd, Footer: the summary holds no chunks
+                    return None
+                at += 9 + length
+    except (OSError, struct.error):
+        return None  # unreadable or cut short: the reader says so in its own words
+    return None
+
+
+def _bound_decompression() -> None:
+    """Make rosbags inflate an MCAP chunk no further than the size it declares (one byte more, so
+    that its size check fails): a chunk that lies about its size cannot fill memory either."""
+    try:
+        import rosbags.rosbag2.storage_mcap as storage
+    except ImportError:
+        return
+    table = getattr(storage, "DECOMPRESSORS", None)
+    if not isinstance(table, dict) or getattr(table.get("zstd"), "bounded", False):
+        return
+    zstd = getattr(storage, "zstd", None)
+    if zstd is not None and hasattr(zstd, "ZstdDecompressor"):
+        def inflate_zstd(data: bytes, size: int) -> bytes:
+            out, rest = bytearray(), data
+            while rest and len(out) <= size:  # a chunk may hold several zstd frames
+                d = zstd.ZstdDecompressor()
+                out += d.decompress(rest, max_length=size + 1 - len(out))
+                if not d.eof:
+                    break
+                rest = d.unused_data
+            return bytes(out)
+
+        inflate_zstd.bounded = True
+        table["zstd"] = inflate_zstd
+    try:
+        from lz4.frame import LZ4FrameDecompressor
+    except ImportError:
+        return
+
+    def inflate_lz4(data: bytes, size: int) -> bytes:
+        return LZ4FrameDecompressor().decompress(data, max_length=size + 1)
+
+    table["lz4"] = inflate_lz4
 
 
 def choose_topic(reader, wanted: str | None, types: tuple[str, ...], what: str, parameter: str,
@@ -199,8 +277,9 @@ def _read_frames(reader, topic: str, stamps: str, grid: SensorGrid | None, probl
             break
         times.append(t)
         frames.append(image)
-    stack = np.stack(frames) if frames else np.zeros((0, 1, 1), np.float32)
-    stream = Stream(topic, decoder.msgtype or "", np.asarray(times, np.int64), {"images": stack})
+    # Held frame by frame in their own pixel type, never stacked: a 20,000-frame drive of uint8
+    # images is 360 MB so, where one float32 stack (and its copies) was gigabytes.
+    stream = Stream(topic, decoder.msgtype or "", np.asarray(times, np.int64), {"images": frames})
     stream.values["dtype"] = np.array(decoder.dtype or "")
     return stream, decoder.grid, decoder.notes
 
