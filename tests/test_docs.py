@@ -37,3 +37,23 @@ def test_readme_families_table_is_the_shipped_cards():
                 for fam, per_h in by_world.items() for h, m in per_h.items()}
     assert len(expected) >= 8  # the card holds the families' test numbers
     assert rows == expected
+
+
+RESULTS = ROOT / "docs" / "results"
+
+
+def test_readme_and_benchmarks_tables_are_the_results_files():
+    """The benchmark tables that README and BENCHMARKS show are generated from the committed results
+    files (bench/bench_tables.py): one home per number."""
+    from sonarset.models.benchmark import load_results
+    from sonarset.models.benchmark.tables import dataset_table, summary_table, zoo_table
+
+    readme, benchmarks = (ROOT / "README.md").read_text(), (ROOT / "BENCHMARKS.md").read_text()
+    shipped = load_results(RESULTS / "benchmark-v1.json")
+    assert summary_table(shipped) in readme
+    zoo = load_results(RESULTS / "zoo-v1.json")
+    costs = json.loads((RESULTS / "bench_zoo.json").read_text())
+    assert zoo_table(zoo, costs) in readme and summary_table(zoo) in readme
+    for name in zoo["datasets"]:
+        assert dataset_table(zoo, name) in benchmarks
+    assert summary_table(shipped) in benchmarks

@@ -92,6 +92,21 @@ def summary_table(results: dict) -> str:
     return "\n".join(lines)
 
 
+def cost_table(costs: dict) -> str:
+    """What each learned method costs to train on one machine (bench/bench_zoo.py's JSON): parameters,
+    GFLOP per training window, samples/s and the share of the same process's matmul roof, per
+    precision and rollout length."""
+    runs = [(t["precision"], t["k"]) for t in costs["models"][0]["training"]]
+    head = ["kind", "M params", "GFLOP/window (1 / 3 steps)"] + [f"{p} k={k}: samples/s (roof share)" for p, k in runs]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for row in costs["models"]:
+        g = row["gflop_per_sample"]
+        cells = [f"{t['samples_per_s']:.1f} ({100 * t['roof_share']:.0f} %)" for t in row["training"]]
+        lines.append(f"| {row['kind']} | {row['params'] / 1e6:.2f} | {g['1']:.2f} / {g[str(costs['k'])]:.2f} | "
+                     + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def zoo_table(results: dict, costs: dict) -> str:
     """The learned methods side by side: what each costs to train (``costs``: bench/bench_zoo.py's
     JSON, measured on one machine) and the share of the flow-to-observable CC gap it closes at the
