@@ -23,6 +23,7 @@ import numpy as np
 
 from sonarset.errors import SonarSetError
 from sonarset.format.attrs import RobotRig, SensorGrid
+from sonarset.store.atomic import refuse_non_regular
 from sonarset.store.store import SonarStore
 
 from sonarset.models.predictor import CheckedPredictor
@@ -84,7 +85,7 @@ def record_run(store: SonarStore, run_name: str | None, out: str | os.PathLike, 
 
     from sonarset.models.registry import make_predictor
 
-    _refuse_non_regular(Path(out))  # before any model loads
+    refuse_non_regular(Path(out), "the recording", "the recording needs a .rrd file path")  # before any model loads
     name = run_name or (store.runs() or [None])[0]
     if name is None or name not in store.runs():
         raise SonarSetError(f"{store.location}: no complete run {name!r} (runs: {', '.join(store.runs())})",
@@ -134,7 +135,7 @@ def _aside_file(out: Path) -> Path:
     """
     import socket
 
-    _refuse_non_regular(out)
+    refuse_non_regular(out, "the recording", "the recording needs a .rrd file path")
     host = "".join(c if c.isalnum() or c == "-" else "_" for c in socket.gethostname())[:40] or "host"
     _remove_dead_asides(out, host)
     try:
@@ -150,20 +151,6 @@ def _aside_file(out: Path) -> Path:
     except OSError as exc:
         raise SonarSetError(f"{out}: cannot write the recording there ({exc.strerror or exc})",
                             parameter="out") from None
-
-
-def _refuse_non_regular(out: Path) -> None:
-    import stat
-
-    try:
-        mode = out.stat().st_mode
-    except FileNotFoundError:
-        return
-    except OSError as exc:
-        raise SonarSetError(f"{out}: cannot write the recording there ({exc.strerror})", parameter="out") from None
-    if not stat.S_ISREG(mode):
-        what = "a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else "not a regular file"
-        raise SonarSetError(f"{out}: is {what}; the recording needs a .rrd file path", parameter="out")
 
 
 def _remove_dead_asides(out: Path, host: str) -> None:

@@ -25,6 +25,34 @@ class ConfigError(ValueError):
         self.setting = setting
 
 
+def check_rig_and_inputs(cfg) -> None:
+    """The checks every network's config shares (EchoPT's and the reference methods'): the rig's
+    numbers, the grid's edges, the prior and the inputs; ConfigError naming the first bad one."""
+    for name in ("dt", "sensor_offset"):
+        v = getattr(cfg, name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ConfigError(name, f"{name} must be a finite number, got {v!r}")
+    if cfg.dt <= 0:
+        raise ConfigError("dt", f"dt (the frame interval) must be > 0 s, got {cfg.dt}")
+    for name in ("range_edges", "azimuth_edges"):
+        lo_hi = getattr(cfg, name)
+        if not (isinstance(lo_hi, tuple) and len(lo_hi) == 2 and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in lo_hi)
+                and lo_hi[0] < lo_hi[1]):
+            raise ConfigError(name, f"{name} must be two finite increasing numbers, got {lo_hi!r}")
+    if cfg.prior not in PRIORS:
+        raise ConfigError("prior", f"prior must be one of {', '.join(PRIORS)}, got {cfg.prior!r}")
+    if cfg.inputs not in INPUTS:
+        raise ConfigError("inputs", f"inputs must be one of {', '.join(INPUTS)}, got {cfg.inputs!r}")
+
+
+def config_fields(cls, d: dict) -> dict:
+    """The keyword arguments of config class ``cls`` in a card's ``config`` dict (JSON lists back to
+    tuples; keys the class does not have are left out)."""
+    names = {f.name for f in fields(cls)}
+    return {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in names}
+
+
 @dataclass(frozen=True)
 class EchoPTConfig:
     n_range: int = _DEFAULT_GRID.n_range
@@ -87,20 +115,10 @@ class EchoPTConfig:
         for name, v in sizes.items():
             if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= _MAX_SIZE.get(name, 100_000):
                 raise ConfigError(name.split("[")[0], f"{name} must be an integer in 1..{_MAX_SIZE.get(name, 100_000)}, got {v!r}")
-        for name in ("dt", "sensor_offset", "dropout"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ConfigError(name, f"{name} must be a finite number, got {v!r}")
-        if self.dt <= 0:
-            raise ConfigError("dt", f"dt (the frame interval) must be > 0 s, got {self.dt}")
-        if not 0 <= self.dropout < 1:
-            raise ConfigError("dropout", f"dropout must be in [0, 1), got {self.dropout}")
-        for name in ("range_edges", "azimuth_edges"):
-            lo_hi = getattr(self, name)
-            if not (isinstance(lo_hi, tuple) and len(lo_hi) == 2 and all(
-                    isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in lo_hi)
-                    and lo_hi[0] < lo_hi[1]):
-                raise ConfigError(name, f"{name} must be two finite increasing numbers, got {lo_hi!r}")
+        check_rig_and_inputs(self)
+        d = self.dropout
+        if isinstance(d, bool) or not isinstance(d, (int, float)) or not 0 <= d < 1:
+            raise ConfigError("dropout", f"dropout must be in [0, 1), got {d!r}")
         if self.n_range % self.patch[0] or self.n_azimuth % self.patch[1]:
             raise GridMismatchError(f"grid {self.n_range}x{self.n_azimuth} is not divisible by the "
                                     f"{self.patch[0]}x{self.patch[1]} patch")
@@ -111,18 +129,13 @@ class EchoPTConfig:
             raise GridMismatchError(f"grid {self.n_range}x{self.n_azimuth} needs more than {self.max_tokens} tokens")
         if self.d_model % self.n_heads:
             raise ConfigError("d_model", f"d_model {self.d_model} is not divisible by {self.n_heads} heads")
-        if self.prior not in PRIORS:
-            raise ConfigError("prior", f"prior must be one of {', '.join(PRIORS)}, got {self.prior!r}")
-        if self.inputs not in INPUTS:
-            raise ConfigError("inputs", f"inputs must be one of {', '.join(INPUTS)}, got {self.inputs!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "EchoPTConfig":
-        names = {f.name for f in fields(cls)}
-        kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in names}
+        kw = config_fields(cls, d)
         if "prior" not in d and "residual" in d:  # cards before the prior option: residual = last frame
             kw["prior"] = "last" if d["residual"] else "none"
         return cls(**kw)

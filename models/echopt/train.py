@@ -95,6 +95,7 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
         if cfg.batch_size % dist.world:
             raise SonarSetError(f"batch_size {cfg.batch_size} is not a multiple of the {dist.world} processes",
                                 parameter="batch_size")
+        created = not out.exists()
         lock = _lock_run(out) if dist.main else None
         try:
             if lock is not None:
@@ -104,6 +105,10 @@ def train(store: SonarStore, out_dir: str | os.PathLike, cfg: TrainConfig, *, re
         finally:
             if lock is not None:
                 os.close(lock)  # releases the lock; the file stays (removing it would race a new taker)
+                if created and [p.name for p in out.iterdir()] == [LOCK]:
+                    # refused before it wrote anything: leave no directory behind, as before the lock
+                    (out / LOCK).unlink(missing_ok=True)
+                    out.rmdir()
     finally:
         if started:
             destroy_process_group()

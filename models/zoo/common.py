@@ -9,7 +9,6 @@ next frame (B, R, A), like EchoPT, and is trained by the same trainer (models/ec
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, fields
 
 import torch
@@ -20,7 +19,7 @@ from sonarset.errors import GridMismatchError
 from sonarset.format.attrs import RobotRig, SensorGrid
 from sonarset.windows import N_IN
 
-from sonarset.models.echopt.config import INPUTS, PRIORS, ConfigError
+from sonarset.models.echopt.config import ConfigError, check_rig_and_inputs, config_fields
 from sonarset.models.echopt.model import GELU, V_SCALE, W_SCALE, EchoPT
 
 _DEFAULT_RIG = RobotRig()
@@ -65,30 +64,14 @@ class ZooConfig:
             if not values or any(isinstance(x, bool) or not isinstance(x, int) or not 1 <= x <= _MAX_SIZE
                                  for x in values):
                 raise ConfigError(name, f"{name} must be an integer in 1..{_MAX_SIZE} (or a tuple of them), got {v!r}")
-        for name in ("dt", "sensor_offset"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ConfigError(name, f"{name} must be a finite number, got {v!r}")
-        if self.dt <= 0:
-            raise ConfigError("dt", f"dt (the frame interval) must be > 0 s, got {self.dt}")
-        for name in ("range_edges", "azimuth_edges"):
-            lo_hi = getattr(self, name)
-            if not (isinstance(lo_hi, tuple) and len(lo_hi) == 2 and all(
-                    isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in lo_hi)
-                    and lo_hi[0] < lo_hi[1]):
-                raise ConfigError(name, f"{name} must be two finite increasing numbers, got {lo_hi!r}")
-        if self.prior not in PRIORS:
-            raise ConfigError("prior", f"prior must be one of {', '.join(PRIORS)}, got {self.prior!r}")
-        if self.inputs not in INPUTS:
-            raise ConfigError("inputs", f"inputs must be one of {', '.join(INPUTS)}, got {self.inputs!r}")
+        check_rig_and_inputs(self)
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict):
-        names = {f.name for f in fields(cls)}
-        return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in names})
+        return cls(**config_fields(cls, d))
 
 
 def make_config(cls: type[ZooConfig], presets: dict[str, dict], preset: str, n_range: int, n_azimuth: int,

@@ -19,6 +19,26 @@ def atomic_write(path: str | os.PathLike, write: Callable[[Path], object]) -> Pa
     return path
 
 
+def refuse_non_regular(out: Path, what: str, needs: str) -> None:
+    """Only a regular file is replaced: a folder, a FIFO or a device at ``out`` is the user's, and a
+    rename over it would fail naming the hidden file it was written to (or a FIFO would block).
+    ``what`` names the output in messages ("the recording"), ``needs`` what the path must be
+    ("the recording needs a .rrd file path")."""
+    import stat
+
+    from sonarset.errors import SonarSetError
+
+    try:
+        mode = out.stat().st_mode
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise SonarSetError(f"{out}: cannot write {what} there ({exc.strerror})", parameter="out") from None
+    if not stat.S_ISREG(mode):
+        kind = "a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else "not a regular file"
+        raise SonarSetError(f"{out}: is {kind}; {needs}", parameter="out")
+
+
 def atomic_text(path: str | os.PathLike, text: str) -> Path:
     return atomic_write(path, lambda p: p.write_text(text))
 

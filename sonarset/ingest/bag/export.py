@@ -25,7 +25,7 @@ import numpy as np
 
 from sonarset.errors import SonarSetError
 import sonarset.ingest.bag.messages as m
-from sonarset.store.atomic import aside_dir
+from sonarset.store.atomic import aside_dir, refuse_non_regular
 from sonarset.store.store import SonarStore, open_store
 
 BASE_TIME_S = 1.0e9  # 2001-09-09: a stamp no reader takes for "unset" (zero)
@@ -48,7 +48,7 @@ def export_bag(store: str | os.PathLike | SonarStore, out: str | os.PathLike, *,
     out = Path(out)
     if out.suffix != ".mcap":
         raise SonarSetError(f"{out}: the output is an MCAP file: name it *.mcap", parameter="out")
-    _refuse_non_regular(out)
+    refuse_non_regular(out, "the MCAP file", "the output needs an .mcap file path")
     ts = m.writing_typestore()
     tmp = aside_dir(out)
     try:
@@ -64,22 +64,6 @@ def export_bag(store: str | os.PathLike | SonarStore, out: str | os.PathLike, *,
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out
-
-
-def _refuse_non_regular(out: Path) -> None:
-    """Only a regular file is replaced: a folder, a FIFO or a device at ``out`` is the user's, and
-    the rename over it would fail naming the hidden file it was written to."""
-    import stat
-
-    try:
-        mode = out.stat().st_mode
-    except FileNotFoundError:
-        return
-    except OSError as exc:
-        raise SonarSetError(f"{out}: cannot write the MCAP file there ({exc.strerror})", parameter="out") from None
-    if not stat.S_ISREG(mode):
-        what = "a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else "not a regular file"
-        raise SonarSetError(f"{out}: is {what}; the output needs an .mcap file path", parameter="out")
 
 
 def _write_run(writer, ts, store: SonarStore, name: str, prefix: str, clock: int, static, progress) -> int:
