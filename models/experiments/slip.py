@@ -39,6 +39,7 @@ from sonarset.sim.families import lab_world
 from sonarset.scoring.stats import auc, holm, wilcoxon_p
 
 from sonarset.models.predictor import CheckedPredictor
+from sonarset.models.registry import BASELINES
 from sonarset.models.experiments.common import RIG, experiment_processing, learned_precision, mean_ci, parallel_map, predictor
 
 HORIZONS = (1, 3, 5)
@@ -239,8 +240,9 @@ def summarise(per_trial: list[dict], names: list[str], seed: int = 0) -> tuple[l
             m, lo, hi = mean_ci(x, seed)
             summary.append({"predictor": name, "horizon": h, "kind": kind, "detector": det, "auc_mean": m,
                             "ci_low": lo, "ci_high": hi, "n": int(np.isfinite(x).sum())})
-    for a in (n for n in names if n == "echopt"):
-        for b in (n for n in names if n != a):
+    # every model (a checkpoint, a plugin, a module:factory) against every baseline beside it
+    for a in (n for n in names if n not in BASELINES):
+        for b in (n for n in names if n in BASELINES):
             for h, kind, det in keys:
                 x = np.array([t[f"{a}|{h}|{kind}|{det}"] - t[f"{b}|{h}|{kind}|{det}"] for t in per_trial], float)
                 x = x[np.isfinite(x)]
