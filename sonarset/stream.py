@@ -20,6 +20,10 @@ needed:
 - **Determinism.** The order of a shard's windows is a function of (seed, epoch, shard) and the
   layout alone, computed without reading a frame, so skipping the first ``n`` batches of a shard
   (an exact resume mid-epoch) costs no I/O.
+- **Drawn windows.** A fixed set of windows read once and gathered many times (a training run's
+  validation windows, an evaluation's test windows) is a :func:`window_bank`: only their frames are
+  read, a few chunks at a time, and held compressed (:class:`PackedFrames`), so it costs memory in
+  proportion to the windows drawn, at a sixth of their frames' size, and never the store's.
 
 NumPy only; ``sonarset.torchdata`` wraps it in a PyTorch ``IterableDataset``.
 """
@@ -27,11 +31,14 @@ NumPy only; ``sonarset.torchdata`` wraps it in a PyTorch ``IterableDataset``.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import ctypes
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Iterator, Sequence
 
 import numpy as np
+from numcodecs import Blosc
 
 from sonarset.errors import SonarSetError
 from sonarset.windows import FrameBank, RunLayout, WindowBatch, WindowIndex
@@ -45,6 +52,10 @@ DEFAULT_SLAB_FRAMES = 256
 DEFAULT_SHUFFLE_BUFFER = 2048
 #: Slabs a shard reads ahead in a background thread.
 PREFETCH_SLABS = 2
+#: Frames ``window_bank`` reads at once (rounded to whole chunks): its temporary block stays ~9 MB
+#: of float16 on the default grid however far apart the windows lie, where one read per stretch of
+#: close windows was a whole run (1,600 validation windows touch every chunk of a 7,500-frame run).
+READ_FRAMES = 256
 
 
 @dataclass(frozen=True)
@@ -258,14 +269,18 @@ class WindowStream:
             reader.shutdown(wait=False, cancel_futures=True)
 
 
-def window_bank(store, layout: RunLayout, index: WindowIndex, image_dtype: str | np.dtype | None = None) -> FrameBank:
+def window_bank(store, layout: RunLayout, index: WindowIndex, image_dtype: str | np.dtype | None = None,
+                packed: bool = True) -> FrameBank:
     """A FrameBank of ``layout``'s runs in which only the frames of ``index``'s windows are read
     (memory: their frames, not the store's): gathers, windows and ``locate`` work as on the whole
-    bank, with the same numbers."""
+    bank, with the same numbers. The frames are read ``READ_FRAMES`` at a time (each chunk decoded
+    once) and, ``packed``, held compressed (:class:`PackedFrames`, decoded as they are gathered:
+    the images as stored, converted to ``image_dtype`` there); else as one array of ``image_dtype``."""
     rows = np.unique(index.rows())
     offsets = layout.run_offsets
     dtype = np.dtype(image_dtype) if image_dtype is not None else None
-    held = None
+    parts: list[np.ndarray] = []  # unpacked: the blocks read, joined at the end
+    held: PackedFrames | None = None
     velocity = np.empty((layout.n_frames, 2), dtype=np.float32)
     run_of = np.searchsorted(offsets, rows, side="right") - 1
     for j, name in enumerate(layout.run_names):
@@ -274,27 +289,84 @@ def window_bank(store, layout: RunLayout, index: WindowIndex, image_dtype: str |
         mine = rows[run_of == j] - offsets[j]
         if not mine.size:
             continue
-        # stretches of needed frames less than a chunk apart, each one read (a chunk decoded once)
-        gap = max(1, run.array("images").chunks[0])
-        cuts = np.flatnonzero(np.diff(mine) > gap) + 1
+        images = run.array("images")
+        chunk = max(1, images.chunks[0])
+        span = chunk * max(1, READ_FRAMES // chunk)  # whole chunks: none is decoded twice
+        cuts = np.flatnonzero(np.diff(mine // span)) + 1
         for part in np.split(mine, cuts):
             block = run.read("images", int(part[0]), int(part[-1]) + 1)[part - part[0]]
+            if not packed:
+                parts.append(block.astype(dtype or block.dtype, copy=False))
+                continue
             if held is None:
-                held = np.empty((rows.size, *block.shape[1:]), dtype=dtype or block.dtype)
-            at = np.searchsorted(rows, part[0] + offsets[j])
-            held[at:at + block.shape[0]] = block
-    if held is None:
-        held = np.empty((0, *layout.grid.shape), dtype=dtype or np.float32)
-    return FrameBank(HeldFrames(held, rows, layout.n_frames), velocity, offsets, layout.run_names, layout.grid,
+                held = PackedFrames(block.shape[1:], block.dtype, dtype or block.dtype)
+            held.append(block)
+    if packed:
+        frames = held if held is not None else PackedFrames(layout.grid.shape, np.float32, dtype or np.float32)
+    else:
+        frames = (np.concatenate(parts) if parts else
+                  np.empty((0, *layout.grid.shape), dtype=dtype or np.float32))
+    return FrameBank(HeldFrames(frames, rows, layout.n_frames), velocity, offsets, layout.run_names, layout.grid,
                      layout.frame_interval_s)
+
+
+class PackedFrames:
+    """Frames held compressed one by one, decoded when gathered: an array-like of shape
+    (n, R, A) indexed by integer positions (any shape of them).
+
+    Energyscapes are mostly black (88 % of the pixels of the paper's dataset are exactly 0): Blosc's
+    zstd at level 1 holds a frame in about a sixth of its bytes and decodes it in ~60 us, so a set
+    of drawn windows gathered again and again (validation) costs a sixth of the memory, and one
+    batch's decoding a few ms. Frames keep the dtype they were stored in and are converted to
+    ``dtype`` when decoded: the values an in-memory bank of that dtype holds.
+    """
+
+    CODEC = Blosc(cname="zstd", clevel=1, shuffle=Blosc.NOSHUFFLE)
+
+    def __init__(self, frame_shape: Sequence[int], stored: np.dtype, dtype: np.dtype):
+        self.frame_shape, self.stored, self.dtype = tuple(frame_shape), np.dtype(stored), np.dtype(dtype)
+        self._blobs: list[bytes] = []
+        self.nbytes = 0  # compressed
+
+    def append(self, frames: np.ndarray) -> None:
+        """Hold ``frames`` (m, R, A) after the frames held so far."""
+        for frame in np.asarray(frames, dtype=self.stored):
+            blob = self.CODEC.encode(np.ascontiguousarray(frame))
+            self._blobs.append(blob)
+            self.nbytes += len(blob)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return (len(self._blobs), *self.frame_shape)
+
+    def __len__(self) -> int:
+        return len(self._blobs)
+
+    def __getitem__(self, at) -> np.ndarray:
+        """The frames at positions ``at`` (non-negative integers), shaped ``at.shape + (R, A)``;
+        each distinct frame decoded once, straight into the places that take it (no block of the
+        distinct frames beside the result: a window's frames are shared by its neighbours)."""
+        at = np.asarray(at)
+        if at.dtype.kind not in "iu":
+            raise TypeError(f"packed frames are indexed by integer positions, got {at.dtype}")
+        out = np.empty((at.size, *self.frame_shape), dtype=self.dtype)
+        frame = np.empty(self.frame_shape, dtype=self.stored)
+        order = np.argsort(at, axis=None, kind="stable")
+        flat = at.reshape(-1)[order]
+        firsts = np.flatnonzero(np.r_[True, flat[1:] != flat[:-1]]) if flat.size else flat
+        for lo, hi in zip(firsts, np.r_[firsts[1:], flat.size].astype(np.int64)):
+            self.CODEC.decode(self._blobs[flat[lo]], out=frame)
+            out[order[lo:hi]] = frame
+        return out.reshape(*at.shape, *self.frame_shape)
 
 
 @dataclass(frozen=True)
 class HeldFrames:
     """The frames ``rows`` (ascending global indices) of an ``n_frames``-frame bank, indexed by
-    global row like the whole bank's images array; asking for a frame not held is an error."""
+    global row like the whole bank's images array; asking for a frame not held is an error. ``held``
+    is their array, or a :class:`PackedFrames`."""
 
-    held: np.ndarray
+    held: np.ndarray | PackedFrames
     rows: np.ndarray
     n_frames: int
 
@@ -323,3 +395,26 @@ class HeldFrames:
 
     def __getitem__(self, at):
         return self.held[self.positions(at)]
+
+
+@functools.cache
+def _malloc_trim():
+    try:
+        return ctypes.CDLL(None).malloc_trim  # glibc's
+    except (AttributeError, OSError, TypeError):  # another C library, or Windows
+        return None
+
+
+def release_free_memory() -> None:
+    """Hand the pages of the C heap that hold no live block back to the OS (glibc's
+    ``malloc_trim``; elsewhere nothing).
+
+    glibc shrinks its heap only from the top, so after a phase that freed its blocks in another
+    order than it took them (training steps' activations and batches), the free ones stay resident,
+    and the next phase (validation's batches of 128, the test evaluation's rollouts) is laid out
+    around them: on the paper's dataset the main heap held ~400 MB free but resident before the test
+    evaluation of ``train --stream``. Called between such phases it costs a few ms and changes no value.
+    """
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)

@@ -251,3 +251,63 @@ def test_ddp_ranks_stream_disjoint_windows_each_once(store, tmp_path, workers):
     every = RunLayout.of(store, split="train").index(3, 2).starts
     assert not set(r0) & set(r1) and abs(len(r0) - len(r1)) <= 2
     assert sorted(r0 + r1) == every.tolist()
+
+
+def test_window_bank_reads_a_few_chunks_at_a_time_and_holds_them_packed(store, monkeypatch):
+    import sonarset.stream as stream
+    from sonarset.store.run import Run
+
+    layout = RunLayout.of(store, split="train")
+    index = layout.index(3, 4).sample(60, seed=2)
+    reads, read = [], Run.read
+
+    def spy(self, key, start=0, stop=None, out=None):
+        if key == "images":
+            reads.append(stop - start)
+        return read(self, key, start, stop, out)
+    monkeypatch.setattr(stream, "READ_FRAMES", 64)
+    monkeypatch.setattr(Run, "read", spy)
+    packed = window_bank(store, layout, index, np.float32)
+    chunk = store.run(layout.run_names[0]).array("images").chunks[0]
+    assert reads and max(reads) <= max(64, chunk)  # not one read per stretch of close windows
+    dense = window_bank(store, layout, index, np.float32, packed=False)
+    assert packed.images.nbytes < dense.images.nbytes / 2  # mostly black frames compress
+    a, b = WindowBatcher.of(packed).gather(index), WindowBatcher.of(dense).gather(index)
+    assert a.frames.dtype == np.float32
+    np.testing.assert_array_equal(a.frames, b.frames)
+    np.testing.assert_array_equal(a.targets, b.targets)
+
+
+def test_streamed_validation_and_test_read_only_their_windows_with_the_in_memory_numbers(store, tmp_path,
+                                                                                         monkeypatch):
+    from sonarset.models.echopt.cards import add_test_metrics
+    from sonarset.models.echopt.checkpoint import load_checkpoint
+    from sonarset.models.echopt.distributed import Dist
+    from sonarset.models.echopt.losses import validation_loss
+    from sonarset.models.echopt.train import train
+    from sonarset.models.echopt.train_config import TrainConfig
+    from sonarset.models.echopt.train_data import MemoryWindows, StreamedWindows
+
+    cfg = TrainConfig(preset="tiny", batch_size=16, n_val=40, eval_every=2, max_steps=2, device="cpu",
+                      precision="fp32", curriculum="2", command="test", stream=True, shuffle_buffer=40,
+                      test_samples=20)
+
+    def whole_split(*args, **kwargs):
+        raise AssertionError("a streamed run read every frame of a split")
+    with monkeypatch.context() as m:
+        m.setattr(FrameBank, "from_store", classmethod(whole_split))
+        res = train(store, tmp_path / "m", cfg)
+        streamed_test = add_test_metrics(tmp_path / "m", store, cfg)
+    # the one validation (step 2) kept its weights: the in-memory windows give that model the same loss
+    model, _ = load_checkpoint(tmp_path / "m", GRID)
+    loaded = MemoryWindows.make(store, cfg, model.cfg.n_in, 2, Dist(), "cpu")
+    streamed = StreamedWindows.make(store, cfg, model.cfg.n_in, 2, Dist(), "cpu")
+    assert np.array_equal(loaded.val_idx.starts, streamed.val_idx.starts)
+    # held compressed: under half the bytes of their frames as stored (float16)
+    frames = np.unique(streamed.val_idx.rows()).size
+    assert streamed.val_batcher.images.nbytes < frames * GRID.n_range * GRID.n_azimuth * 2 / 2
+    losses = [validation_loss(model, w.val_batcher, w.val_idx, 2, precision="fp32", terms={"mse": 1.0})
+              for w in (loaded, streamed)]
+    assert losses[0] == losses[1] == res.history[-1]["val_loss"]
+    cfg.stream = False
+    assert add_test_metrics(tmp_path / "m", store, cfg)["results"] == streamed_test["results"]

@@ -8,6 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from sonarset.errors import SonarSetError
+from sonarset.stream import release_free_memory
 from sonarset.windows import WindowBatcher, WindowIndex
 
 from sonarset.models.echopt.distributed import Dist
@@ -242,7 +243,10 @@ def validation_loss(model: torch.nn.Module, batcher: WindowBatcher, index: Windo
     """The training loss (``terms``, default MSE) per pixel over ``index``, over a rollout of
     ``horizon`` steps shared by ``weights`` (``step_weights``); each process takes every world-th
     batch. The kept model is the best by the objective it was trained for: with a sharpness term,
-    the MSE alone would prefer the blurrier weights."""
+    the MSE alone would prefer the blurrier weights. The training steps' freed memory goes back to
+    the OS first, and validation's after (``release_free_memory``): its batches are twice a training
+    batch, and would otherwise be laid out beside the steps' free blocks, not in them."""
+    release_free_memory()
     model.eval()
     total, n = 0.0, 0
     starts = range(0, len(index), batch_size)
@@ -252,6 +256,8 @@ def validation_loss(model: torch.nn.Module, batcher: WindowBatcher, index: Windo
                                 flow=model.flow_prior)
         total += float(weighted_loss(losses, weights)) * len(b)
         n += len(b)
+        del b, losses
+        release_free_memory()
     model.train()
     total, n = dist.all_sum(total, n)
     return total / n

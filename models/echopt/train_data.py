@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import Callable, Iterator
 
 import numpy as np
+import torch
 
 from sonarset.errors import SonarSetError
 from sonarset.store.store import SonarStore
@@ -71,11 +72,25 @@ def fewer_than_a_batch(location: str, n_train: int, n_val: int, per: str = "") -
                          f"overlapping them), fewer than one batch{per}", parameter="batch_size")
 
 
+@dataclass(frozen=True)
+class _Float32On:
+    """A gathered NumPy block as a float32 tensor on ``device``: the validation windows are decoded
+    on the CPU and only each batch goes to the device (on a GPU too, where in memory every frame is
+    held there)."""
+
+    device: torch.device
+
+    def __call__(self, block: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(block).to(self.device).float()
+
+
 @dataclass
 class StreamedWindows:
     """Training windows streamed from the store (``TrainConfig.stream``, sonarset.stream): each process reads
     its own shards, slab by slab through a shuffle buffer, so memory is bounded by the buffer, not
-    the store. The validation windows (the same purged split as in memory) are read once."""
+    the store. The validation windows (the same purged split as in memory) are read once and held
+    compressed (``window_bank``), each validation batch decoded as it is gathered: the same
+    batches, and so the same loss, as in memory."""
 
     run_names: list[str]
     loader: StreamingLoader
@@ -91,7 +106,7 @@ class StreamedWindows:
              device: str) -> "StreamedWindows":
         layout = RunLayout.of(store, split="train", worlds=cfg.world_list())
         train_idx, val_idx = layout.index(n_in, horizon).split(cfg.n_val, seed=cfg.seed)
-        val_bank = window_bank(store, layout, val_idx)
+        val_bank = window_bank(store, layout, val_idx)  # packed: a sixth of the frames' bytes
         local = cfg.batch_size // dist.world
         ds = StreamingWindowDataset(layout, train_idx.starts, n_in=n_in, horizon=horizon, batch_size=local,
                                     seed=cfg.seed, shuffle_buffer=cfg.shuffle_buffer, drop_last=True, rank=dist.rank,
@@ -100,8 +115,9 @@ class StreamedWindows:
         if steps == 0:
             raise fewer_than_a_batch(store.location, len(train_idx), cfg.n_val, " per process and loader worker")
         loader = StreamingLoader(ds, cfg.loader_workers, max_batches=steps, convert=False)
-        return cls(layout.run_names, loader, torch_batcher(val_bank, device), val_idx, len(train_idx), steps, n_in,
-                   device)
+        to_device = _Float32On(torch.device(device))
+        val_batcher = WindowBatcher(val_bank.images, val_bank.velocity, images_as=to_device, commands_as=to_device)
+        return cls(layout.run_names, loader, val_batcher, val_idx, len(train_idx), steps, n_in, device)
 
     def epoch(self, epoch: int, start: int, steps: int) -> Iterator[Callable[[int], tuple]]:
         self.loader.skip_to(epoch, start)

@@ -53,7 +53,8 @@ class Scores:
             sl = slice(lo, min(len(index), lo + batch_size))
             batch = batcher.gather(index, np.arange(sl.start, sl.stop))  # once for every method
             if lo == 0:
-                examples["frames"], examples["targets"] = batch.frames[0], batch.targets[0]
+                # copies: a view would pin the whole first batch for the rest of the evaluation
+                examples["frames"], examples["targets"] = batch.frames[0].copy(), batch.targets[0].copy()
             self.target_peak[sl], self.target_energy[sl] = peak_and_energy(batch.targets[:, :H])
             horizons = list(next(iter(self.per_window.values())))
             target_echoes = {h: find_echoes(batch.targets[:, h - 1], self.grid, self.matching) for h in horizons}
@@ -67,7 +68,7 @@ class Scores:
                         metrics[k][sl] = v
                 self.step_peak[name][sl], self.step_energy[name][sl] = peak_and_energy(pred)
                 if lo == 0:
-                    examples["methods"][name] = pred[0]
+                    examples["methods"][name] = pred[0].copy()  # not a view of the whole batch's rollout
                 if progress:
                     progress(name, sl.stop, len(index))
         return examples
