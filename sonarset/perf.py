@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ctypes
+import functools
 import sys
 
 
@@ -27,3 +28,26 @@ def keep_freed_memory() -> bool:
     ok &= libc.mallopt(m_trim_threshold, 1 << 30)
     ok &= libc.mallopt(m_top_pad, 64 * 2**20)
     return bool(ok)
+
+
+@functools.cache
+def _malloc_trim():
+    try:
+        return ctypes.CDLL(None).malloc_trim  # glibc's
+    except (AttributeError, OSError, TypeError):  # another C library, or Windows
+        return None
+
+
+def release_free_memory() -> None:
+    """Hand the pages of the C heap that hold no live block back to the OS (glibc's
+    ``malloc_trim``; elsewhere nothing).
+
+    glibc shrinks its heap only from the top, so after a phase that freed its blocks in another
+    order than it took them (training steps' activations and batches), the free ones stay resident,
+    and the next phase (validation's batches of 128, the test evaluation's rollouts) is laid out
+    around them: on the paper's dataset the main heap held ~400 MB free but resident before the test
+    evaluation of ``streamed training``. Called between such phases it costs a few ms and changes no value.
+    """
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)

@@ -31,8 +31,6 @@ NumPy only; ``sonarset.torchdata`` wraps it in a PyTorch ``IterableDataset``.
 from __future__ import annotations
 
 import concurrent.futures as cf
-import ctypes
-import functools
 import math
 from dataclasses import dataclass, field
 from typing import Iterator, Sequence
@@ -395,26 +393,3 @@ class HeldFrames:
 
     def __getitem__(self, at):
         return self.held[self.positions(at)]
-
-
-@functools.cache
-def _malloc_trim():
-    try:
-        return ctypes.CDLL(None).malloc_trim  # glibc's
-    except (AttributeError, OSError, TypeError):  # another C library, or Windows
-        return None
-
-
-def release_free_memory() -> None:
-    """Hand the pages of the C heap that hold no live block back to the OS (glibc's
-    ``malloc_trim``; elsewhere nothing).
-
-    glibc shrinks its heap only from the top, so after a phase that freed its blocks in another
-    order than it took them (training steps' activations and batches), the free ones stay resident,
-    and the next phase (validation's batches of 128, the test evaluation's rollouts) is laid out
-    around them: on the paper's dataset the main heap held ~400 MB free but resident before the test
-    evaluation of ``train --stream``. Called between such phases it costs a few ms and changes no value.
-    """
-    trim = _malloc_trim()
-    if trim is not None:
-        trim(0)

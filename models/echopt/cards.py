@@ -57,7 +57,7 @@ def add_test_metrics(out_dir: str | os.PathLike, store: SonarStore, cfg: TrainCo
     from sonarset.models.echopt.recipes import portable_path
     from sonarset.models.eval.evaluate import evaluate
     from sonarset.models.registry import BASELINES
-    from sonarset.stream import release_free_memory
+    from sonarset.perf import release_free_memory
 
     release_free_memory()
     path = Path(out_dir) / "model.safetensors"

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from sonarset.errors import SonarSetError
-from sonarset.stream import release_free_memory
+from sonarset.perf import release_free_memory
 from sonarset.windows import WindowBatcher, WindowIndex
 
 from sonarset.models.echopt.distributed import Dist
