@@ -1,6 +1,15 @@
-"""EchoPT training throughput (samples/s) per preset, on CPU and on a GPU when there is one.
+"""Training throughput (samples/s) of EchoPT's presets and of the recommended model, against the
+matmul roof of the same process, on CPU and on a GPU when there is one.
 
     python bench/bench_train.py [--presets small,paper] [--steps 5] [--devices cpu,cuda]
+                                [--roof-kinds echowarp:10,echopt:3] [--roof-batch 16]
+
+The roof section (CPU): each ``KIND:K`` of ``--roof-kinds`` built as its small preset and trained as
+its recipe trains it (a K-step rollout per window: EchoWarp forecasts its K horizons in one pass),
+its forward and backward GFLOP per window (torch's flop counter), training samples/s in fp32 and in
+bf16 autocast, and the achieved TFLOP/s as a share of a large torch.matmul's in the same precision,
+measured in the same process (bench/bench_zoo.py's functions). On a CPU without bf16 units the
+share that counts is fp32's.
 
 Times full optimizer steps (forward, backward, Adam) on batch 64 of the default 200 x 90 grid
 with data already in memory, in fp32 and in bf16 autocast (the precision ``--precision auto`` picks
@@ -64,6 +73,9 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--devices", default="cpu,cuda", help="cpu, cuda or both (cuda only where there is one)")
     ap.add_argument("--cuda-batches", default="64,256")
+    ap.add_argument("--roof-kinds", default="echowarp:10,echopt:3", help="KIND:K,... ('' skips the roof section)")
+    ap.add_argument("--roof-batch", type=int, default=16)
+    ap.add_argument("--matmul", type=int, default=2048, help="size of the roof's square matmul")
     args = ap.parse_args()
     devices = args.devices.split(",")
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "none"
@@ -96,6 +108,29 @@ def main() -> None:
                 print(f"{preset:6s} ({n / 1e6:.2f} M params) batch {batch} cuda fp32: {plain:8.0f} samples/s   "
                       f"bf16 autocast: {half:8.0f} ({half / plain:.2f}x)   bf16 + compile: {fast:8.0f} "
                       f"({fast / plain:.2f}x)", flush=True)
+    if "cpu" in devices and args.roof_kinds:
+        roof_section(args)
+
+
+def roof_section(args) -> None:
+    """Each model's training speed as a share of the matmul roof of this process."""
+    from bench_zoo import gflop_per_sample, matmul_tflops, network, samples_per_s
+
+    roof = {p: matmul_tflops(torch.float32 if p == "fp32" else torch.bfloat16, args.matmul) for p in ("fp32", "bf16")}
+    print(f"# matmul roof ({args.matmul}^2, this process): fp32 {roof['fp32']:.3f} TFLOP/s, bf16 "
+          f"{roof['bf16']:.3f} TFLOP/s; the share that counts: "
+          f"{'bf16' if resolve_precision('auto', 'cpu') == 'bf16' else 'fp32'}")
+    for item in args.roof_kinds.split(","):
+        kind, _, k = item.partition(":")
+        model = network(kind, "small", (200, 90))
+        gflop = gflop_per_sample(model, (200, 90), int(k or 1))
+        cells = []
+        for precision in ("fp32", "bf16"):
+            rate = samples_per_s(model, (200, 90), int(k or 1), args.roof_batch, args.steps, precision)
+            cells.append(f"{precision} {rate:6.1f} samples/s = {rate * gflop / 1e3:.3f} TFLOP/s "
+                         f"({100 * rate * gflop / 1e3 / roof[precision]:.1f}% of roof)")
+        print(f"{kind:9s} small, {k}-step windows, batch {args.roof_batch}: {gflop:.2f} GFLOP/window; "
+              + ";  ".join(cells), flush=True)
 
 
 if __name__ == "__main__":

@@ -103,6 +103,7 @@ CHECKPOINT_KINDS: dict[str, Callable] = {
     # the reference methods of video prediction (models/zoo/), trained by sonarset train --model KIND
     "convlstm": zoo_checkpoint_loader("convlstm"),
     "simvp": zoo_checkpoint_loader("simvp"),
+    "echowarp": zoo_checkpoint_loader("echowarp"),
     "unet": zoo_checkpoint_loader("unet"),
 }
 

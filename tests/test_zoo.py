@@ -20,7 +20,7 @@ from sonarset.models.echopt.predictor import ForecastPredictor, load_learned_pre
 from sonarset.models.echopt.train import train
 from sonarset.models.echopt.train_config import TrainConfig
 from sonarset.models.eval.evaluate import evaluate
-from sonarset.models.zoo import ZOO
+from sonarset.models.zoo import REFERENCE_METHODS, ZOO
 from tests.conftest import make_run
 
 GRID = SensorGrid(range_min_m=0.5, range_max_m=3.0, n_range=40, azimuth_min_rad=-1.4, azimuth_max_rad=1.4, n_azimuth=18)
@@ -48,7 +48,7 @@ def _window(b: int = 3, k: int = 1, seed: int = 0):
     return frames, commands
 
 
-@pytest.mark.parametrize("kind", list(ZOO))
+@pytest.mark.parametrize("kind", REFERENCE_METHODS)
 @pytest.mark.parametrize("prior,inputs", [("flow", "raw"), ("flow", "aligned"), ("last", "raw")])
 def test_an_untrained_model_is_its_prior(kind, prior, inputs):
     model = _model(kind, prior=prior, inputs=inputs)
@@ -65,7 +65,7 @@ def test_an_untrained_model_is_its_prior(kind, prior, inputs):
         model(frames[:, :, :20], commands)
 
 
-@pytest.mark.parametrize("kind", list(ZOO))
+@pytest.mark.parametrize("kind", REFERENCE_METHODS)
 def test_without_a_prior_the_network_draws_the_image(kind):
     model = _model(kind, prior="none")
     frames, commands = _window()
@@ -114,7 +114,7 @@ def test_the_trainer_trains_checkpoints_evaluates_and_resumes_each_kind(store, t
     resumed = train(store, tmp_path / "part", _cfg(kind, max_steps=3), resume=True)
     assert [r["val_loss"] for r in resumed.history] == [r["val_loss"] for r in full.history]
     model, card = load_checkpoint(tmp_path / "full", GRID)
-    assert type(model).__name__ == {"convlstm": "ConvLSTM", "simvp": "SimVP", "unet": "UNet"}[kind]
+    assert type(model).__name__ == {"convlstm": "ConvLSTM", "simvp": "SimVP", "unet": "UNet", "echowarp": "EchoWarp"}[kind]
     assert card["model"] == kind and card["n_params"] == model.n_params()
     assert type(model.cfg).from_dict(card["config"]) == model.cfg
     # the registry's KIND:PATH, and the card's test metrics
@@ -168,7 +168,7 @@ def test_a_checkpoint_answers_to_its_own_kind_only(store, tmp_path):
     pytest.importorskip("onnxscript")
     from sonarset.models.echopt.onnx_export import export_onnx
 
-    with pytest.raises(SonarSetError, match="a U-Net checkpoint; ONNX export is EchoPT's only"):
+    with pytest.raises(SonarSetError, match="a U-Net checkpoint; ONNX export is for EchoPT and EchoWarp only"):
         export_onnx(tmp_path / "u", tmp_path / "u.onnx")
     # the shipped EchoPT loads as it always has, from a card that names no kind
     shipped = load_learned_predictor("pretrained", SensorGrid.default())

@@ -332,11 +332,11 @@ def demo(
 
 @user_errors
 def export_onnx_(
-    model: str = typer.Argument(..., metavar="MODEL", help="EchoPT checkpoint: pretrained, a run directory or a "
-                                                          ".safetensors path."),
+    model: str = typer.Argument(..., metavar="MODEL", help="EchoPT checkpoint (pretrained, a run directory or a "
+                                                          ".safetensors path), or EchoWarp's as echowarp:RUN."),
     out_path: Path = typer.Argument(..., metavar="OUT.onnx", help="The ONNX file to write."),
 ) -> None:
-    """Export EchoPT to ONNX for onnxruntime: a dynamic batch axis, the flow prior inside the graph,
+    """Export EchoPT or EchoWarp to ONNX for onnxruntime: a dynamic batch axis, the flow prior inside the graph,
     the model card in the metadata; checked against torch before it is written."""
     from sonarset.models.echopt.onnx_export import export_onnx
 
@@ -348,4 +348,5 @@ def export_onnx_(
     else:
         out.print(f"onnxruntime matches torch to {e.max_abs_diff:.1e} (max abs) on {e.check_windows} random windows",
                   highlight=False)
-    out.print(f"use it as --models echopt:{e.path} (eval) or --model {e.path} (demo, experiments)", highlight=False)
+    out.print(f"use it as --models {e.kind}:{e.path} (eval) or --model {e.kind}:{e.path} (demo, experiments)",
+              highlight=False)

@@ -15,8 +15,8 @@ from sonarset.models.zoo import ZOO, network
 #: The kinds, EchoPT first; train_config.MODEL_KINDS names the same.
 KINDS = ("echopt", *ZOO)
 #: How messages name each kind, and with its article.
-TITLES = {"echopt": "EchoPT", "convlstm": "ConvLSTM", "simvp": "SimVP", "unet": "U-Net"}
-A_TITLE = {"echopt": "an EchoPT", "convlstm": "a ConvLSTM", "simvp": "a SimVP", "unet": "a U-Net"}
+TITLES = {"echopt": "EchoPT", "convlstm": "ConvLSTM", "simvp": "SimVP", "unet": "U-Net", "echowarp": "EchoWarp"}
+A_TITLE = {"echopt": "an EchoPT", "convlstm": "a ConvLSTM", "simvp": "a SimVP", "unet": "a U-Net", "echowarp": "an EchoWarp"}
 
 
 def kind_of(model: nn.Module) -> str:

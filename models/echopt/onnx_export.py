@@ -28,9 +28,12 @@ from sonarset.errors import SonarSetError
 
 from sonarset.models.echopt.checkpoint import load_checkpoint
 from sonarset.models.echopt.model import EchoPT
-from sonarset.models.echopt.networks import A_TITLE, kind_of
+from sonarset.models.echopt.networks import A_TITLE, TITLES, kind_of
 from sonarset.models.echopt.onnx_runtime import CARD_KEY, INPUTS, OUTPUT
 
+#: The kinds whose one-step predictor exports as a graph: the reference methods are not shipped to
+#: robots, and ConvLSTM's recurrence and SimVP's slots were never checked against onnxruntime.
+ONNX_KINDS = ("echopt", "echowarp")
 #: The largest torch-vs-onnxruntime difference an export may have (images are in [0, 1]).
 PARITY_TOLERANCE = 1e-4
 OPSET = 18
@@ -53,6 +56,7 @@ class Export:
     bytes: int
     max_abs_diff: float | None  # torch vs onnxruntime on the check windows; None without onnxruntime
     check_windows: int
+    kind: str = "echopt"  # the exported network's
 
 
 def random_windows(model: EchoPT, n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -117,9 +121,12 @@ def export_onnx(spec: str | os.PathLike, out: str | os.PathLike, *, check_window
     if out.is_dir():
         raise SonarSetError(f"{out}: is a directory")
     onnx = _onnx_modules()
-    model, card = load_checkpoint(str(spec).removeprefix("echopt:"))
-    if kind_of(model) != "echopt":
-        raise SonarSetError(f"{spec}: {A_TITLE[kind_of(model)]} checkpoint; ONNX export is EchoPT's only")
+    text = str(spec)
+    kind = next((k for k in ONNX_KINDS if text.startswith(f"{k}:")), None)
+    model, card = load_checkpoint(text.removeprefix(f"{kind}:") if kind else text, kind=kind)
+    if kind_of(model) not in ONNX_KINDS:
+        raise SonarSetError(f"{spec}: {A_TITLE[kind_of(model)]} checkpoint; ONNX export is for "
+                            f"{' and '.join(TITLES[k] for k in ONNX_KINDS)} only")
     model = model.float().eval()
     deployed = DeployedEchoPT(model).eval()
     example = random_windows(model, 2, seed=1)
@@ -141,7 +148,7 @@ def export_onnx(spec: str | os.PathLike, out: str | os.PathLike, *, check_window
     finally:
         exporter_log.setLevel(level)
     proto = program.model_proto
-    proto.doc_string = (f"EchoPT ({card.get('preset', 'custom')} preset, {model.cfg.prior} prior) exported by "
+    proto.doc_string = (f"{TITLES[kind_of(model)]} ({card.get('preset', 'custom')} preset, {model.cfg.prior} prior) exported by "
                         f"sonarset {__version__}: next sonar energyscape from {model.cfg.n_in} frames and "
                         f"{model.cfg.n_in + 1} velocity commands")
     del proto.metadata_props[:]
@@ -156,7 +163,7 @@ def export_onnx(spec: str | os.PathLike, out: str | os.PathLike, *, check_window
                             f"{PARITY_TOLERANCE:g}) on {check_windows} random windows; not written")
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(out, lambda p: p.write_bytes(data))
-    return Export(out, len(data), diff, check_windows)
+    return Export(out, len(data), diff, check_windows, kind_of(model))
 
 
 @torch.no_grad()

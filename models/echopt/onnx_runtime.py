@@ -118,8 +118,8 @@ class OnnxEchoPTPredictor(BasePredictor):
                                 "a graph that does not match its card; export it again")
         self.grid = grid
         self.batch_size = batch_size
-        self.name = "echopt"
-        self.label = f"echopt {self.path.name}"
+        self.name = str(self.card.get("model", "echopt"))  # the exported kind: echopt or echowarp
+        self.label = f"{self.name} {self.path.name}"
 
     def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:
         out = np.empty((frames.shape[0], *frames.shape[2:]), dtype=np.float32)
@@ -139,5 +139,10 @@ def _shape_text(shape) -> str:
     return "x".join(str(d) if isinstance(d, int) else str(d or "?") for d in shape)
 
 
-def load_onnx_predictor(path: str | os.PathLike, grid: SensorGrid | None = None) -> OnnxEchoPTPredictor:
-    return OnnxEchoPTPredictor(path, grid)
+def load_onnx_predictor(path: str | os.PathLike, grid: SensorGrid | None = None,
+                        kind: str = "echopt") -> OnnxEchoPTPredictor:
+    """The export at ``path``, which must be of ``kind`` (its card's model)."""
+    p = OnnxEchoPTPredictor(path, grid)
+    if p.name != kind:
+        raise SonarSetError(f"{path}: an ONNX export of {p.name}, not of {kind}; name it {p.name}:{path}")
+    return p

@@ -27,7 +27,7 @@ STEP_WEIGHTS = ("uniform", "harmonic")
 TRAINABLE = ("all", "geometry")
 #: The networks ``sonarset train`` builds: EchoPT and the reference methods of video prediction
 #: (models/zoo/), trained by the same trainer on the same windows and losses.
-MODEL_KINDS = ("echopt", "convlstm", "simvp", "unet")
+MODEL_KINDS = ("echopt", "convlstm", "simvp", "unet", "echowarp")
 
 
 @dataclass

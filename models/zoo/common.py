@@ -10,6 +10,7 @@ next frame (B, R, A), like EchoPT, and is trained by the same trainer (models/ec
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
+from typing import ClassVar
 
 import torch
 import torch.nn as nn
@@ -45,6 +46,9 @@ class ZooConfig:
     dt: float = _DEFAULT_RIG.frame_interval_s
     sensor_offset: float = _DEFAULT_RIG.sensor_offset_m
 
+    #: The sizes that may be 0: a part of the network switched off (an ablation).
+    switches: ClassVar[tuple[str, ...]] = ()
+
     def sizes(self) -> dict[str, int | tuple[int, ...]]:
         """The network's sizes: the fields a method's config adds."""
         shared = {f.name for f in fields(ZooConfig)}
@@ -61,9 +65,11 @@ class ZooConfig:
                 raise (error(message) if error else ConfigError(name, message))
         for name, v in self.sizes().items():
             values = v if isinstance(v, tuple) else (v,)
-            if not values or any(isinstance(x, bool) or not isinstance(x, int) or not 1 <= x <= _MAX_SIZE
+            least = 0 if name in self.switches else 1
+            if not values or any(isinstance(x, bool) or not isinstance(x, int) or not least <= x <= _MAX_SIZE
                                  for x in values):
-                raise ConfigError(name, f"{name} must be an integer in 1..{_MAX_SIZE} (or a tuple of them), got {v!r}")
+                raise ConfigError(name, f"{name} must be an integer in {least}..{_MAX_SIZE} (or a tuple of them), "
+                                        f"got {v!r}")
         check_rig_and_inputs(self)
 
     def to_dict(self) -> dict:

@@ -1,0 +1,207 @@
+"""EchoWarp: every horizon forecast from the measured frames by the cumulative commanded motion,
+the motion corrected, a source term added.
+
+Designed from what the measurements say (BENCHMARKS.md, "A predictor that uses its context"):
+
+- **Correct the motion, not only the pixels.** The acoustic flow moves every pixel as a fixed point
+  of the world; the echo of a wall is its foot point, which slides along the wall as the robot
+  moves, and an occluded reflector reappears. An intensity residual cannot move a sparse echo
+  without blurring it, so the network outputs, per horizon, a correction (in pixels) to where each
+  pixel is sampled from in the last frame, gates that add the older frames registered to the same
+  pose (reflectors heard earlier and hidden now), and an additive source term, composed through a
+  differentiable warp (``grid_sample``), as NowcastNet composes motion fields and intensity
+  (Zhang et al. 2023, "Skilful nowcasting of extreme precipitation with NowcastNet", Nature).
+- **No compounding resampling.** Horizon h samples the measured frames once, at the robot's
+  composed motion over the h commands (exact SE(2) composition of the arcs; models/flow.py), and
+  every horizon up to ``max_horizon`` is one batch of slots in one pass, trained on the horizons it
+  is scored on (the ego-motion factored out, as Khurana et al. 2023 do for lidar forecasting).
+- **The FLOPs where the matrix units are.** A U-Net of 32-128 channels at 1/2 to 1/8 resolution,
+  channels-last, bf16 under autocast; full resolution only for the inputs, one narrow
+  convolution and the warp.
+
+With every output layer at zero an untrained model is the composite flow: the last frame warped
+once along the composed motion.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from sonarset.errors import GridMismatchError
+
+from sonarset.models.echopt.config import ConfigError
+from sonarset.models.flow import arc_motion, source_points
+from sonarset.models.zoo.common import ConvAct, Up, ZooConfig, ZooModel, conv, zero_init
+
+#: The protocol's longest horizon (AR-10): a forecast of up to this many steps is one pass.
+MAX_HORIZON = 10
+#: Scales that bring the inputs to about [-1, 1]: the composed motion (rad, m) and a pixel's shift
+#: (pixels) over a horizon.
+MOTION_SCALE = (0.5, 0.5, 0.5)
+SHIFT_SCALE = 16.0
+
+
+@dataclass(frozen=True)
+class EchoWarpConfig(ZooConfig):
+    inputs: str = "aligned"  # by design: the older frames registered to the predicted pose
+    channels: tuple[int, ...] = (32, 64, 128)  # the U-Net's widths at 1/2, 1/4, 1/8 resolution
+    full_channels: int = 16  # the one convolution at full resolution
+    max_shift: int = 6  # pixels: the largest correction of where a pixel is sampled from (0: none)
+    older_frames: int = 1  # 1: gates add the registered older frames; 0: the last frame alone
+    max_horizon: int = MAX_HORIZON
+    switches: ClassVar[tuple[str, ...]] = ("max_shift", "older_frames")  # the ablation's parts
+
+    def check(self) -> None:
+        super().check()
+        if self.prior != "flow":
+            raise ConfigError("prior", f"EchoWarp corrects the flow warp (prior flow), not prior {self.prior}")
+        if self.inputs != "aligned":
+            raise ConfigError("inputs", f"EchoWarp registers its inputs to the predicted pose (inputs aligned), "
+                              f"not inputs {self.inputs}")
+        if len(self.channels) < 2:
+            raise ConfigError("channels", f"channels needs at least 2 levels, got {self.channels!r}")
+
+
+PRESETS: dict[str, dict] = {
+    "small": {},
+    "tiny": dict(channels=(4, 8), full_channels=4, max_horizon=4),
+}
+
+
+def n_features(n_in: int) -> int:
+    """The per-pixel inputs of a slot: the n_in registered frames, whether the last frame's source is
+    outside the view, that source's shift (range, azimuth), the pixel's sine of azimuth and range,
+    the horizon, and the composed motion (heading, x, y)."""
+    return n_in + 1 + 2 + 2 + 1 + 3
+
+
+class EchoWarp(ZooModel):
+    kind = "echowarp"
+    title = "EchoWarp"
+
+    def __init__(self, cfg: EchoWarpConfig):
+        super().__init__(cfg)
+        ch, fc, cin = cfg.channels, cfg.full_channels, n_features(cfg.n_in)
+        # down: the first level halves the grid, each further one halves it again
+        self.down = nn.ModuleList(nn.Sequential(ConvAct(a, b, 3, stride=2), ConvAct(b, b))
+                                  for a, b in zip((cin, *ch), ch))
+        self.up = nn.ModuleList(Up(deep, skip, skip) for deep, skip in zip(ch[:0:-1], ch[-2::-1]))
+        self.full = nn.Sequential(ConvAct(ch[0] + cin, fc, 1), ConvAct(fc, fc))
+        # the warp's correction (range, azimuth pixels), a gate per older frame, the source term
+        self.head = conv(fc, 2 + (cfg.n_in - 1) + 1, 1)
+        zero_init(self.head)
+
+    @property
+    def max_horizon(self) -> int:
+        return self.cfg.max_horizon
+
+    def forecast(self, frames: torch.Tensor, commands: torch.Tensor, k: int) -> torch.Tensor:
+        """frames (B, n_in, R, A) in [0, 1]; commands (B, n_in + k, 2) -> the next ``k`` frames
+        (B, k, R, A), 1 <= k <= max_horizon, from one forward pass."""
+        return self(frames, commands, k)
+
+    def forward(self, frames: torch.Tensor, commands: torch.Tensor, k: int | None = None) -> torch.Tensor:
+        """frames (B, n_in, R, A), commands (B, n_in + 1, 2) -> the next frame (B, R, A); with ``k``,
+        commands (B, n_in + k, 2) -> the next k frames (B, k, R, A)."""
+        cfg = self.cfg
+        steps = 1 if k is None else k
+        if not 1 <= steps <= cfg.max_horizon:
+            raise ValueError(f"EchoWarp forecasts 1..{cfg.max_horizon} steps in one pass, not {steps}")
+        n_in = cfg.n_in
+        if commands.shape[1] < n_in + steps:
+            raise ValueError(f"a {steps}-step forecast needs {n_in + steps} commands, got {commands.shape[1]}")
+        self._check_frames(frames)
+        B, _, R, A = frames.shape
+        ir, ia, motion = self.sources(commands[:, :n_in + steps], n_in, steps)  # (B, steps, n_in, R, A) each
+        slots = frames[:, None].expand(B, steps, n_in, R, A).reshape(B * steps, n_in, R, A)
+        ir, ia = ir.reshape(B * steps, n_in, R, A), ia.reshape(B * steps, n_in, R, A)
+        registered = self.sample(slots, ir, ia)  # every frame at the target's pose
+        x = self.features(registered, ir[:, -1], ia[:, -1], motion.reshape(B * steps, 3), steps)
+        skips, y = [], x
+        for level in self.down:
+            y = level(y)
+            skips.append(y)
+        for up, skip in zip(self.up, reversed(skips[:-1])):
+            y = up(y, skip)
+        y = F.interpolate(y, size=(R, A), mode="bilinear", align_corners=False)
+        out = self.head(self.full(torch.cat([y, x.to(y.dtype)], 1))).float()
+        pred = out[:, n_in + 1]  # the source term
+        if cfg.max_shift:  # the last frame through the corrected warp
+            shift = torch.tanh(out[:, :2]) * cfg.max_shift
+            pred = pred + self.sample(slots[:, -1:], ir[:, -1:] + shift[:, :1], ia[:, -1:] + shift[:, 1:2])[:, 0]
+        else:  # through the composite warp alone: the correction is an intensity residual
+            pred = pred + registered[:, -1].float()
+        if cfg.older_frames:
+            pred = pred + (out[:, 2:n_in + 1] * registered[:, :-1].float()).sum(1)
+        pred = pred.reshape(B, steps, R, A)
+        return pred[:, 0] if k is None else pred
+
+    def _check_frames(self, frames: torch.Tensor) -> None:
+        cfg = self.cfg
+        _, n_in, R, A = frames.shape
+        if (R, A) != (cfg.n_range, cfg.n_azimuth) or n_in != cfg.n_in:
+            raise GridMismatchError(f"{self.title} was built for {cfg.n_in} frames of {cfg.n_range}x{cfg.n_azimuth}, "
+                                    f"got {n_in} of {R}x{A}")
+
+    def sources(self, commands: torch.Tensor, n_in: int, steps: int):
+        """Where each pixel of the frame ``h`` steps ahead (h = 1..steps) lies in each input frame, in
+        (fractional) pixel indices ``ir``, ``ia`` (B, steps, n_in, R, A), and the composed motion from
+        the last input frame's pose to it (heading change, x, y; B, steps, 3). ``commands[:, t]`` moves
+        the robot from frame t - 1 to frame t; the poses are composed exactly in float64, then each
+        pixel's source is computed once (no chain of resamplings)."""
+        cmd = commands.double()
+        _, _, dx, dy = arc_motion(torch, cmd[..., 0], cmd[..., 1], self.cfg.dt)  # (B, T): frame t-1 -> t
+        phi = cmd[..., 1] * self.cfg.dt  # the heading change, as arc_motion's
+        # poses of every frame in frame 0's robot frame
+        heading, px, py = [torch.zeros_like(phi[:, 0])], [torch.zeros_like(phi[:, 0])], [torch.zeros_like(phi[:, 0])]
+        for t in range(1, commands.shape[1]):
+            h0 = heading[-1]
+            px.append(px[-1] + torch.cos(h0) * dx[:, t] - torch.sin(h0) * dy[:, t])
+            py.append(py[-1] + torch.sin(h0) * dx[:, t] + torch.cos(h0) * dy[:, t])
+            heading.append(h0 + phi[:, t])
+        heading, px, py = (torch.stack(v, 1) for v in (heading, px, py))  # (B, T)
+        tgt = slice(n_in, n_in + steps)
+        # the target's pose in each input frame's robot frame: (B, steps, n_in)
+        d_h = heading[:, tgt, None] - heading[:, None, :n_in]
+        ex, ey = px[:, tgt, None] - px[:, None, :n_in], py[:, tgt, None] - py[:, None, :n_in]
+        ci, si = torch.cos(heading[:, None, :n_in]), torch.sin(heading[:, None, :n_in])
+        rel_x, rel_y = ci * ex + si * ey, -si * ex + ci * ey
+        motion = tuple(t.float()[..., None, None] for t in (torch.cos(d_h), torch.sin(d_h), rel_x, rel_y))
+        r, th = self._centres()
+        xo, yo = source_points(torch, r[:, None], th[:, None], motion, self.cfg.sensor_offset)
+        (r_first, r_step), (th_first, th_step) = self._pixel_steps
+        ir = (torch.hypot(xo, yo) - r_first) / r_step
+        ia = (torch.atan2(yo, xo) - th_first) / th_step
+        last_motion = torch.stack([d_h[:, :, -1], rel_x[:, :, -1], rel_y[:, :, -1]], -1).float()
+        return ir, ia, last_motion / last_motion.new_tensor(MOTION_SCALE)
+
+    def sample(self, images: torch.Tensor, ir: torch.Tensor, ia: torch.Tensor) -> torch.Tensor:
+        """``images`` (N, C, R, A) each sampled bilinearly at the pixel indices ``ir``, ``ia`` (N, C, R, A),
+        edge values outside the view: the flow's sampling, for C images at once."""
+        N, C, R, A = images.shape
+        grid = torch.stack([2 * ia / max(A - 1, 1) - 1, 2 * ir / max(R - 1, 1) - 1], -1)
+        out = F.grid_sample(images.reshape(N * C, 1, R, A).float(), grid.reshape(N * C, R, A, 2), mode="bilinear",
+                            padding_mode="border", align_corners=True)
+        return out.reshape(N, C, R, A)
+
+    def features(self, registered: torch.Tensor, ir: torch.Tensor, ia: torch.Tensor, motion: torch.Tensor,
+                 steps: int) -> torch.Tensor:
+        """A slot's per-pixel inputs (N, n_features, R, A), channels-last (``n_features``)."""
+        cfg = self.cfg
+        N, n_in, R, A = registered.shape
+        outside = ((ir < -0.5) | (ir > R - 0.5) | (ia < -0.5) | (ia > A - 0.5)).float()
+        r_idx = torch.arange(R, device=ir.device, dtype=ir.dtype)[:, None]
+        a_idx = torch.arange(A, device=ir.device, dtype=ir.dtype)[None, :]
+        shift = torch.stack([ir - r_idx, ia - a_idx], 1).clamp(-2 * SHIFT_SCALE, 2 * SHIFT_SCALE) / SHIFT_SCALE
+        r, th = self._centres()
+        r0, r1 = cfg.range_edges
+        pos = torch.stack([torch.sin(th).expand(1, R, A), ((r - r0) / (r1 - r0) * 2 - 1).expand(1, R, A)], 1)
+        horizon = (torch.arange(N, device=ir.device) % steps + 1).float() / cfg.max_horizon
+        planes = torch.cat([horizon[:, None], motion], 1)[:, :, None, None].expand(N, 4, R, A)
+        x = torch.cat([registered, outside[:, None], shift, pos.expand(N, 2, R, A), planes], 1)
+        return x.contiguous(memory_format=torch.channels_last)

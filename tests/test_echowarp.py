@@ -1,0 +1,148 @@
+"""EchoWarp (models/echowarp/): untrained it is the composite flow (one warp of the last frame along
+the composed motion, the older frames registered as EchoPT's aligned inputs), every horizon comes
+from one causal pass, and its corrections move echoes through the warp."""
+
+import numpy as np
+import pytest
+import torch
+
+from sonarset.format.attrs import RobotRig, SensorGrid
+
+from sonarset.models.baselines import AcousticFlow
+from sonarset.models.echopt.config import ConfigError, grid_and_rig
+from sonarset.models.echopt.networks import build
+from sonarset.models.echopt.predictor import ForecastPredictor
+
+GRID = SensorGrid(range_min_m=0.5, range_max_m=3.0, n_range=40, azimuth_min_rad=-1.4, azimuth_max_rad=1.4, n_azimuth=18)
+RIG = RobotRig()
+
+
+def _model(preset: str = "tiny", **overrides):
+    torch.manual_seed(0)
+    return build("echowarp", preset, *GRID.shape, **{**grid_and_rig(GRID, RIG), **overrides}).eval()
+
+
+def _window(b: int = 3, k: int = 4, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    frames = torch.rand((b, 3, *GRID.shape), generator=g)
+    commands = (torch.rand((b, 3 + k, 2), generator=g) * 2 - 1) * torch.tensor([0.3, 1.0])
+    return frames, commands
+
+
+def _trained_like(model):
+    for p in model.parameters():
+        torch.nn.init.normal_(p, std=0.3)
+    return model
+
+
+def test_untrained_it_is_the_composite_flow():
+    model = _model()
+    frames, commands = _window(k=4)
+    with torch.no_grad():
+        out = model.forecast(frames, commands, 4)
+        # one step: the flow baseline's warp exactly
+        flow = AcousticFlow(GRID, RIG).predict(frames.numpy(), commands[:, :4].numpy())
+        np.testing.assert_allclose(out[:, 0].numpy(), flow, atol=1e-5)
+        # h steps: the last frame sampled once where the chain of h one-step sources puts each pixel
+        for h in (2, 4):
+            points = model._centres()
+            for t in range(3 + h - 1, 2, -1):
+                points = model._source(points, commands[:, t])
+            np.testing.assert_allclose(out[:, h - 1].numpy(), model._sample(frames[:, -1], *points).numpy(), atol=1e-4)
+        # the older frames, registered to the predicted pose, are EchoPT's aligned inputs
+        ir, ia, _ = model.sources(commands[:, :4], 3, 1)
+        registered = model.sample(frames, ir[:, 0], ia[:, 0])
+        np.testing.assert_allclose(registered.numpy(), model.align(frames, commands[:, :4]).numpy(), atol=1e-4)
+
+
+def test_every_horizon_in_one_causal_pass():
+    model = _trained_like(_model())
+    frames, commands = _window(k=4)
+    with torch.no_grad():
+        one = model(frames, commands[:, :4])
+        assert one.shape == (3, *GRID.shape)
+        for k in (1, 2, 4):
+            out = model.forecast(frames, commands[:, :3 + k], k)
+            assert out.shape == (3, k, *GRID.shape)
+            torch.testing.assert_close(out[:, 0], one, atol=1e-5, rtol=1e-5)
+        later = commands.clone()
+        later[:, 5:] = -later[:, 5:]
+        a, b = model.forecast(frames, commands, 4), model.forecast(frames, later, 4)
+        torch.testing.assert_close(a[:, :2], b[:, :2], atol=1e-5, rtol=1e-5)  # step j sees no later command
+        assert not torch.allclose(a[:, 2:], b[:, 2:])
+    with pytest.raises(ValueError, match="1..4 steps"):
+        model.forecast(frames, torch.zeros(3, 8, 2), 5)
+
+
+def test_the_warp_correction_moves_an_echo_without_spreading_it():
+    """A head that asks every pixel to sample one range bin further out moves a point echo one bin
+    nearer, whole: the correction acts through the warp, not as an intensity residual."""
+    model = _model()
+    frames = torch.zeros(1, 3, *GRID.shape)
+    frames[0, -1, 20, 9] = 1.0
+    commands = torch.zeros(1, 4, 2)  # standing still: the composite flow is the last frame
+    with torch.no_grad():
+        model.head.bias[0] = float(np.arctanh(1 / model.cfg.max_shift))  # +1 range pixel
+        out = model(frames, commands)
+    assert out[0, 19, 9].item() == pytest.approx(1.0, abs=1e-4) and out.sum().item() == pytest.approx(1.0, abs=1e-4)
+
+
+def test_gradients_reach_every_part():
+    model = _trained_like(_model()).train()
+    frames, commands = _window(k=2)
+    model.forecast(frames, commands, 2).square().mean().backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in model.parameters())
+
+
+@pytest.mark.parametrize("setting,value", [("prior", "last"), ("prior", "none"), ("inputs", "raw")])
+def test_it_refuses_another_prior_or_inputs(setting, value):
+    with pytest.raises(ConfigError, match=setting):
+        _model(**{setting: value})
+
+
+def test_its_predictor_forecasts_in_one_pass_and_chains_beyond_its_horizon():
+    model = _trained_like(_model())
+    predictor = ForecastPredictor(model, {"model": "echowarp"}, GRID, precision="fp32")
+    frames, commands = _window(b=2, k=6)
+    out = predictor.rollout(frames.numpy(), commands.numpy(), 6)
+    assert out.shape == (2, 6, *GRID.shape) and np.all((out >= 0) & (out <= 1))
+    with torch.no_grad():
+        first = model.forecast(frames, commands[:, :7], 4).clamp(0, 1).numpy()
+    np.testing.assert_allclose(out[:, :4], first, atol=1e-5)
+
+
+def test_it_exports_to_onnx_and_runs_in_onnxruntime(tmp_path):
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxscript")
+    from sonarset import SonarSetError
+    from sonarset.models.echopt.checkpoint import save_checkpoint
+    from sonarset.models.echopt.onnx_export import PARITY_TOLERANCE, export_onnx, random_windows
+    from sonarset.models.registry import make_predictor
+
+    model = _trained_like(_model())
+    for p in model.parameters():
+        p.data *= 0.1
+    card = {"preset": "tiny", "grid": GRID.model_dump(), "rig": RIG.model_dump(mode="json")}
+    ckpt = save_checkpoint(tmp_path / "run" / "model.safetensors", model, card)
+    e = export_onnx(f"echowarp:{tmp_path / 'run'}", tmp_path / "warp.onnx")
+    assert e.kind == "echowarp" and e.max_abs_diff is not None and e.max_abs_diff <= PARITY_TOLERANCE
+    torch_pred = make_predictor(f"echowarp:{ckpt}", GRID, RIG, precision="fp32")
+    onnx_pred = make_predictor(f"echowarp:{e.path}", GRID, RIG)
+    assert onnx_pred.name == "echowarp"
+    frames, commands = (t.numpy() for t in random_windows(model, 5, seed=3))
+    np.testing.assert_allclose(onnx_pred.predict(frames, commands), torch_pred.predict(frames, commands), atol=1e-4)
+    with pytest.raises(SonarSetError, match="an ONNX export of echowarp, not of echopt"):
+        make_predictor(f"echopt:{e.path}", GRID, RIG)
+
+
+@pytest.mark.parametrize("switch", ["max_shift", "older_frames"])
+def test_each_part_switches_off_for_the_ablation(switch):
+    full, ablated = _model(), _model(**{switch: 0})
+    frames, commands = _window(k=2)
+    with torch.no_grad():
+        torch.testing.assert_close(ablated.forecast(frames, commands, 2), full.forecast(frames, commands, 2))
+        _trained_like(ablated)
+        out = ablated.forecast(frames, commands, 2)
+        channel = 0 if switch == "max_shift" else 2  # the warp's correction, or the first older frame's gate
+        ablated.head.weight[channel] += 1.0
+        torch.testing.assert_close(ablated.forecast(frames, commands, 2), out)  # that output is unused
