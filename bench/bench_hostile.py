@@ -3,7 +3,7 @@ and on disk, bad model cards, deep world files, signals to worker pools and duri
 concurrent writers, read-only stores, stores of hundreds of runs and hostile ROS bags, each against the commands a
 user runs, as real processes.
 
-    python bench/bench_hostile.py [--imports 20] [--remote-timeout 10] [--runs 400] [--cases length,many-runs]
+    python bench/bench_hostile.py [--imports 20] [--remote-timeout 10] [--runs 400] [--flips 40] [--cases length,many-runs]
 
 Prints one markdown row per (case, command): exit code, seconds, peak RSS, stderr lines, and the
 verdict: clean when the exit code is the expected one, stderr is at most one line (validate: one
@@ -285,6 +285,59 @@ def many_runs_cases(work: Path, runs: int) -> None:
             expect={signal.SIGINT: 130, signal.SIGTERM: 143}[sig])
 
 
+def bitflip_cases(work: Path, flips: int) -> None:
+    """One bit flipped at ``flips`` random offsets of an image chunk of a small store (issue 52):
+    how many flips ``validate`` and the checked read catch, with checksums (format 1.2) and without
+    (the same store rewritten as 1.1); then the commands on one flipped store, as real processes."""
+    import math
+
+    from sonarset.errors import SonarSetError
+    from sonarset.format.attrs import SensorGrid
+    from sonarset.store.store import create_store, open_store
+    from sonarset.store.validate import validate_store
+    from tests.conftest import make_run
+    from tests.corruption_cases import strip_checksums
+
+    grid = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=50, azimuth_min_rad=-math.pi / 2,
+                      azimuth_max_rad=math.pi / 2, n_azimuth=30)
+    rng = np.random.default_rng(52)
+    for label, version in (("crc32c (1.2)", None), ("no checksum (1.1)", "1.1")):
+        path = work / f"flip-{version or '1.2'}.zarr"
+        store = create_store(path, grid)
+        store.write_run("test_000", **make_run(24, 3, dtype="float16", grid=grid), split="test", chunk_frames=8)
+        if version:
+            strip_checksums(path, version)
+        chunk = path / "test_000" / "images" / "c" / "1" / "0" / "0"
+        intact = chunk.read_bytes()
+        caught = {"validate": 0, "read": 0}
+        for offset, bit in zip(rng.integers(0, len(intact), flips), rng.integers(0, 8, flips)):
+            data = bytearray(intact)
+            data[offset] ^= 1 << int(bit)
+            chunk.write_bytes(bytes(data))
+            caught["validate"] += bool([p for p in validate_store(path) if p.refused_by_readers])
+            try:
+                open_store(path, check=True).run("test_000").read("images")
+            except SonarSetError:
+                caught["read"] += 1
+        chunk.write_bytes(intact)
+        for how, n in caught.items():
+            line = f"| bit flips in an image chunk, {label} | {how} | - | - | - | "
+            if version:  # the baseline: a note, not a row to be clean
+                print(f"{line}baseline | {n} of {flips} flips caught |", flush=True)
+                continue
+            ROWS.append(f"{line}{'clean' if n == flips else '**missed**'} | {n} of {flips} flips caught |")
+            print(ROWS[-1], flush=True)
+    path = work / "flip-1.2.zarr"
+    chunk = path / "test_000" / "images" / "c" / "1" / "0" / "0"
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0x08
+    chunk.write_bytes(bytes(data))
+    commands = reader_commands(str(path), work)
+    commands["show --frame 10"] = [*commands["show"], "--frame", "10"]  # a frame of the flipped chunk
+    for name in ("validate", "validate --quick", "eval", "show --frame 10"):
+        row("one bit flipped, crc32c (1.2)", name, run(commands[name]), expect=0 if name.endswith("quick") else 1)
+
+
 def interrupted(args: list, sig: int) -> dict:
     """Run the CLI with ``args`` and send ``sig`` (to its process group for SIGINT, as a terminal
     does) 0.3 s after zarr's I/O threads came up; seconds are from the signal to the exit."""
@@ -314,7 +367,8 @@ def _threads(pid: int) -> int:
 
 def bag_cases(work: Path) -> None:
     """ROS bags (issue 52): a real sensor's drive in miniature (BatSLAM2's eRTIS: 7.1 Hz, jitter,
-    8 % of pings lost), an import SIGKILLed and run again, ranges below zero, MCAP chunks that
+    8 % of pings lost: one run, its gaps recorded), an import SIGKILLed and run again, a command
+    clock 7 s off (estimated and warned about), ranges below zero, MCAP chunks that
     inflate to gigabytes (said or hidden), and 20,000 images of 200 x 90 uint8."""
     import math
 
@@ -348,6 +402,13 @@ def bag_cases(work: Path) -> None:
                                    ("2 GB, declaring 1 kB", 2 * 10**9, 1000)):
         bag = with_zero_chunk(small.write(work / "bomb.mcap"), zeros, declared)
         row(f"bag: a zstd chunk of {label} of zeros", "import-bag", run(["import-bag", bag, work / "bomb.zarr"]))
+    from tests.test_bag_clock import moving_drive
+
+    clock = moving_drive(1500, clock_offset_s=7.0, lost=0.0).write(work / "clock.mcap", beams_right_to_left=False)
+    case = "bag: 1,500 frames, the command clock 7 s behind the sensor's"
+    row(case, "import-bag (one warning, the estimate)", run(["import-bag", clock, work / "clock.zarr"]), expect=0)
+    row(case, "import-bag --cmd-offset 7", run(["import-bag", clock, work / "clock7.zarr", "--cmd-offset", "7"]),
+        expect=0)
     big = Drive(n_frames=20_000, grid=grid).write(work / "big.mcap")
     row("bag: 20,000 images of 200 x 90 uint8", "import-bag", run(["import-bag", big, work / "big.zarr"]), expect=0)
 
@@ -356,7 +417,7 @@ GENERATE = ["--minutes", "0.5", "--runs", "1", "--seed", "5"]
 GENERATE_MORE = ["--minutes", "0.5", "--runs", "2", "--seed", "5"]
 
 
-CASES = ("remote", "cards", "worlds", "read-only", "concurrent", "signals", "length", "many-runs", "bags")
+CASES = ("remote", "cards", "worlds", "read-only", "concurrent", "signals", "length", "many-runs", "bags", "bitflip")
 
 
 def main() -> None:
@@ -364,6 +425,7 @@ def main() -> None:
     ap.add_argument("--imports", type=int, default=20, help="concurrent same-name import pairs")
     ap.add_argument("--remote-timeout", type=float, default=10.0)
     ap.add_argument("--runs", type=int, default=400, help="runs in the many-runs store")
+    ap.add_argument("--flips", type=int, default=40, help="bit flips in the bitflip case")
     ap.add_argument("--cases", default=",".join(CASES), help=f"the groups of rows to run, of {', '.join(CASES)}")
     args = ap.parse_args()
     cases = set(args.cases.split(","))
@@ -381,7 +443,7 @@ def main() -> None:
                   "read-only": lambda: read_only_cases(store, work),
                   "concurrent": lambda: concurrent_cases(work, args.imports), "signals": lambda: signal_cases(work),
                   "length": lambda: length_cases(store, work), "many-runs": lambda: many_runs_cases(work, args.runs),
-                  "bags": lambda: bag_cases(work)}
+                  "bags": lambda: bag_cases(work), "bitflip": lambda: bitflip_cases(work, args.flips)}
         for name in CASES:
             if name in cases:
                 groups[name]()

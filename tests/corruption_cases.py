@@ -37,6 +37,24 @@ def make_base_store(path: Path) -> Path:
     return path
 
 
+def strip_checksums(location: Path, version: str) -> None:
+    """The store as a writer before format 1.2 made it: every run array rewritten without the
+    crc32c codec, ``format_version`` set to ``version``."""
+    from zarr.codecs import Crc32cCodec
+
+    root = zarr.open_group(str(location), mode="r+", use_consolidated=False)
+    for _, run in root.groups():
+        for name, old in list(run.arrays()):
+            values, attrs = old[...], dict(old.attrs)
+            compressors = tuple(c for c in old.compressors if not isinstance(c, Crc32cCodec)) or None
+            chunks, dims, fill = old.chunks, old.metadata.dimension_names, old.metadata.fill_value
+            del run[name]
+            run.create_array(name, shape=values.shape, dtype=values.dtype, chunks=chunks, dimension_names=dims,
+                             compressors=compressors, fill_value=fill, attributes=attrs)[...] = values
+    root.attrs["sonarset"] = {**root.attrs["sonarset"], "format_version": version}
+    zarr.consolidate_metadata(str(location))
+
+
 # ---- corruptions ---------------------------------------------------------------------------------
 
 def _json(store: Path, rel: str, change: Callable[[dict], object]) -> None:
@@ -101,6 +119,13 @@ def _garbage(b: bytes) -> bytes:
 def _scrambled_payload(b: bytes) -> bytes:
     # the 16-byte blosc header stays intact, so only the decoder (or the values) can tell
     return b[:16] + _garbage(b[16:])
+
+
+def _bit_flipped(b: bytes) -> bytes:
+    # one bit of the payload: the chunk still decodes, so only its checksum (format 1.2) can tell
+    data = bytearray(b)
+    data[len(data) // 2] ^= 0x08
+    return bytes(data)
 
 
 def _all_image_chunks_deleted(store: Path) -> None:
@@ -215,6 +240,8 @@ KINDS = [
     Kind("image chunk payload scrambled", _chunk("images", "c/1/0/0", _scrambled_payload), "images", ok=("info",),
          says={"validate": "chunk c/1/0/0 is corrupt or truncated", "eval": "c/1/0/0", "train": "c/1/0/0",
                "show": "c/1/0/0"}),
+    Kind("image chunk one bit flipped", _chunk("images", "c/1/0/0", _bit_flipped),
+         f"{IMG1} is corrupt or truncated: checksum mismatch", ok=("info",)),
     Kind("image chunk is a directory", _chunk_is_directory, f"{IMG1} is a directory"),
     Kind("velocity chunk truncated in place (stored uncompressed)",
          _chunk("velocity", "c/0/0", lambda b: b[:len(b) // 2]),

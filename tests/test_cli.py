@@ -7,6 +7,7 @@ import numpy as np
 from typer.testing import CliRunner
 
 from sonarset.cli.app import app
+from sonarset.format.attrs import FORMAT_VERSION
 from tests.conftest import TINY, make_run
 
 runner = CliRunner()
@@ -19,7 +20,7 @@ def test_info_and_json(store):
     assert "processing: raw (das, no post-processing)" in r.output and "rig: not recorded" in r.output
     r = runner.invoke(app, ["info", store.location, "--json"])
     doc = json.loads(r.output)
-    assert doc["frames"] == 75 and doc["grid"]["n_range"] == 8 and doc["format_version"] == "1.1"
+    assert doc["frames"] == 75 and doc["grid"]["n_range"] == 8 and doc["format_version"] == FORMAT_VERSION
     assert doc["processing"]["profile"] == "raw" and doc["rig"] is None
 
 

@@ -280,7 +280,8 @@ def test_remote_store_checks_each_chunk_as_it_is_read(base_store, tmp_path):
         store = open_store(f"{url}/s.zarr", check=True)
         assert len(FrameBank.from_store(store, split="train").run_names) == 1  # the intact run loads
         with pytest.raises(FormatError, match=r"s.zarr/test_000/velocity: chunk c/0/0 is corrupt or truncated: "
-                                              r"its blosc header declares 1216 bytes, the chunk has 600"):
+                                              r"its blosc header declares 1216 bytes, 1220 with its checksum; "
+                                              r"the chunk has 600; checksum mismatch"):
             FrameBank.from_store(store, split="test")
         problems = [str(p) for p in validate_store(f"{url}/s.zarr")]
     assert any("test_000/velocity: chunk c/0/0 is corrupt or truncated" in p for p in problems), problems

@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 from sonarset import SonarSetError, create_store, open_store
 from sonarset.errors import InputValidationError
 from sonarset.ingest.images import import_recording
-from sonarset.format.attrs import Processing, RobotRig
+from sonarset.format.attrs import FORMAT_VERSION, Processing, RobotRig
 from sonarset.sim.robot import SENSOR_OFFSET, V_MAX, W_MAX, WHEEL_BASE
 from sonarset.store.store import open_or_create_store
 from sonarset.store.validate import validate_store
@@ -41,12 +41,12 @@ def test_rig_is_unknown_without_simulator_provenance(tmp_path, store):
     assert s.rig is None
 
 
-def test_1_1_round_trip(tmp_path):
+def test_the_current_format_round_trips(tmp_path):
     rig = RobotRig(frame_interval_s=0.1, sensor_offset_m=0.05, wheel_base_m=0.4, v_max_m_s=0.5, omega_max_rad_s=2.0)
     s = create_store(tmp_path / "s.zarr", TINY, processing=Processing.ertis(), rig=rig, frame_rate_hz=10.0)
     s.write_run("run_000", **{**make_run(6), "time": np.arange(6) * 0.1})  # a 10 Hz store has 10 Hz stamps
     doc = json.loads((tmp_path / "s.zarr" / "zarr.json").read_text())["attributes"]["sonarset"]
-    assert doc["format_version"] == "1.1" and doc["processing"]["beamformer"] == "dmas3-cf"
+    assert doc["format_version"] == FORMAT_VERSION and doc["processing"]["beamformer"] == "dmas3-cf"
     assert doc["rig"]["wheel_base_m"] == 0.4
     back = open_store(tmp_path / "s.zarr")
     assert back.processing == Processing.ertis() and back.rig == rig

@@ -5,12 +5,13 @@ at the array's key (``images``), which the caller places in its run (``Problem.a
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping
+from typing import Any, ClassVar
 
 import numpy as np
 
-from sonarset.format.attrs import SensorGrid
+from sonarset.format.attrs import SensorGrid, requires_checksums
 from sonarset.format.problems import Problem
 
 
@@ -142,6 +143,39 @@ def array_meta_problems(key: str, dtype: str, dims: tuple[str, ...] | None, shap
         out.append(Problem(key, f"shape {tuple(shape)} does not match {tuple(expected)} "
                                 f"(n_frames={n_frames}, grid {grid_shape[0]}x{grid_shape[1]})"))
     return out
+
+
+#: The Zarr v3 codec that checksums each chunk (FORMAT.md §2, Checksums).
+CHECKSUM_CODEC = "crc32c"
+
+
+@dataclass(frozen=True)
+class MissingChecksum(Problem):
+    """An array of a format 1.2 store whose chunks carry no checksum. Its data still reads (zarr
+    needs no checksum to decode), so readers do not refuse it; ``validate`` reports it."""
+
+    refused_by_readers: ClassVar[bool] = False
+
+
+def checksummed(codecs: Sequence[Mapping[str, Any]]) -> bool:
+    """Whether a codec chain (``zarr.json``'s ``codecs``, as dicts) ends with the crc32c codec, or,
+    for a sharded array, the chain of its inner chunks does."""
+    if not codecs:
+        return False
+    last = codecs[-1]
+    if last.get("name") == CHECKSUM_CODEC:
+        return True
+    if last.get("name") == "sharding_indexed":
+        return checksummed((last.get("configuration") or {}).get("codecs") or ())
+    return False
+
+
+def checksum_problems(key: str, codecs: Sequence[Mapping[str, Any]], format_version: str) -> list[Problem]:
+    """From format 1.2 every array's chunks end with a crc32c checksum (FORMAT.md §2, Checksums)."""
+    if not requires_checksums(format_version) or checksummed(codecs):
+        return []
+    return [MissingChecksum(key, f"chunks carry no {CHECKSUM_CODEC} checksum: format {format_version} requires "
+                                 f"the {CHECKSUM_CODEC} codec last in every array's codecs")]
 
 
 def value_problems(key: str, block: np.ndarray, first_frame: int = 0) -> list[Problem]:

@@ -19,9 +19,11 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from sonarset.format.problems import Problem
 
 #: Format version written by this library. Readers accept any 1.x (see spec/FORMAT.md §8).
-#: 1.1 added the typed ``processing`` and ``rig`` store attributes.
-FORMAT_VERSION = "1.1"
+#: 1.1 added the typed ``processing`` and ``rig`` store attributes; 1.2 a crc32c checksum on every chunk.
+FORMAT_VERSION = "1.2"
 SUPPORTED_MAJOR = 1
+#: The first version whose arrays must end their codec chain with a crc32c checksum (FORMAT.md §2).
+CHECKSUMS_SINCE = (1, 2)
 #: Key under which all SonarSet attributes live (namespaced, as OME-Zarr's "ome").
 NAMESPACE = "sonarset"
 
@@ -50,6 +52,15 @@ def version_problems(value: Any) -> list[Problem]:
         return [Problem("", f"format version {value} is not supported (this sonarset {__version__} reads "
                             f"{SUPPORTED_MAJOR}.x); upgrade sonarset")]
     return []
+
+
+def requires_checksums(version: str) -> bool:
+    """Whether a store of ``version`` must checksum every chunk (format 1.2 on); False for an
+    unparseable version, which ``version_problems`` reports."""
+    try:
+        return parse_version(version) >= CHECKSUMS_SINCE
+    except ValueError:
+        return False
 
 
 def run_name_problems(name: str) -> list[Problem]:

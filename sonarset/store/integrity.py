@@ -7,6 +7,11 @@ whatever memory follows the buffer, finite numbers that look like data. So befor
 reader checks that each chunk exists and that its size agrees with its header (blosc) or with the
 chunk shape (no compressor). Other codec chains (zstd, gzip, sharding...) carry no size we can
 check cheaply; for them we rely on their decoders' own errors and on the value checks.
+
+From format 1.2 each chunk ends with a crc32c checksum of the bytes before it (zarr's ``crc32c``
+codec, last in the chain): zarr verifies it as it decodes, so a flipped bit anywhere in a chunk
+fails the read ("checksum mismatch", ``run.decode_problems``). The checks here look past it: the
+sizes exclude its 4 bytes, and a chunk they find unsound is also said to fail its checksum when it does.
 """
 
 from __future__ import annotations
@@ -19,11 +24,28 @@ from typing import Iterable, Iterator
 
 import numpy as np
 import zarr
-from zarr.codecs import BloscCodec, BytesCodec
+from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec
 
 from sonarset.format.problems import Problem
 
 BLOSC_HEADER_BYTES = 16
+CHECKSUM_BYTES = 4  # the crc32c codec's trailer
+CHECKSUM_MISMATCH = "checksum mismatch"
+
+
+def checksum_fails(data: bytes) -> bool:
+    """Whether a chunk as stored by the crc32c codec (its bytes, then their crc32c, little-endian)
+    fails its checksum."""
+    import google_crc32c  # zarr's own dependency for the codec
+
+    if len(data) < CHECKSUM_BYTES:
+        return True
+    return google_crc32c.value(data[:-CHECKSUM_BYTES]) != int.from_bytes(data[-CHECKSUM_BYTES:], "little")
+
+
+def is_checksum_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is zarr's crc32c codec refusing a chunk whose bytes fail their checksum."""
+    return isinstance(exc, ValueError) and "checksum" in str(exc).lower()  # "Stored and computed checksum do not match"
 
 
 def chunk_coords(arr: zarr.Array, start: int = 0, stop: int | None = None) -> Iterable[tuple[int, ...]]:
@@ -44,17 +66,19 @@ def declared_chunks(arr: zarr.Array) -> int:
     return math.prod(math.ceil(s / c) for s, c in zip(arr.shape, chunks)) if arr.ndim else 1
 
 
-def _blosc_phrase(head: bytes, size: int, decoded_nbytes: int) -> str | None:
-    """What is wrong with a blosc chunk of ``size`` bytes starting with ``head``; None if nothing.
+def _blosc_phrase(head: bytes, size: int, decoded_nbytes: int, trailer: int = 0) -> str | None:
+    """What is wrong with a blosc chunk of ``size`` bytes starting with ``head`` (and ending with a
+    checksum of ``trailer`` bytes); None if nothing.
 
     Blosc 1.x header: version, versionlz, flags, typesize (1 byte each), then little-endian uint32
-    nbytes (decoded size), blocksize and cbytes (the whole chunk, header included).
+    nbytes (decoded size), blocksize and cbytes (the whole blosc chunk, header included).
     """
-    if size < BLOSC_HEADER_BYTES:
+    if size < BLOSC_HEADER_BYTES + trailer:
         return f"is corrupt or truncated: {size} bytes, shorter than a blosc header"
     nbytes, _, cbytes = struct.unpack("<III", head[4:BLOSC_HEADER_BYTES])
-    if cbytes != size:
-        return f"is corrupt or truncated: its blosc header declares {cbytes} bytes, the chunk has {size}"
+    if cbytes + trailer != size:
+        total = f", {cbytes + trailer} with its checksum;" if trailer else ","
+        return f"is corrupt or truncated: its blosc header declares {cbytes} bytes{total} the chunk has {size}"
     if nbytes != decoded_nbytes:
         return (f"is corrupt: its blosc header declares {nbytes} decoded bytes, "
                 f"the chunk shape needs {decoded_nbytes}")
@@ -67,6 +91,9 @@ class ChunkChecker:
     def __init__(self, arr: zarr.Array):
         self.arr = arr
         codecs = tuple(arr.metadata.codecs)
+        #: bytes of the crc32c checksum that ends each chunk (format 1.2), 0 without one
+        self.trailer = CHECKSUM_BYTES if codecs and isinstance(codecs[-1], Crc32cCodec) else 0
+        codecs = codecs[:-1] if self.trailer else codecs
         chunk_shape = arr.metadata.chunk_grid.chunk_shape
         self.decoded_nbytes = int(np.prod(chunk_shape)) * np.dtype(arr.dtype).itemsize
         plain = len(codecs) >= 1 and isinstance(codecs[0], BytesCodec)
@@ -91,7 +118,7 @@ class ChunkChecker:
         """None when the chunk at ``coords`` looks sound, else what is wrong (a phrase)."""
         key = self.key(coords)
         if self.local is None:
-            return self._judge(*self._fetch([key])[0])
+            return self._fetch([key])[0]
         path = os.path.join(self.local, key)
         try:
             size = os.stat(path).st_size
@@ -99,16 +126,24 @@ class ChunkChecker:
             if self.kind == "blosc":
                 with open(path, "rb") as f:
                     head = f.read(BLOSC_HEADER_BYTES)
+            phrase = self._judge(size, head)
+            if phrase is not None and self.trailer:  # damage found: read it whole, to say whether it is bit rot
+                with open(path, "rb") as f:
+                    phrase = self._with_checksum(phrase, f.read())
         except FileNotFoundError:
             return self._missing()
         except IsADirectoryError:
             return "is a directory, not a chunk file"
-        return self._judge(size, head)
+        return phrase
 
-    def _fetch(self, keys: list[str]) -> list[tuple[int | None, bytes]]:
-        """(size or None when absent, first bytes) of each chunk of a non-local store, fetched
-        concurrently, as zarr itself would: one at a time, a slab of 16 chunks would wait 16
-        round trips."""
+    def _with_checksum(self, phrase: str, data: bytes) -> str:
+        """``phrase`` about an unsound chunk whose stored bytes are ``data``, saying that it also
+        fails its checksum where it does."""
+        return f"{phrase}; {CHECKSUM_MISMATCH}" if self.trailer and checksum_fails(data) else phrase
+
+    def _fetch(self, keys: list[str]) -> list[str | None]:
+        """What is wrong with each chunk of a non-local store (``_judge``), fetched concurrently,
+        as zarr itself would: one at a time, a slab of 16 chunks would wait 16 round trips."""
         import asyncio
 
         from zarr.core.buffer import default_buffer_prototype
@@ -123,7 +158,8 @@ class ChunkChecker:
         out = []
         for buf in sync(fetch_all()):
             raw = None if buf is None else buf.to_bytes()
-            out.append((None, b"") if raw is None else (len(raw), raw[:BLOSC_HEADER_BYTES]))
+            phrase = self._judge(None, b"") if raw is None else self._judge(len(raw), raw[:BLOSC_HEADER_BYTES])
+            out.append(phrase if raw is None or phrase is None else self._with_checksum(phrase, raw))
         return out
 
     def _fetched(self, keys: Iterable[str], batch: int = 64) -> Iterator[tuple[str, str | None]]:
@@ -131,15 +167,16 @@ class ChunkChecker:
         enough to hide round trips, and a caller that stops early never lists the rest."""
         keys = iter(keys)
         while block := list(itertools.islice(keys, batch)):
-            yield from ((key, self._judge(*fetched)) for key, fetched in zip(block, self._fetch(block)))
+            yield from zip(block, self._fetch(block))
 
     def _judge(self, size: int | None, head: bytes) -> str | None:
         if size is None:
             return self._missing()
         if self.kind == "blosc":
-            return _blosc_phrase(head, size, self.decoded_nbytes)
-        if self.kind == "raw" and size != self.decoded_nbytes:
-            return f"is corrupt or truncated: {size} bytes, the chunk shape needs {self.decoded_nbytes}"
+            return _blosc_phrase(head, size, self.decoded_nbytes, self.trailer)
+        if self.kind == "raw" and size != self.decoded_nbytes + self.trailer:
+            checksum = f", and its checksum {self.trailer} more" if self.trailer else ""
+            return f"is corrupt or truncated: {size} bytes, the chunk shape needs {self.decoded_nbytes}{checksum}"
         return None
 
     def _missing(self) -> str:

@@ -21,7 +21,7 @@ from sonarset.format.arrays import (
 from sonarset.format.attrs import RunAttrs
 from sonarset.format.problems import Problem, raise_first
 from sonarset.format.rules import command_limit_problems
-from sonarset.store.integrity import ChunkChecker, chunk_coords
+from sonarset.store.integrity import CHECKSUM_MISMATCH, ChunkChecker, chunk_coords, is_checksum_error
 from sonarset.store.root import StoreRoot
 from sonarset.store.zarrio import child_names
 
@@ -71,8 +71,11 @@ def decode_problems(arr: zarr.Array, start: int, stop: int, exc: Exception) -> l
         except RemoteError:
             raise
         except Exception as one:
-            return [Problem("", f"chunk {arr.metadata.encode_chunk_key(coords)} is corrupt or truncated: cannot be "
-                                f"decoded ({one_line(one)})")]
+            key = arr.metadata.encode_chunk_key(coords)
+            if is_checksum_error(one):
+                return [Problem("", f"chunk {key} is corrupt or truncated: {CHECKSUM_MISMATCH} (its bytes "
+                                    "disagree with the crc32c stored with them)")]
+            return [Problem("", f"chunk {key} is corrupt or truncated: cannot be decoded ({one_line(one)})")]
     return [Problem("", f"frames {start}..{stop - 1} cannot be read ({one_line(exc)})")]
 
 

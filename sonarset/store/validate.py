@@ -19,8 +19,8 @@ import zarr
 
 from sonarset.errors import RemoteError, SonarSetError, one_line
 from sonarset.format.arrays import (
-    ARRAYS, coordinate_problems, frame_interval_problems, in_unit_interval, nonfinite_problems, time_order_problems,
-    unit_interval_problems,
+    ARRAYS, checksum_problems, coordinate_problems, frame_interval_problems, in_unit_interval, nonfinite_problems,
+    time_order_problems, unit_interval_problems,
 )
 from sonarset.format.plausibility import Implausible, store_problems
 from sonarset.format.problems import Problem
@@ -130,6 +130,9 @@ def _check_run(store: SonarStore, name: str, group: zarr.Group, check_data: bool
             continue
         arr, found = open_array(group, key, where, attrs.n_frames, store.grid.shape, present)
         out += found
+        if arr is not None:  # from format 1.2 every chunk carries a checksum
+            codecs = [codec.to_dict() for codec in arr.metadata.codecs]
+            out += [p.at(where) for p in checksum_problems(key, codecs, store.attrs.format_version)]
         if arr is not None and not check_data:  # what a reader refuses at open, even in a quick pass
             out += [p.at(f"{where}/{key}") for p in ChunkChecker(arr).beyond_storage()]
         # The coordinates are checked even in a quick pass: they say whether the run is on the grid.

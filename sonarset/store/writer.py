@@ -6,7 +6,7 @@ from typing import Any, Mapping
 
 import numpy as np
 import zarr
-from zarr.codecs import BloscCodec
+from zarr.codecs import BloscCodec, Crc32cCodec
 
 from sonarset.errors import InputValidationError, SonarSetError
 from sonarset.format.arrays import ARRAYS, OPTIONAL_ARRAYS, expected_shape, run_array_problems, time_order_problems
@@ -16,6 +16,12 @@ from sonarset.store.root import StoreRoot
 from sonarset.store.run import Run
 
 DEFAULT_CHUNK_FRAMES = 64  # 64 x 200 x 90 float16 = 2.3 MB: large enough to stream, small to cache
+
+
+def with_checksum(*codecs) -> tuple:
+    """A chunk's bytes-to-bytes codecs, then its crc32c checksum (format 1.2, spec/FORMAT.md §2):
+    the checksum covers the stored bytes, so every flipped bit is caught before decoding."""
+    return (*codecs, Crc32cCodec())
 
 
 def compressor(dtype: np.dtype, sparse: bool = False) -> BloscCodec:
@@ -91,7 +97,7 @@ class RunWriter:
             chunks = (cf, R, A) if key == "images" else shape
             arrays[key] = self.group.create_array(
                 key, shape=shape, chunks=chunks, dtype=dtype, dimension_names=spec.dims,
-                compressors=compressor(np.dtype(dtype), sparse and key == "images"),
+                compressors=with_checksum(compressor(np.dtype(dtype), sparse and key == "images")),
                 fill_value=np.nan,
                 attributes={"units": spec.units, "description": spec.description},
             )
@@ -104,7 +110,7 @@ class RunWriter:
             spec = ARRAYS[key]
             arr = self.group.create_array(
                 key, shape=values.shape, chunks=values.shape, dtype=spec.write_dtype, dimension_names=spec.dims,
-                compressors=None, fill_value=np.nan,
+                compressors=with_checksum(), fill_value=np.nan,
                 attributes={"units": spec.units, "description": spec.description},
             )
             arr[:] = values
