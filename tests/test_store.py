@@ -240,3 +240,17 @@ def test_reading_a_store_costs_the_same_for_each_run(tmp_path, monkeypatch, comm
         assert result.exit_code == 0, result.output
         per_store[n] = len(reads)
     assert per_store[20] < 4.2 * per_store[5], per_store  # 4x the runs: under 4x the reads (linear)
+
+
+def test_an_atomic_write_gets_a_plain_files_permissions(tmp_path):
+    """safetensors creates its file 0600: a checkpoint others on the machine cannot read."""
+    import os
+
+    from safetensors.numpy import save_file
+
+    from sonarset.store.atomic import atomic_write
+
+    out = atomic_write(tmp_path / "w.safetensors", lambda p: save_file({"a": np.zeros(2)}, str(p)))
+    umask = os.umask(0)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o666 & ~umask

@@ -7,12 +7,23 @@ from pathlib import Path
 from typing import Callable
 
 
+def _umask() -> int:
+    """The process's umask, read without changing it (os.umask can only set it, which races threads)."""
+    try:
+        with open("/proc/self/status") as f:
+            return next(int(line.split()[1], 8) for line in f if line.startswith("Umask:"))
+    except (OSError, StopIteration, ValueError, IndexError):
+        return 0o022
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[Path], object]) -> Path:
-    """Call ``write(tmp)`` on a hidden file beside ``path``, then rename it over ``path``."""
+    """Call ``write(tmp)`` on a hidden file beside ``path``, then rename it over ``path``, with the
+    permissions a plain file gets (some writers, safetensors' among them, create theirs 0600)."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")
     try:
         write(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
