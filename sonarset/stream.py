@@ -305,7 +305,7 @@ def window_bank(store, layout: RunLayout, index: WindowIndex, image_dtype: str |
         frames = (np.concatenate(parts) if parts else
                   np.empty((0, *layout.grid.shape), dtype=dtype or np.float32))
     return FrameBank(HeldFrames(frames, rows, layout.n_frames), velocity, offsets, layout.run_names, layout.grid,
-                     layout.frame_interval_s)
+                     layout.frame_interval_s, layout.gaps)
 
 
 class PackedFrames:

@@ -11,7 +11,8 @@ behind a DataLoader (``sonarset.torchdata``), from the same row arithmetic.
 Alignment (docs/conventions.md, "Windows"): the window starting at frame i of a run uses frames i..i+n_in-1 and
 commands i..i+n_in-1+H, and targets frames i+n_in..i+n_in-1+H. ``velocity[k]`` moved the robot
 from frame k-1 to k, so command i+n_in is the one that leads to the first target. Windows never
-cross runs.
+cross runs, nor a gap a run records (its attribute ``gaps``, spec/FORMAT.md section 4: pings a
+sensor lost between two frames): a window's frames are consecutive measurements.
 """
 
 from __future__ import annotations
@@ -29,6 +30,28 @@ from sonarset.store.store import SonarStore
 #: definition. A learned model's own count is in its config (EchoPT's defaults to this); the
 #: baselines are fed these windows.
 N_IN = 3
+
+#: The run attribute listing a run's gaps: ``[[k, lost], ...]``, ``lost`` >= 1 frames missing
+#: between its frames k-1 and k (1 <= k < n_frames), as ``import-bag`` records lost pings.
+RUN_GAPS = "gaps"
+
+
+def run_gaps(run) -> np.ndarray:
+    """The frames of ``run`` (a ``Run``) that follow a recorded gap, sorted (int64; empty when it
+    records none); a malformed record is an error naming the run."""
+    extra = run.attrs.model_extra or {}
+    raw = extra.get(RUN_GAPS)
+    if raw is None:
+        return np.zeros(0, np.int64)
+    try:
+        pairs = np.asarray(raw, dtype=np.float64).reshape(-1, 2) if len(raw) else np.zeros((0, 2))
+    except (TypeError, ValueError):
+        pairs = None
+    if pairs is None or not np.isfinite(pairs).all() or (pairs != np.round(pairs)).any() or \
+            ((pairs[:, 0] < 1) | (pairs[:, 0] >= run.n_frames) | (pairs[:, 1] < 1)).any():
+        raise SonarSetError(f"run {run.name!r}: attribute {RUN_GAPS!r} must list [frame, lost] pairs, 1 <= frame < "
+                            f"{run.n_frames} and lost >= 1, got {str(raw)[:80]}")
+    return np.unique(pairs[:, 0].astype(np.int64))
 
 
 def _select_runs(store: SonarStore, runs: Sequence[str] | None = None, split: str | None = None,
@@ -57,6 +80,7 @@ class RunLayout:
     run_offsets: np.ndarray  # (n_runs + 1,) int64
     grid: SensorGrid
     frame_interval_s: float | None = None  # median spacing of the runs' time stamps
+    gaps: np.ndarray | None = None  # (G,) int64: the frames (numbered as here) that follow a recorded gap
 
     @classmethod
     def of(cls, store: SonarStore, runs: Sequence[str] | None = None, split: str | None = None,
@@ -66,8 +90,12 @@ class RunLayout:
         names = _select_runs(store, runs, split, worlds)
         run_objs = [store.run(n) for n in names]
         offsets = np.concatenate([[0], np.cumsum([r.n_frames for r in run_objs])]).astype(np.int64)
-        gaps = np.concatenate([np.diff(r.read_time()) for r in run_objs])
-        return cls(store.location, names, offsets, store.grid, float(np.median(gaps)) if gaps.size else None)
+        run_gap_frames = [run_gaps(r) for r in run_objs]
+        # the frame interval: the spacing of consecutive frames, not of the frames across a gap
+        steps = np.concatenate([np.delete(np.diff(r.read_time()), g - 1) for r, g in zip(run_objs, run_gap_frames)])
+        gaps = np.concatenate([g + offsets[j] for j, g in enumerate(run_gap_frames)]).astype(np.int64)
+        return cls(store.location, names, offsets, store.grid, float(np.median(steps)) if steps.size else None,
+                   gaps)
 
     @property
     def n_frames(self) -> int:
@@ -89,6 +117,7 @@ class FrameBank:
     grid: SensorGrid
     # median spacing of the runs' time stamps, seconds (None: unknown, or no run of 2+ frames)
     frame_interval_s: float | None = None
+    gaps: np.ndarray | None = None  # (G,) int64: frames that follow a recorded gap (RunLayout.gaps)
 
     @classmethod
     def from_store(
@@ -120,7 +149,7 @@ class FrameBank:
                 if progress is not None:
                     progress(run.name, e, hi - lo)
             velocity[lo:hi] = run.read("velocity")
-        return cls(images, velocity, offsets, layout.run_names, store.grid, layout.frame_interval_s)
+        return cls(images, velocity, offsets, layout.run_names, store.grid, layout.frame_interval_s, layout.gaps)
 
     @classmethod
     def from_arrays(cls, runs: Sequence[tuple[np.ndarray, np.ndarray]], grid: SensorGrid,
@@ -155,13 +184,21 @@ class WindowIndex:
     horizon: int = 1
 
     @classmethod
-    def build(cls, bank: FrameBank, n_in: int = N_IN, horizon: int = 1) -> "WindowIndex":
+    def build(cls, bank: FrameBank | RunLayout, n_in: int = N_IN, horizon: int = 1) -> "WindowIndex":
+        """Every window of ``bank``'s runs: none crosses from one run to the next, nor a recorded
+        gap (``bank.gaps``): the window at i is dropped when frame i+1..i+span-1 follows one."""
         if n_in < 1 or horizon < 1:
             raise SonarSetError(f"n_in and horizon must be >= 1 (got {n_in}, {horizon})")
         span = n_in + horizon
         starts = [np.arange(lo, hi - span + 1, dtype=np.int64)
                   for lo, hi in zip(bank.run_offsets[:-1], bank.run_offsets[1:]) if hi - lo >= span]
         s = np.concatenate(starts) if starts else np.zeros(0, dtype=np.int64)
+        gaps = getattr(bank, "gaps", None)
+        if gaps is not None and len(gaps) and s.size:
+            after = np.zeros(int(bank.run_offsets[-1]) + 1, np.int64)
+            after[np.asarray(gaps, np.int64)] = 1
+            seen = np.cumsum(after)  # seen[j]: gaps before frames 0..j
+            s = s[seen[s + span - 1] == seen[s]]
         return cls(s, bank.run_offsets, n_in, horizon)
 
     @property

@@ -178,20 +178,45 @@ def test_pixel_types_map_by_the_recorded_rule(tmp_path, dtype_code):
     np.testing.assert_allclose(run.read("images"), drive.images / 255.0, atol=1e-3)
 
 
-def test_twist_without_header_takes_bag_time_and_dropped_pings_split_the_run(tmp_path):
+def test_twist_without_header_takes_bag_time_and_a_few_dropped_pings_are_recorded_in_the_run(tmp_path):
     drive = Drive(n_frames=40)
     keep = np.ones(40, bool)
     keep[[15, 16]] = False  # two pings dropped
-    keep[37] = False  # and one near the end: the last 2 frames are too short for a run
+    keep[37] = False  # and one near the end, 2 frames before it: kept, no window reaches them
     drive.frame_ns, drive.images = drive.frame_ns[keep], drive.images[keep]
     notes = []
-    runs = import_bag(drive.write(tmp_path / "d.mcap", stamped=False), tmp_path / "s.zarr", name="drive",
-                      note=notes.append)
-    assert [r.name for r in runs] == ["drive_000", "drive_001"]
-    assert [r.n_frames for r in runs] == [15, 20]
+    [run] = import_bag(drive.write(tmp_path / "d.mcap", stamped=False), tmp_path / "s.zarr", name="drive",
+                       note=notes.append)
+    assert run.name == "drive" and run.n_frames == 37
+    assert run.attrs.model_extra["gaps"] == [[15, 2], [35, 1]]
     [summary] = [n for n in notes if "lost ping" in n]  # one line, however many pings were lost
-    assert "3 lost ping(s) at 2 gap(s)" in summary and "2 run(s) split at the gaps" in summary, summary
-    assert "2 frame(s) dropped in 1 stretch(es)" in summary, summary
+    assert "3 lost ping(s) at 2 gap(s)" in summary and "1 run(s); 2 gap(s) recorded" in summary, summary
+    assert validate_store(tmp_path / "s.zarr") == []
+    from sonarset.windows import FrameBank, WindowIndex
+
+    bank = FrameBank.from_store(open_store(tmp_path / "s.zarr"))
+    starts = WindowIndex.build(bank, 3, 1).starts.tolist()
+    # windows 12..14 would hold frames on both sides of the first gap, 32..34 of the second
+    assert starts == [i for i in range(34) if not 12 <= i <= 14 and not 32 <= i <= 33]
+    np.testing.assert_allclose(bank.images, drive.images / 255.0, atol=1e-3)  # no frame dropped
+
+
+def test_a_long_gap_splits_the_drive_and_short_ones_stay_recorded(tmp_path):
+    from sonarset.ingest.bag.align import MAX_LOST
+
+    drive = Drive(n_frames=60)
+    keep = np.ones(60, bool)
+    keep[20:21 + MAX_LOST] = False  # MAX_LOST + 1 pings in a row: the sensor stopped
+    keep[40] = False  # one ping: recorded
+    drive.frame_ns, drive.images = drive.frame_ns[keep], drive.images[keep]
+    notes = []
+    runs = import_bag(drive.write(tmp_path / "d.mcap"), tmp_path / "s.zarr", name="d", note=notes.append)
+    assert [(r.name, r.n_frames) for r in runs] == [("d_000", 20), ("d_001", 38 - MAX_LOST)]
+    assert runs[0].attrs.model_extra.get("gaps") is None
+    assert runs[1].attrs.model_extra["gaps"] == [[19 - MAX_LOST, 1]]
+    [summary] = [n for n in notes if "lost ping" in n]
+    assert f"2 run(s), split at 1 gap(s) of over {MAX_LOST} pings; 1 gap(s) recorded" in summary, summary
+    assert validate_store(tmp_path / "s.zarr") == []
 
 
 def test_export_then_import_gives_back_the_run_and_eval_runs_on_it(tmp_path):
@@ -458,36 +483,56 @@ def jittery_times(n: int, hz: float = 7.1, jitter: float = 0.05, lost: float = 0
     return np.sort(t[rng.random(total) > lost])[:n]
 
 
-def test_a_jittery_drive_with_lost_pings_splits_only_at_them_in_one_line_and_validates(tmp_path):
-    t = jittery_times(160, seed=3)
+def test_a_jittery_drive_with_lost_pings_stays_one_run_in_one_line_validates_and_no_window_spans_a_gap(tmp_path):
+    from sonarset.windows import RunLayout, WindowIndex
+
+    t = jittery_times(300, seed=3)
     dt = np.diff(t)
     lost_at = int(np.sum(dt > 1.5 * np.median(dt)))
     bag = Drive(times_s=t).write(tmp_path / "drive.mcap")
     res = CliRunner().invoke(app, ["import-bag", str(bag), str(tmp_path / "s.zarr"), "--name", "drive"])
     assert res.exit_code == 0, res.output
     [summary] = [ln for ln in res.output.splitlines() if "lost ping" in ln]  # one line, not one per gap
-    assert f"at {lost_at} gap(s)" in summary, summary
+    assert f"at {lost_at} gap(s)" in summary and "1 run(s)" in summary, summary
     assert len([ln for ln in res.output.splitlines() if ln.strip()]) == 2, res.output  # the note, the result
     store = open_store(tmp_path / "s.zarr")
     assert validate_store(tmp_path / "s.zarr") == []
     interval = float(np.median(dt[dt < 1.5 * np.median(dt)]))
     assert abs(1 / store.attrs.frame_rate_hz - interval) < 0.01 * interval  # the median, gaps left out
-    runs = [store.run(n) for n in store.runs()]
-    assert 1 < len(runs) <= lost_at + 1
-    for run in runs:  # no run, so no window, spans a lost ping
-        assert np.diff(run.read("time")).max() < 1.5 * interval, run.name
+    [run] = [store.run(n) for n in store.runs()]
+    assert run.n_frames == 300  # every frame kept
+    time = run.read("time")
+    gaps = [k for k, _ in run.attrs.model_extra["gaps"]]
+    assert gaps == (np.flatnonzero(np.diff(time) > 1.5 * interval) + 1).tolist() and len(gaps) == lost_at
+    for n_in, horizon in ((3, 1), (3, 5)):
+        index = WindowIndex.build(RunLayout.of(store), n_in, horizon)
+        steps = np.diff(time[index.rows()], axis=1)
+        assert steps.max() < 1.5 * interval  # no window spans a lost ping
+        # and every window that does not span one is there
+        span = n_in + horizon
+        free = [i for i in range(300 - span + 1) if not any(i < k < i + span for k in gaps)]
+        assert index.starts.tolist() == free
 
 
-def test_an_off_rate_stretch_between_lost_pings_is_dropped_not_written_invalid():
+def test_a_run_whose_rate_strays_is_split_at_its_gaps_and_the_off_rate_stretch_dropped():
+    from sonarset.ingest.bag.align import MAX_LOST, split_at_gaps
+
+    steady = np.arange(40) * 0.14
+    after = steady[-1] + (MAX_LOST + 2) * 0.14 + np.arange(6) * 0.14  # a long gap, then 6 steady frames,
+    wobbly = after[-1] + 0.28 + np.arange(10) * 0.17  # a lost ping and 10 frames 0.17 s apart: 21 % slow
+    segments, [note], interval = split_at_gaps(np.concatenate([steady, after, wobbly]))
+    assert [(s.start, s.stop, s.gaps) for s in segments] == [(0, 40, ()), (40, 46, ())]
+    assert abs(interval - 0.14) < 1e-9
+    assert "10 frame(s) dropped in 1 stretch(es)" in note and "1 whose jitter" in note, note
+
+
+def test_jitter_alone_records_no_gap_and_a_steady_drive_none():
     from sonarset.ingest.bag.align import split_at_gaps
 
-    steady = np.arange(12) * 0.14
-    wobbly = steady[-1] + 0.28 + np.array([0.0, 0.17, 0.34, 0.51])  # 4 frames 0.17 s apart: 21 % slow
-    after = wobbly[-1] + 0.28 + np.arange(10) * 0.14
-    segments, [note], interval = split_at_gaps(np.concatenate([steady, wobbly, after]))
-    assert [(s.start, s.stop) for s in segments] == [(0, 12), (16, 26)]
-    assert abs(interval - 0.14) < 1e-9
-    assert "4 frame(s) dropped in 1 stretch(es)" in note and "1 whose jitter" in note, note
+    rng = np.random.default_rng(0)
+    t = np.arange(500) / 7.1 + rng.normal(0, 0.05 / 7.1, 500)
+    segments, notes, _ = split_at_gaps(np.sort(t))
+    assert [(s.start, s.stop, s.gaps) for s in segments] == [(0, 500, ())] and notes == []
 
 
 KILL_ON_SECOND_RUN = """
@@ -511,7 +556,7 @@ def test_an_import_of_several_runs_killed_midway_leaves_the_store_as_it_was_and_
     import sys
 
     keep = np.ones(30, bool)
-    keep[14] = False  # a lost ping: two runs
+    keep[12:20] = False  # 8 pings lost in a row: two runs
     drive = Drive()
     drive.frame_ns, drive.images = drive.frame_ns[keep], drive.images[keep]
     bag = drive.write(tmp_path / "d.mcap")
@@ -588,3 +633,47 @@ def test_a_long_drive_is_held_in_its_pixel_type_and_written_a_chunk_at_a_time(tm
     as_float32 = 400 * 200 * 90 * 4  # 29 MB: the whole drive as float32, once
     assert peak < as_float32, f"{peak / 1e6:.1f} MB"
     np.testing.assert_allclose(run.read("images", 390, 400), drive.images[390:] / 255.0, atol=1e-6)
+
+
+def test_implausible_commands_are_refused_in_one_line_as_import_does_unless_allowed(tmp_path):
+    """Commands in cm/s (a Twist's 0.3 m/s logged as 30): ``import``'s plausibility rules, its refusal
+    and its --allow-implausible."""
+    drive = Drive(n_frames=10)
+    drive.v = drive.v * 100
+    bag = drive.write(tmp_path / "d.mcap")
+    res = CliRunner().invoke(app, ["import-bag", str(bag), str(tmp_path / "s.zarr")])
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert res.exit_code == 1 and len(lines) == 1 and "Traceback" not in res.output, res.output
+    assert lines[0].startswith(f"error: {bag}: topic '/cmd_vel': linear speed up to"), lines[0]
+    assert "cm/s" in lines[0] and "(--allow-implausible imports it as is)" in lines[0], lines[0]
+    assert not (tmp_path / "s.zarr").exists()
+    res = CliRunner().invoke(app, ["import-bag", str(bag), str(tmp_path / "s.zarr"), "--allow-implausible"])
+    assert res.exit_code == 0, res.output
+    [warning] = [ln for ln in res.output.splitlines() if ln.startswith("warning:")]
+    assert "linear speed up to" in warning and str(bag) in warning
+    assert open_store(tmp_path / "s.zarr").runs() == ["d"]
+
+
+def test_a_grid_in_millimetres_is_implausible_too(tmp_path):
+    grid = SensorGrid(range_min_m=500.0, range_max_m=3000.0, n_range=20, azimuth_min_rad=-1.0, azimuth_max_rad=1.0,
+                      n_azimuth=10)
+    bag = Drive(n_frames=10, grid=grid).write(tmp_path / "d.mcap")
+    with pytest.raises(InputValidationError, match=r"range 500-3e\+03 m is implausible") as exc:
+        import_bag(bag, tmp_path / "s.zarr")
+    assert exc.value.parameter == "allow_implausible"
+    warnings = []
+    import_bag(bag, tmp_path / "s.zarr", allow_implausible=True, warn=warnings.append)
+    assert len(warnings) == 2 and "implausible for an in-air sonar" in warnings[0], warnings
+    assert "less than an echo from 3000 m takes to return" in warnings[1], warnings
+
+
+def test_a_drive_of_only_short_stretches_between_long_gaps_is_refused_in_one_line(tmp_path):
+    from sonarset.ingest.bag.align import MAX_LOST
+
+    drive = Drive(n_frames=30)
+    keep = np.zeros(30, bool)
+    keep[[0, 1, 2, 10 + MAX_LOST, 11 + MAX_LOST, 12 + MAX_LOST]] = True  # 3 frames, the sensor off, 3 frames
+    drive.frame_ns, drive.images = drive.frame_ns[keep], drive.images[keep]
+    with pytest.raises(InputValidationError, match="no run of 4 frames at a steady rate") as exc:
+        import_bag(drive.write(tmp_path / "d.mcap"), tmp_path / "s.zarr")
+    assert len(exc.value.problems) == 1 and not (tmp_path / "s.zarr").exists()

@@ -117,3 +117,54 @@ def test_torch_batcher_gives_the_numpy_batch_as_tensors(store):
     np.testing.assert_array_equal(got.targets.numpy(), ref.targets[:, :2])
     np.testing.assert_array_equal(got.commands.numpy(), ref.commands[:, :5])
     np.testing.assert_array_equal(got.starts, idx.starts[which])
+
+
+@pytest.mark.parametrize("H", [1, 3])
+def test_no_window_spans_a_recorded_gap(H):
+    """Frames that follow a recorded gap (lost pings, the run attribute ``gaps``) bound windows as a
+    run's edges do: a window starts at the frame after a gap at the earliest, and never holds the
+    frames on both sides of one."""
+    import dataclasses
+
+    bank = dataclasses.replace(coded_bank(), gaps=np.array([5, 6, 19, 20 + 7, 35 + 4]))
+    idx = WindowIndex.build(bank, 3, H)
+    span = 3 + H
+    expected = [i for lo, hi in ((0, 20), (20, 35), (35, 44)) for i in range(lo, hi - span + 1)
+                if not any(i < g < i + span for g in bank.gaps)]
+    assert idx.starts.tolist() == expected and 6 in expected and 5 not in expected
+    plain = WindowIndex.build(coded_bank(), 3, H)
+    assert set(idx.starts) < set(plain.starts)
+    # the same windows as for the runs cut at their gaps, the pieces too short for one left out
+    b = gather(bank, idx)
+    rows = np.concatenate([b.frames[:, :, 0, 0], b.targets[:, :, 0, 0]], axis=1)
+    assert np.all(np.diff(rows, axis=1) == 1)
+
+
+def test_run_gaps_reads_the_attribute_and_refuses_a_malformed_one():
+    from types import SimpleNamespace
+
+    from sonarset.format.attrs import RunAttrs
+    from sonarset.windows import RUN_GAPS, run_gaps
+
+    def run(gaps):
+        extra = {} if gaps is None else {RUN_GAPS: gaps}
+        return SimpleNamespace(name="r", n_frames=10, attrs=RunAttrs(complete=True, n_frames=10, **extra))
+
+    assert run_gaps(run(None)).tolist() == [] and run_gaps(run([])).tolist() == []
+    assert run_gaps(run([[7, 1], [3, 2]])).tolist() == [3, 7]
+    for bad in ([[0, 1]], [[10, 1]], [[3, 0]], [[3.5, 1]], [3], "x", [[3, None]]):
+        with pytest.raises(SonarSetError, match="run 'r': attribute 'gaps'"):
+            run_gaps(run(bad))
+
+
+def test_the_frame_rate_check_leaves_out_the_spacings_across_recorded_gaps():
+    """A 10 Hz drive that lost every other ping: its median spacing is 0.2 s; with the gaps recorded,
+    the spacings of consecutive frames are what the declared rate is checked against."""
+    from sonarset.format.arrays import frame_interval_problems, recorded_gap_frames
+
+    steps = np.where(np.arange(40) % 3 == 0, 0.1, 0.2)
+    time = np.concatenate([[0.0], np.cumsum(steps)])
+    assert frame_interval_problems(time, 10.0)  # unrecorded: looks like a 5 Hz recording
+    lost = [[k + 1, 1] for k in np.flatnonzero(steps > 0.15)]
+    assert frame_interval_problems(time, 10.0, recorded_gap_frames(lost)) == []
+    assert len(recorded_gap_frames("nonsense")) == 0

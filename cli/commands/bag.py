@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 import typer
 
 from sonarset.cli.choices import Beamformer, ProcessingProfile, Stamps, value
-from sonarset.cli.common import err, out, per_name_progress, progress_bar, user_errors
+from sonarset.cli.common import command_flags, err, out, per_name_progress, progress_bar, user_errors, with_flag
 from sonarset.cli.options import MetaPath, OutStore, Overwrite, RunName, RunSplit
 
 Topic = Optional[str]
@@ -37,21 +37,33 @@ def import_bag_(
     processing: ProcessingProfile = typer.Option("ertis", "--processing", help="Energyscape profile (--raw)."),
     beamformer: Optional[Beamformer] = typer.Option(None, "--beamformer", help="Default: the profile's (--raw)."),
     workers: int = typer.Option(2, "--workers", min=1, help="Threads beamforming pings (--raw)."),
+    allow_implausible: bool = typer.Option(False, "--allow-implausible",
+                                           help="Import values the plausibility checks question (unit mistakes?); "
+                                                "each is printed as a warning."),
 ) -> None:
-    """Import a ROS bag's sonar images, velocity commands and odometry as runs, split where pings were dropped."""
+    """Import a ROS bag's sonar images, velocity commands and odometry as runs: a few lost pings are recorded
+    as gaps no window spans, a longer loss splits the run."""
     from sonarset.ingest.bag import import_bag
 
     def note(line: str) -> None:
         err.print(f"[cyan]note:[/] {line}", highlight=False, soft_wrap=True)
 
+    def warn(line: str) -> None:  # a line may name the parameter that fixes it: said as the flag
+        line = with_flag(line, "command_offset_s", command_flags(import_bag_), append=False)
+        err.print(f"[yellow]warning:[/] {line}", highlight=False, soft_wrap=True)
+
     runs = import_bag(bag, out_store, images=images, raw=raw, commands=cmd_vel, odometry=odom, stamps=stamps.value,
                       command_offset_s=cmd_offset, command_timeout_s=cmd_timeout, meta_path=meta, name=name,
                       split=split, overwrite=overwrite, processing=processing.value, beamformer=value(beamformer),
-                      workers=workers, note=note)
+                      workers=workers, allow_implausible=allow_implausible, note=note, warn=warn)
     frames = sum(r.n_frames for r in runs)
     names = ", ".join(r.name for r in runs) if len(runs) <= 4 else f"{runs[0].name} .. {runs[-1].name}"
+    clock = runs[0].attrs.source.get("command_offset_estimate")
+    unsure = "" if not clock or clock["confident"] else ", unsure"
+    said = "" if not clock else (f"; commands vs images' motion: best at {clock['offset_s']:+.2f} s (R^2 "
+                                 f"{clock['r2']:.2f}, {clock['sigma']:.0f} sigma{unsure})")
     out.print(f"imported {bag} -> {out_store}: {len(runs)} run(s) ({names}), "
-              f"{frames} frames, split {runs[0].split}", highlight=False)
+              f"{frames} frames, split {runs[0].split}{said}", highlight=False)
 
 
 @user_errors

@@ -68,8 +68,13 @@ class EchoWarpConfig(ZooConfig):
 
 
 PRESETS: dict[str, dict] = {
+    # 0.43 M parameters; 0.99 GFLOP per horizon forward on the default grid (bench/bench_train.py)
     "small": {},
     "tiny": dict(channels=(4, 8), full_channels=4, max_horizon=4),
+    # the ablation (recipes/echowarp/ablation/): small without one part each
+    "small-no-correction": dict(max_shift=0),  # the network's output is an intensity residual on the warp
+    "small-last-frame": dict(older_frames=0),  # the older registered frames are inputs only
+    "small-chained": dict(max_horizon=1),  # one step at a time, each from the last prediction: resampled h times
 }
 
 

@@ -108,9 +108,28 @@ def median_interval(time: np.ndarray) -> float | None:
     return float(np.median(np.diff(t))) if t.size > 1 else None
 
 
-def frame_interval_problems(time: np.ndarray, frame_rate_hz: float) -> list[Problem]:
-    """The time stamps' median spacing against the declared ``frame_rate_hz`` (spec/FORMAT.md §7)."""
-    dt = median_interval(time)
+def recorded_gap_frames(raw: object) -> np.ndarray:
+    """The frames that follow a gap of a run's ``gaps`` record (``[[frame, lost], ...]``, spec/FORMAT.md
+    §4), leniently: a malformed record gives none here (reading the run's windows refuses it)."""
+    try:
+        pairs = np.asarray(raw, dtype=np.float64).reshape(-1, 2)
+    except (TypeError, ValueError):
+        return np.zeros(0, np.int64)
+    ok = np.isfinite(pairs).all(1) & (pairs[:, 0] >= 1)
+    return np.unique(pairs[ok, 0].astype(np.int64))
+
+
+def frame_interval_problems(time: np.ndarray, frame_rate_hz: float, gap_frames: np.ndarray | None = None) -> list[Problem]:
+    """The time stamps' median spacing against the declared ``frame_rate_hz`` (spec/FORMAT.md §7);
+    the spacings across recorded gaps (``gap_frames``: the frames that follow one) are left out."""
+    t = np.asarray(time, dtype=np.float64)
+    if gap_frames is not None and len(gap_frames) and t.size > 1:
+        keep = np.ones(t.size - 1, bool)
+        keep[np.asarray(gap_frames)[(gap_frames >= 1) & (gap_frames < t.size)] - 1] = False
+        steps = np.diff(t)[keep]
+        dt = float(np.median(steps)) if steps.size else None
+    else:
+        dt = median_interval(t)
     if dt is None or not math.isfinite(dt) or frame_rate_hz <= 0:
         return []
     nominal = 1.0 / frame_rate_hz

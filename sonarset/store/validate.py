@@ -20,7 +20,7 @@ import zarr
 from sonarset.errors import RemoteError, SonarSetError, one_line
 from sonarset.format.arrays import (
     ARRAYS, checksum_problems, coordinate_problems, frame_interval_problems, in_unit_interval, nonfinite_problems,
-    time_order_problems, unit_interval_problems,
+    recorded_gap_frames, time_order_problems, unit_interval_problems,
 )
 from sonarset.format.plausibility import Implausible, store_problems
 from sonarset.format.problems import Problem
@@ -137,12 +137,13 @@ def _check_run(store: SonarStore, name: str, group: zarr.Group, check_data: bool
             out += [p.at(f"{where}/{key}") for p in ChunkChecker(arr).beyond_storage()]
         # The coordinates are checked even in a quick pass: they say whether the run is on the grid.
         if arr is not None and (check_data or key in ("range", "azimuth")):
-            out += _guarded(f"{where}/{key}", lambda: _data_problems(where, key, arr, progress, store))
+            gaps = recorded_gap_frames((attrs.model_extra or {}).get("gaps", []))
+            out += _guarded(f"{where}/{key}", lambda: _data_problems(where, key, arr, progress, store, gaps))
     return out
 
 
 def _data_problems(run: str, key: str, arr: zarr.Array, progress: ProgressFn | None,
-                   store: SonarStore) -> list[Problem]:
+                   store: SonarStore, gap_frames: np.ndarray | None = None) -> list[Problem]:
     """The chunks and values of array ``key`` of the run at ``run``, as ``Run.read`` checks them,
     all of them reported."""
     aw = f"{run}/{key}"
@@ -187,7 +188,7 @@ def _data_problems(run: str, key: str, arr: zarr.Array, progress: ProgressFn | N
         return out
     values = arr[:]
     if key == "time":
-        out += [p.at(run) for p in frame_interval_problems(values, store.attrs.frame_rate_hz)]
+        out += [p.at(run) for p in frame_interval_problems(values, store.attrs.frame_rate_hz, gap_frames)]
     elif key == "velocity":
         out += [p.at(run) for p in command_limit_problems(values)]
     elif key in ("range", "azimuth"):

@@ -1,4 +1,4 @@
-"""Commands and poses onto the sonar's frames, and runs split where pings were dropped.
+"""Commands and poses onto the sonar's frames, and the gaps where pings were dropped.
 
 The spec's alignment: ``velocity[k]`` is the command that moved the robot from frame k-1 to
 frame k. A robot's controller holds each command until the next arrives (zero-order hold) and
@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 GAP_FACTOR = 1.5  # a frame interval this many median intervals long holds a dropped ping
+MAX_LOST = 5  # pings lost in a row that a run keeps, as a recorded gap; a longer gap splits it
 MIN_SEGMENT = 4  # frames: 3 of context and one to predict, the shortest window
 COMMAND_TIMEOUT_S = 0.5
 
@@ -43,23 +44,28 @@ def command_coverage(times: np.ndarray, edges: np.ndarray, timeout_s: float) -> 
 
 @dataclass(frozen=True)
 class Segment:
-    """Frames ``start:stop`` of a recording, one run."""
+    """Frames ``start:stop`` of a recording, one run, and the gaps it keeps: ``(k, lost)``, ``lost``
+    pings missing between its frames k-1 and k (the run attribute ``gaps``, spec/FORMAT.md section 4)."""
 
     start: int
     stop: int
+    gaps: tuple[tuple[int, int], ...] = ()
 
 
 def split_at_gaps(times: np.ndarray, tolerance: float = 0.05,
                   reference_s: float | None = None) -> tuple[list[Segment], list[str], float]:
-    """Runs of frames without a lost ping, one summary note, and the frame interval (seconds).
+    """Runs of frames, the gaps each keeps, one summary note, and the frame interval (seconds).
 
     A real sensor loses pings (BatSLAM2's eRTIS drive: 95 of 1,186) and its clock jitters (a few
-    per cent). An interval over ``GAP_FACTOR`` median intervals holds a lost ping: a window must not
-    span it, so the run splits there; jitter alone never reaches it. The interval is the median of
-    the intervals without a lost ping, what the store declares. A stretch too short for a window
-    is dropped, and so is one whose own median interval strays from it by more than ``tolerance``
-    (the format's frame-rate rule, spec/FORMAT.md section 7: a few jittery frames between two
-    lost pings), so that what is written validates; ``reference_s``, where given, is the interval
+    per cent). An interval over ``GAP_FACTOR`` median intervals holds lost pings (jitter alone never
+    reaches it): round(interval / median) - 1 of them. A gap of up to ``MAX_LOST`` pings stays
+    inside its run, recorded (``Segment.gaps``): windows never span one (``sonarset.windows``), so
+    a drive that loses one ping in twelve stays one run. A longer gap (the sensor stopped) splits
+    the run. The interval is the median of the intervals without a lost ping, what the store
+    declares. A run too short for a window is dropped; so is one whose median interval (gaps
+    included, as ``validate`` measures it) strays from it by more than ``tolerance`` (the format's
+    frame-rate rule, spec/FORMAT.md section 7): such a run is first split at each of its gaps and
+    its pieces kept where they keep to the rate. ``reference_s``, where given, is the interval
     they must keep to instead (the frame interval an existing store declares). A drive can lose a
     hundred pings: the note counts them, it does not list them.
     """
@@ -67,31 +73,46 @@ def split_at_gaps(times: np.ndarray, tolerance: float = 0.05,
         return [Segment(0, len(times))], [], 0.2
     dt = np.diff(times)
     nominal = float(np.median(dt))
-    gaps = dt > GAP_FACTOR * nominal
-    interval = float(np.median(dt[~gaps])) if (~gaps).any() else nominal
+    gap = dt > GAP_FACTOR * nominal
+    interval = float(np.median(dt[~gap])) if (~gap).any() else nominal
     keep_to = interval if reference_s is None else reference_s
-    cuts = np.flatnonzero(gaps) + 1
-    bounds = [0, *cuts.tolist(), len(times)]
-    segments, short, off_rate, dropped = [], 0, 0, 0
-    for a, b in zip(bounds[:-1], bounds[1:]):
-        if b - a < MIN_SEGMENT:
-            short, dropped = short + 1, dropped + b - a
-        elif abs(float(np.median(dt[a:b - 1])) - keep_to) > tolerance * keep_to:
-            off_rate, dropped = off_rate + 1, dropped + b - a
-        else:
-            segments.append(Segment(a, b))
-    if not cuts.size:
+    lost = np.zeros(len(dt), np.int64)
+    lost[gap] = np.maximum(np.round(dt[gap] / interval) - 1, 1)
+    long = np.flatnonzero(lost > MAX_LOST) + 1
+    segments: list[Segment] = []
+    drops = {"short": 0, "off": 0, "frames": 0}
+    for a, b in zip([0, *long.tolist()], [*long.tolist(), len(times)]):
+        _keep(a, b, dt, lost, keep_to, tolerance, segments, drops, whole=True)
+    if not gap.any():
         return segments, [], interval
-    lost = int(np.sum(np.maximum(np.round(dt[gaps] / interval) - 1, 1)))
-    longest = float(dt[gaps].max())
-    note = (f"{lost} lost ping(s) at {cuts.size} gap(s) (intervals over {GAP_FACTOR:g} x the median "
-            f"{interval:.4g} s, the longest {longest:.3g} s): {len(segments)} run(s) split at the gaps, "
-            "so that no window spans one")
-    if dropped:
-        why = [f"{short} shorter than a window's {MIN_SEGMENT} frames"] if short else []
-        why += [f"{off_rate} whose jitter puts their median interval over {tolerance:.0%} off"] if off_rate else []
-        note += f"; {dropped} frame(s) dropped in {short + off_rate} stretch(es) between gaps ({', '.join(why)})"
+    kept = sum(len(s.gaps) for s in segments)
+    note = (f"{int(lost.sum())} lost ping(s) at {int(gap.sum())} gap(s) (intervals over {GAP_FACTOR:g} x the median "
+            f"{interval:.4g} s, the longest {float(dt[gap].max()):.3g} s): {len(segments)} run(s)")
+    note += f", split at {long.size} gap(s) of over {MAX_LOST} pings" if long.size else ""
+    note += f"; {kept} gap(s) recorded in their runs, which no window spans" if kept else ""
+    if drops["frames"]:
+        why = [f"{drops['short']} shorter than a window's {MIN_SEGMENT} frames"] if drops["short"] else []
+        if drops["off"]:
+            why.append(f"{drops['off']} whose jitter puts their median interval over {tolerance:.0%} off")
+        note += (f"; {drops['frames']} frame(s) dropped in {drops['short'] + drops['off']} stretch(es) between gaps "
+                 f"({', '.join(why)})")
     return segments, [note], interval
+
+
+def _keep(a: int, b: int, dt: np.ndarray, lost: np.ndarray, keep_to: float, tolerance: float,
+          segments: list[Segment], drops: dict, whole: bool) -> None:
+    """Frames a:b as a run with its gaps, or, where its rate strays, its stretches between gaps."""
+    if b - a < MIN_SEGMENT:
+        drops["short"], drops["frames"] = drops["short"] + 1, drops["frames"] + b - a
+    elif abs(float(np.median(dt[a:b - 1])) - keep_to) <= tolerance * keep_to:
+        inside = np.flatnonzero(lost[a:b - 1]) + 1  # frame k of the run follows lost pings
+        segments.append(Segment(a, b, tuple((int(k), int(lost[a + k - 1])) for k in inside)))
+    elif whole and lost[a:b - 1].any():
+        cuts = (np.flatnonzero(lost[a:b - 1]) + a + 1).tolist()
+        for c, d in zip([a, *cuts], [*cuts, b]):
+            _keep(c, d, dt, lost, keep_to, tolerance, segments, drops, whole=False)
+    else:
+        drops["off"], drops["frames"] = drops["off"] + 1, drops["frames"] + b - a
 
 
 def frame_edges(times: np.ndarray) -> np.ndarray:

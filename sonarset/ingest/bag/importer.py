@@ -2,9 +2,10 @@
 
 Everything is read and checked before anything is written, as ``import`` does: the bag's topics
 (``reader``), the frames on one grid (``frames``), commands and poses on the frames and the
-splits at lost pings (``align``). Then the runs are written together, a store chunk of frames at
+gaps at lost pings (``align``: a few lost pings are recorded in the run, which windows never
+span; a long gap splits the run). Then the runs are written together, a store chunk of frames at
 a time (each block checked against the format as it is written), built aside and published at
-the end (``ImportTarget.write_runs``): a drive split into a hundred runs is imported whole or not
+the end (``ImportTarget.write_runs``): a drive split into several runs is imported whole or not
 at all.
 
 Pixel values become the store's [0, 1] energyscape by one recorded rule (``source.value_rule``):
@@ -25,16 +26,19 @@ from pydantic import ValidationError
 
 from sonarset.errors import InputValidationError, SonarSetError
 from sonarset.format.arrays import FRAME_INTERVAL_TOLERANCE
-from sonarset.format.attrs import Processing, SensorGrid
+from sonarset.format.attrs import Processing, RobotRig, SensorGrid
 from sonarset.format.problems import pydantic_problems
 from sonarset.format.units import grid_to_si
 import sonarset.ingest.bag.align as align
+from sonarset.ingest.bag.clock import command_clock, offset_hint, offset_warning
+from sonarset.ingest.bag.plausible import IMPLAUSIBLE_NOTE, bag_implausible
 from sonarset.ingest.bag.reader import BagStreams, read_streams
 from sonarset.ingest.images import encode_images
 from sonarset.ingest.metadata import recording_meta
 from sonarset.ingest.target import ImportTarget, check_run_options, run_name_for
 from sonarset.store.run import Run
 from sonarset.store.writer import DEFAULT_CHUNK_FRAMES
+from sonarset.windows import RUN_GAPS
 
 
 @dataclass
@@ -52,17 +56,24 @@ class BagRecording:
     streams: BagStreams | None = None
     #: maps a block of frames (their pixel type) to the store's energyscape; None for signals
     to_energyscape: Callable[[np.ndarray], np.ndarray] | None = None
+    #: each run's recorded gaps, ``[[k, lost], ...]`` (the run attribute ``gaps``)
+    gaps: dict[str, list[list[int]]] = field(default_factory=dict)
+    #: plausibility findings ``allow_implausible`` let through, and a command clock that looks off
+    warnings: list[str] = field(default_factory=list)
 
 
 def load_bag(bag: str | os.PathLike, *, images: str | None = None, commands: str | None = None,
              odometry: str | None = None, stamps: str = "header", command_offset_s: float = 0.0,
              command_timeout_s: float = align.COMMAND_TIMEOUT_S, meta_path: str | os.PathLike | None = None,
              name: str | None = None, grid: SensorGrid | None = None, raw: str | None = None,
-             sidecar_meta=None, frame_interval_s: float | None = None) -> tuple[BagRecording, object]:
+             sidecar_meta=None, frame_interval_s: float | None = None, rig: RobotRig | None = None,
+             allow_implausible: bool = False) -> tuple[BagRecording, object]:
     """Read and check a bag into runs; InputValidationError listing every problem. Returns the runs
     and the sidecar's metadata (``RecordingMeta``; for microphone signals, ``sidecar_meta``, the
     raw sidecar already read). ``frame_interval_s``: the interval the store to be written declares,
-    which every run must keep to (default: the bag's median)."""
+    which every run must keep to (default: the bag's median). The values must be plausible
+    (``plausible``, as ``import`` checks them) against ``rig`` (the store's; default: the
+    sidecar's); ``allow_implausible`` lets the findings through, as the recording's ``warnings``."""
     bag = Path(bag)
     where = str(bag)
     problems: list[str] = []
@@ -83,38 +94,52 @@ def load_bag(bag: str | os.PathLike, *, images: str | None = None, commands: str
                            raw=raw)
     base = run_name_for(bag, name, meta.name)
     to_energyscape = _energyscape_rule(streams, meta, problems) if streams.grid is not None else None
-    runs, frames, notes, interval = _runs(streams, base, command_offset_s, command_timeout_s, frame_interval_s,
-                                          problems)
+    clock = command_clock(streams, command_offset_s, command_timeout_s) if streams.grid is not None else None
+    runs, frames, notes, interval, gaps = _runs(streams, base, command_offset_s, command_timeout_s,
+                                                frame_interval_s, problems)
+    if not problems:
+        implausible += bag_implausible(runs, streams.grid, rig or meta.rig, interval, streams.commands.topic,
+                                       streams.frames.topic)
+    if implausible and not allow_implausible:
+        problems += [line + IMPLAUSIBLE_NOTE for line in implausible]
+    hint = offset_hint(clock, command_offset_s)  # commands that reach no frame: a clock offset says why
+    problems = [p + hint if p.startswith(f"topic {streams.commands.topic!r}: no command") else p for p in problems]
     if problems:
-        raise InputValidationError(where, problems)
+        named = (("allow_implausible",) * bool(implausible and not allow_implausible)
+                 + ("command_offset_s",) * bool(hint))
+        raise InputValidationError(where, problems, parameter=named[0] if len(named) == 1 else named or None)
+    warnings = implausible + [line for line in [offset_warning(clock, interval, command_offset_s)] if line]
     attrs = {"kind": "import-bag", "file": bag.name, "images_topic": streams.frames.topic,
              "images_type": streams.frames.msgtype, "commands_topic": streams.commands.topic,
              "commands_type": streams.commands.msgtype, "stamps": stamps, "command_offset_s": command_offset_s,
-             "command_timeout_s": command_timeout_s, "frame_interval_s": interval, "first_stamp_ns": streams.origin_ns, "source": meta.source}
+             "command_timeout_s": command_timeout_s, "frame_interval_s": interval, "first_stamp_ns": streams.origin_ns,
+             "source": meta.source,
+             "command_offset_estimate": clock.as_attr() if clock is not None else None}
     if streams.grid is not None:
         attrs["value_rule"] = _value_rule(streams, meta)
     if streams.odometry is not None:
         attrs["odometry_topic"] = streams.odometry.topic
     return BagRecording(where, streams.grid, runs, interval, streams.notes + notes, attrs, frames, streams,
-                        to_energyscape), meta
+                        to_energyscape, gaps, warnings), meta
 
 
 def _runs(streams: BagStreams, base: str, offset_s: float, timeout_s: float, reference_s: float | None,
-          problems: list[str]) -> tuple[dict, dict, list[str], float]:
-    """Each run's small arrays (velocity, time, pose) and its frames' span of the frame topic."""
+          problems: list[str]) -> tuple[dict, dict, list[str], float, dict]:
+    """Each run's small arrays (velocity, time, pose), its frames' span of the frame topic and its
+    recorded gaps."""
     times = streams.frames.times
     cmd_t = streams.commands.times + offset_s
     notes: list[str] = []
     if len(times) < align.MIN_SEGMENT:
         problems.append(f"topic {streams.frames.topic!r}: {len(times)} frame(s), a run needs at least "
                         f"{align.MIN_SEGMENT}")
-        return {}, {}, notes, 0.0
+        return {}, {}, notes, 0.0, {}
     edges = align.frame_edges(times)
     covered = align.command_coverage(cmd_t, edges, timeout_s) if cmd_t.size else np.zeros(len(times), bool)
     if not covered.any():
         problems.append(f"topic {streams.commands.topic!r}: no command reaches any frame interval (commands "
                         f"{_span(cmd_t)}, frames {_span(times)}; a clock offset? command_offset_s shifts them)")
-        return {}, {}, notes, 0.0
+        return {}, {}, notes, 0.0, {}
     first = int(np.argmax(covered))
     if first:
         notes.append(f"frames 0..{first - 1} dropped: before the first command")
@@ -124,7 +149,7 @@ def _runs(streams: BagStreams, base: str, offset_s: float, timeout_s: float, ref
         problems.append(f"topic {streams.commands.topic!r}: no command over frame {k}'s interval "
                         f"({times[k - 1] - times[0] if k else 0:.3f}..{times[k] - times[0]:.3f} s after the first frame;"
                         f" a command older than {timeout_s:g} s has stopped the robot)")
-        return {}, {}, notes, 0.0
+        return {}, {}, notes, 0.0, {}
     velocity = np.stack([align.held_mean(cmd_t, streams.commands.values[k], edges, timeout_s)
                          for k in ("v", "omega")], axis=1).astype(np.float32)
     pose = None
@@ -142,19 +167,20 @@ def _runs(streams: BagStreams, base: str, offset_s: float, timeout_s: float, ref
                                                           reference_s)
     notes += split_notes
     if not segments:
-        problems.append(f"topic {streams.frames.topic!r}: no stretch of {align.MIN_SEGMENT} frames without a lost ping "
+        problems.append(f"topic {streams.frames.topic!r}: no run of {align.MIN_SEGMENT} frames at a steady rate "
                         f"({split_notes[0] if split_notes else 'too few frames'})")
-        return {}, {}, notes, 0.0
+        return {}, {}, notes, 0.0, {}
     runs: dict[str, dict[str, np.ndarray]] = {}
     frames: dict[str, tuple[int, int]] = {}
+    gaps: dict[str, list[list[int]]] = {}
     for i, seg in enumerate(segments):
         a, b = seg.start + first, seg.stop + first
         run = {"velocity": velocity[a:b], "time": times[a:b] - times[first]}
         if pose is not None:
             run["pose"] = pose[a:b]
         name = base if len(segments) == 1 else f"{base}_{i:03d}"
-        runs[name], frames[name] = run, (a, b)
-    return runs, frames, notes, interval
+        runs[name], frames[name], gaps[name] = run, (a, b), [list(g) for g in seg.gaps]
+    return runs, frames, notes, interval, gaps
 
 
 def _span(t: np.ndarray) -> str:
@@ -211,10 +237,12 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
                command_timeout_s: float = align.COMMAND_TIMEOUT_S, meta_path: str | os.PathLike | None = None,
                name: str | None = None, split: str | None = None, overwrite: bool = False,
                processing: str | Processing = "ertis", beamformer: str | None = None, workers: int = 2,
-               note: Callable[[str], None] | None = None,
+               allow_implausible: bool = False, note: Callable[[str], None] | None = None,
+               warn: Callable[[str], None] | None = None,
                progress: Callable[[int, int], None] | None = None) -> list[Run]:
-    """Validate the bag ``bag`` completely, then write it as runs of the store ``out`` (one per
-    stretch without dropped pings: ``NAME``, or ``NAME_000``, ``NAME_001``... when it splits).
+    """Validate the bag ``bag`` completely, then write it as runs of the store ``out``: ``NAME``,
+    or ``NAME_000``, ``NAME_001``... when a gap of over ``align.MAX_LOST`` lost pings splits it;
+    shorter gaps stay in their run, recorded in its attribute ``gaps``, which windows never span.
 
     ``images``, ``commands``, ``odometry``: topic names (default: the one topic of an accepted type;
     odometry is optional). ``raw``: a ``sonarset_msgs/MicrophoneArrayPing`` topic to beamform
@@ -225,8 +253,10 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
     name, split, grid (needed for ``sensor_msgs/Image``), rig, processing, image encoding. A new
     store records the measured frame interval (in the sidecar's rig, if it gives one); an existing
     one must have the same grid and frame rate. ``note`` receives, in one line, what was done to fit
-    the data (splits at lost pings, dropped frames, resampling). Every run is built aside and the
+    the data (gaps recorded and splits at lost pings, dropped frames, resampling). Every run is built aside and the
     runs are published together: an import killed or failed midway leaves ``out`` as it was.
+    The values must be plausible, as for ``import``: ``allow_implausible`` imports what the rules
+    question, passing each finding to ``warn``.
     """
     from sonarset.ingest.bag.reader import default_raw_topic
     from sonarset.ingest.raw import resolve_processing
@@ -246,7 +276,11 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
                          command_offset_s=command_offset_s, command_timeout_s=command_timeout_s,
                          meta_path=meta_path, name=name, grid=have.grid if have is not None else None,
                          raw=raw, sidecar_meta=sidecar_meta,
-                         frame_interval_s=1.0 / have.attrs.frame_rate_hz if have is not None else None)
+                         frame_interval_s=1.0 / have.attrs.frame_rate_hz if have is not None else None,
+                         rig=have.rig if have is not None else None, allow_implausible=allow_implausible)
+    for line in rec.warnings:
+        if warn is not None:
+            warn(f"{bag}: {line}")
     rig = meta.rig.model_copy(update={"frame_interval_s": rec.frame_interval_s}) if meta.rig is not None else None
     if meta.rig is not None and abs(meta.rig.frame_interval_s - rec.frame_interval_s) > \
             FRAME_INTERVAL_TOLERANCE * meta.rig.frame_interval_s:
@@ -271,6 +305,7 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
         writers = [(n, ImageRunWriter(n, arrays, rec.frames[n], rec.streams.frames.values["images"],
                                       rec.to_energyscape, run_split, rec.attrs)) for n, arrays in rec.runs.items()]
         description = f"imported from the ROS bag {bag.name}"
+    writers = [(n, GapRecorder(write, rec.gaps.get(n, []))) for n, write in writers]
     if note is not None and rec.notes:  # one line, however much was done: a drive can lose a hundred pings
         note(f"{bag}: {'; '.join(rec.notes)}")
     # every run is built aside and published at the end: a killed import leaves the store as it was
@@ -304,3 +339,30 @@ class ImageRunWriter:
                 images = self.to_energyscape(np.stack(self.frames[a + start:a + stop]))
                 w.write(start, images=images, **{k: v[start:stop] for k, v in self.arrays.items()})
             w.commit()
+
+
+@dataclass
+class GapRecorder:
+    """A run writer (``ImageRunWriter`` or ``import-raw``'s) whose run records ``gaps`` in its
+    attributes (``sonarset.windows.RUN_GAPS``), written with them by its ``commit``."""
+
+    write: Callable
+    gaps: list[list[int]]
+
+    def __call__(self, store, replace: bool) -> None:
+        self.write(_RecordingGaps(store, self.gaps) if self.gaps else store, replace)
+
+
+class _RecordingGaps:
+    """A store whose run writers commit the run with its gaps; everything else is the store's."""
+
+    def __init__(self, store, gaps: list[list[int]]):
+        self._store, self._gaps = store, gaps
+
+    def run_writer(self, *args, **kwargs):
+        writer = self._store.run_writer(*args, **kwargs)
+        writer.attrs = writer.attrs.model_copy(update={RUN_GAPS: self._gaps})
+        return writer
+
+    def __getattr__(self, name: str):
+        return getattr(self._store, name)

@@ -14,6 +14,7 @@ import numpy as np
 
 from sonarset.errors import InputValidationError, one_line
 from sonarset.format.attrs import SensorGrid
+import sonarset.ingest.bag.bounds as bounds
 import sonarset.ingest.bag.messages as m
 
 STAMPS = ("header", "bag")
@@ -46,8 +47,9 @@ class BagStreams:
     origin_ns: int = 0
 
 
-#: The most one MCAP chunk may inflate to. Writers cut chunks at 1-4 MiB (mcap's writers 1 MiB,
-#: rosbag2 4 MiB); a chunk holds at least one message, so a large microphone ping makes one larger,
+#: The most one MCAP or ROS 1 chunk may inflate to, and one ROS 2 sqlite3 message may take
+#: (``bounds``). Writers cut chunks at 1-4 MiB (mcap's writers 1 MiB, rosbag2 4 MiB); a chunk
+#: holds at least one message, so a large microphone ping makes one larger,
 #: but a chunk declaring hundreds of megabytes is a decompression bomb (2 GB of zeros fit in 64 KB of
 #: zstd), refused before anything is inflated.
 MAX_CHUNK_BYTES = 256 * 2**20
@@ -63,11 +65,13 @@ def open_reader(bag: Path):
         raise InputValidationError(str(bag), ["no such file or directory"])
     if not (bag.is_dir() or bag.is_file()):
         raise InputValidationError(str(bag), ["not a regular file or a bag directory"])
-    for path in [bag] if bag.is_file() else sorted(bag.glob("*.mcap")):
-        problem = mcap_chunk_problem(path)
+    for path in [bag] if bag.is_file() else sorted(bag.glob("*.mcap")) + sorted(bag.glob("*.db3")):
+        problem = (mcap_chunk_problem(path) or bounds.ros1_chunk_problem(path, MAX_CHUNK_BYTES)
+                   if path.suffix != ".db3" else bounds.sqlite_message_problem(path, MAX_CHUNK_BYTES))
         if problem is not None:
             raise InputValidationError(str(path), [problem])
     _bound_decompression()
+    bounds.bound_ros1_inflation(MAX_CHUNK_BYTES)
     store = get_typestore(Stores.ROS2_JAZZY)
     try:
         reader = AnyReader([bag], default_typestore=store)
@@ -219,6 +223,8 @@ def read_streams(bag: str | Path, *, images: str | None = None, commands: str | 
         frames_failed = bool(problems)  # a frame that cannot be decoded ends the topic: say that, not "empty"
         cmds = _read_commands(reader, command_topic, stamps, problems)
         odom = _read_odometry(reader, odom_topic, stamps, problems) if odom_topic else None
+    except bounds.TooLarge as exc:
+        raise InputValidationError(where, [str(exc)]) from None
     finally:
         reader.close()
     streams = [s for s in (frames, cmds, odom) if s is not None]
@@ -247,6 +253,8 @@ def _messages(reader, topic: str, problems: list[str], stamps: str):
                 return
             header = getattr(msg, "header", None)
             yield i, m.stamp_ns(header.stamp) if stamps == "header" and header is not None else int(t_ns), msg
+    except bounds.TooLarge:  # the bag's, not the topic's: said once
+        raise
     except Exception as exc:  # a bag cut short mid-chunk
         problems.append(f"topic {topic!r}: the bag ends inside a message or is damaged: {one_line(exc)}")
 
