@@ -92,7 +92,7 @@ def main() -> None:
             profile = "raw" if bf == "das" else "ertis"
             proc = Processing.named(profile)
             model = SonarModel(grid, processing=proc)
-            px = (lambda a: model.pixels(a)) if proc.post_processed else (lambda a: model.encode(a * a))
+            px = (lambda a, model=model: model.pixels(a)) if proc.post_processed else (lambda a, model=model: model.encode(a * a))
             sb = SignalBeamformer(grid, read_layout_csv(), sweep(200e3), 200e3, one[0].shape[1], bf, detector=det)
             sim = runs[profile].images[:].astype(np.float32)
             a = [cc(px(sb.amplitude(s)), sim[k]) for k, s in enumerate(one)]

@@ -89,7 +89,7 @@ def family_rows(res, models: list[str]) -> tuple[list[str], dict]:
     p.update({(c.a, c.metric, c.horizon): c for c in res.comparisons if c.b == "flow"})
     lines, doc = [], {}
     for h in res.horizons:
-        def mean(m, k):
+        def mean(m, k, h=h):
             v = s[m][str(h)][k]["mean"]
             return float("nan") if v is None else v
 

@@ -242,7 +242,8 @@ def read_only_cases(store: Path, work: Path) -> None:
         row("read-only store", "info", run(["info", ro]), expect=0)
         row("read-only store", "generate (nothing to do)", run(["generate", ro, *GENERATE]), expect=0)
         row("read-only store", "validate --consolidate", run(["validate", "--consolidate", ro]), expect=0)
-        row("read-only store", "generate --runs 2 (other settings: refused before writing)", run(["generate", ro, *GENERATE_MORE]), expect=1)
+        row("read-only store", "generate --runs 2 (other settings: refused before writing)",
+            run(["generate", ro, *GENERATE_MORE]), expect=1)
     finally:
         subprocess.run(["umount", mnt])
 

@@ -1,4 +1,5 @@
-"""EchoPT inference speed: torch fp32, torch bf16 autocast and onnxruntime, in one run.
+"""Inference speed of EchoPT (or EchoWarp: ``--model echowarp:RUN``): torch fp32, torch bf16
+autocast and onnxruntime, in one run.
 
     python bench/bench_infer.py [--model pretrained] [--batches 1,16,128] [--threads 1,2] [--seconds 2]
 
@@ -28,6 +29,7 @@ import torch
 
 from sonarset.models.echopt.checkpoint import load_checkpoint
 from sonarset.models.echopt.config import make_config
+from sonarset.models.echopt.networks import KINDS
 from sonarset.models.echopt.model import EchoPT
 from sonarset.models.echopt.predictor import INFERENCE_BATCH, EchoPTPredictor
 from sonarset.models.echopt.onnx_export import random_windows
@@ -94,8 +96,9 @@ def main() -> None:
     if args.random:
         torch.manual_seed(0)
         model = EchoPT(make_config(args.model)).eval()
-    else:
-        model = load_checkpoint(args.model)[0]
+    else:  # a checkpoint spec, KIND:PATH for another kind than EchoPT (echowarp:runs/echowarp-small)
+        kind, sep, path = args.model.partition(":")
+        model = load_checkpoint(path, kind=kind)[0] if sep and kind in KINDS else load_checkpoint(args.model)[0]
     print(f"# bench_infer  {platform.node()}  {platform.processor() or platform.machine()}  {os.cpu_count()} cores  "
           f"torch {torch.__version__}  CPU bf16 flags: {', '.join(cpu_bf16_flags()) or 'none'} "
           f"(auto -> {resolve_precision('auto', 'cpu')})  {time.strftime('%Y-%m-%d')}")
@@ -159,7 +162,7 @@ def main() -> None:
     print("|---|---|")
     for precision in ("fp32", "bf16"):
         p = EchoPTPredictor(model, {}, None, "cpu", precision=precision)
-        print(f"| {precision} | {rate(lambda f, c: p.predict(f, c), frames, commands, args.seconds):.0f} |")
+        print(f"| {precision} | {rate(lambda f, c, p=p: p.predict(f, c), frames, commands, args.seconds):.0f} |")
 
 
 if __name__ == "__main__":

@@ -77,7 +77,7 @@ def main() -> None:
             poses = store.run("test_000")["pose"][::50]
             burst_px, burst_cc = burst_look(proc, grid, poses)
 
-            def row(m, k):
+            def row(m, k, s=s, res=res):
                 return "/".join(f"{s[m][str(h)][k]['mean']:.2f}" for h in res.horizons)
 
             print(f"| {label} | {(images == 0).mean():.0%} | {np.median(images):.2f} / {np.percentile(images, 99):.2f} | "

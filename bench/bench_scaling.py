@@ -45,7 +45,8 @@ def main() -> None:
     frames = args.runs * args.frames
     with tempfile.TemporaryDirectory() as tmp:
         rates = {}
-        for name, kw in (("local processes, 2", dict(workers=2)), ("dask LocalCluster, 1 worker", dict(workers=1, scheduler="local")),
+        for name, kw in (("local processes, 2", dict(workers=2)),
+                         ("dask LocalCluster, 1 worker", dict(workers=1, scheduler="local")),
                          ("dask LocalCluster, 2 workers", dict(workers=2, scheduler="local"))):
             t0 = time.perf_counter()
             generate(os.path.join(tmp, f"{len(rates)}.zarr"), runs=args.runs, test_runs=0, minutes=minutes, seed=0, **kw)
@@ -65,7 +66,8 @@ def main() -> None:
             FrameBank.from_store(open_store(url))
             t_http = time.perf_counter() - t0
             print(f"load {frames} frames into memory: local {frames / t_local:8,.0f} frames/s, "
-                  f"http {frames / t_http:8,.0f} frames/s ({served.requests} requests); remote/local time = {t_http / t_local:.2f}x")
+                  f"http {frames / t_http:8,.0f} frames/s ({served.requests} requests); "
+                  f"remote/local time = {t_http / t_local:.2f}x")
             n = 2000
             w_local = lazy_windows(local, n)
             served.requests = 0

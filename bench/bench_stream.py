@@ -74,7 +74,7 @@ def run_child(args: list[str]) -> tuple[dict | None, float]:
     if os.waitstatus_to_exitcode(status) != 0:
         print(f"# failed: {' '.join(args)}\n{err[-2000:]}", file=sys.stderr)
         return None, 0.0
-    line = [l for l in out.splitlines() if l.startswith("{")]
+    line = [text for text in out.splitlines() if text.startswith("{")]
     return (json.loads(line[-1]) if line else None), usage.ru_maxrss / 1024
 
 
@@ -89,7 +89,7 @@ def training(store: str, steps: int, stream: bool, workers: int, buffer: int = 0
         t0 = time.perf_counter()
         _, rss = run_child(cmd)
         wall = time.perf_counter() - t0
-        log = [json.loads(l) for l in Path(f"{tmp}/run/metrics.jsonl").read_text().splitlines()]
+        log = [json.loads(line) for line in Path(f"{tmp}/run/metrics.jsonl").read_text().splitlines()]
     return log[-1]["samples_per_s"], wall, rss
 
 
@@ -115,7 +115,8 @@ def main() -> None:
           f"{time.strftime('%Y-%m-%d')}")
     print(f"# {args.store}: {len(store.runs('train'))} training runs, {store.n_frames('train')} frames "
           f"({store.n_frames('train') * store.grid.shape[0] * store.grid.shape[1] * 2 / 2**30:.2f} GiB as float16)")
-    print("\n| reading | source | workers | windows/s | ratio to memory | first batch | peak RSS, largest process | largest worker |")
+    print("\n| reading | source | workers | windows/s | ratio to memory | first batch | "
+          "peak RSS, largest process | largest worker |")
     print("|---|---|---:|---:|---:|---:|---:|---:|")
     sources = [("local disk", args.store)]
     server = None
@@ -145,7 +146,8 @@ def main() -> None:
         server.close()
     if args.skip_training:
         return
-    print(f"\n| training (small, batch {BATCH}, {args.train_steps} steps) | samples/s | ratio | wall | peak RSS, largest process |")
+    print(f"\n| training (small, batch {BATCH}, {args.train_steps} steps) | samples/s | ratio | wall | "
+          "peak RSS, largest process |")
     print("|---|---:|---:|---:|---:|")
     base_rate = None
     rows = [("in memory", False, 0, 0), ("--stream", True, 0, 0), ("--stream --workers 2", True, 2, 0)]

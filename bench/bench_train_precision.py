@@ -42,7 +42,8 @@ def main() -> None:
     args = ap.parse_args()
     store = open_store(args.store, check=True)
     root = Path(args.out or tempfile.mkdtemp(prefix="bench-precision-"))
-    print(f"# bench_train_precision  {args.store}  preset {args.preset}  prior {args.prior or 'default'}  {args.steps} steps of batch {args.batch}  "
+    print(f"# bench_train_precision  {args.store}  preset {args.preset}  prior {args.prior or 'default'}  "
+          f"{args.steps} steps of batch {args.batch}  "
           f"lr {args.lr}  {time.strftime('%Y-%m-%d')}")
     runs = {}
     for precision in ("fp32", "bf16"):

@@ -156,7 +156,8 @@ def main() -> None:
     print(f"# GFLOP/sample: forward + backward of one training window, one-step / {args.k}-step rollout")
     result = {"bench": "bench_zoo", "date": time.strftime("%Y-%m-%d"), "host": platform.node(),
               "cores": os.cpu_count(), "threads": torch.get_num_threads(), "torch": torch.__version__,
-              "preset": args.preset, "recipes": args.recipes, "grid": list(grid), "batch": args.batch, "steps": args.steps, "k": args.k,
+              "preset": args.preset, "recipes": args.recipes, "grid": list(grid), "batch": args.batch, "steps": args.steps,
+              "k": args.k,
               "cpu_bf16_flags": list(cpu_bf16_flags()), "matmul_tflops": roof, "models": rows}
     with open(args.out, "w") as f:
         json.dump(result, f, indent=2)

@@ -81,7 +81,7 @@ def user_errors(fn: Callable) -> Callable:
                 for parameter in named:
                     line = with_flag(line, parameter, flags, append=False)
                 err.print(f"[bold red]error:[/] {exc.source}: {line}", highlight=False, soft_wrap=True)
-            raise typer.Exit(1)
+            raise typer.Exit(1) from None
         except SonarSetError as exc:
             fail(with_flag(str(exc), exc.parameter, command_flags(fn)))
         except Terminated:

@@ -11,6 +11,7 @@ from sonarset.store import RemoteLimits, Run, RunData, RunWriter, SonarStore, cr
 
 __all__ = [
     "__version__", "FORMAT_VERSION", "FormatError", "GridMismatchError", "InputValidationError",
-    "Processing", "RecordingMeta", "RemoteError", "RemoteLimits", "RobotRig", "Run", "RunAttrs", "RunData", "RunWriter", "SensorGrid",
+    "Processing", "RecordingMeta", "RemoteError", "RemoteLimits", "RobotRig", "Run", "RunAttrs", "RunData", "RunWriter",
+    "SensorGrid",
     "SonarSetError", "SonarStore", "StoreAttrs", "create_store", "open_or_create_store", "open_store",
 ]

@@ -244,10 +244,11 @@ class StreamingLoader:
     in a fixed order, and can be stopped and resumed exactly.
 
     With ``num_workers`` > 0 the workers are started by spawn (each opens the store itself), read
-    their shards in parallel and send the images as stored (``convert=False`` hands them out so); batches are handed out round robin over this rank's shards
-    (``sonarset.stream.canonical_order``), the order an in-order DataLoader gives, which a resumed
-    epoch keeps too. ``state_dict()`` / ``load_state_dict()`` are the dataset's: the epoch and each
-    shard's batches handed out. An epoch iterated to its end moves the dataset to the next one.
+    their shards in parallel and send the images as stored (``convert=False`` hands them out so);
+    batches are handed out round robin over this rank's shards (``sonarset.stream.canonical_order``),
+    the order an in-order DataLoader gives, which a resumed epoch keeps too. ``state_dict()`` /
+    ``load_state_dict()`` are the dataset's: the epoch and each shard's batches handed out. An epoch
+    iterated to its end moves the dataset to the next one.
     """
 
     def __init__(self, dataset: StreamingWindowDataset, num_workers: int = 0, prefetch_factor: int = 2,

@@ -277,7 +277,7 @@ def test_ros2_sqlite3_and_ros1_bags_import_too(tmp_path):
         serialize = store.serialize_ros1 if kind == "ros1" else store.serialize_cdr
         time_t = T["builtin_interfaces/msg/Time"]
 
-        def header(t):
+        def header(t, time_t=time_t, T=T, kind=kind):
             kw = {"stamp": time_t(sec=int(t // 10**9), nanosec=int(t % 10**9)), "frame_id": "x"}
             return T["std_msgs/msg/Header"](seq=0, **kw) if kind == "ros1" else T["std_msgs/msg/Header"](**kw)
 

@@ -92,7 +92,8 @@ def cited_paths(text: str) -> set[str]:
     for token in re.findall(r"`([^`\n]+)`", text):
         for word in token.split():
             word = word.split(":")[0].rstrip(".,;)")
-            if (word.startswith(TOP) or re.fullmatch(r"[A-Z]+\.(md|cff)", word)) and not any(c in word for c in "*<>{}$|") and not word.endswith("NNN"):
+            if ((word.startswith(TOP) or re.fullmatch(r"[A-Z]+\.(md|cff)", word))
+                    and not any(c in word for c in "*<>{}$|") and not word.endswith("NNN")):
                 found.add(word)
     return found
 

@@ -119,7 +119,7 @@ def test_checkpoint_is_safetensors_with_a_card(tmp_path):
     (tmp_path / "bad.json").write_text((tmp_path / "m.json").read_text())
     with pytest.raises(SonarSetError, match="cannot load weights"):
         load_checkpoint(tmp_path / "bad", TINY_GRID)
-    for k, v in model.state_dict().items():  # a diverged training: weights that are NaN
+    for v in model.state_dict().values():  # a diverged training: weights that are NaN
         if v.is_floating_point():
             v.fill_(float("nan"))
     nan = save_checkpoint(tmp_path / "nan", model, {"grid": TINY_GRID.model_dump(), "preset": "tiny"})
@@ -200,7 +200,7 @@ def test_killed_at_any_write_phase_resumes_to_the_uninterrupted_result(tiny_stor
             run = tmp_path / f"{phase}-{nth}"
             seen: list[str] = []
 
-            def kill(p, phase=phase, nth=nth):
+            def kill(p, phase=phase, nth=nth, seen=seen):
                 seen.append(p)
                 if seen.count(phase) == nth:
                     raise _Killed(p)

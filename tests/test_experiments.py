@@ -15,7 +15,7 @@ from sonarset.models.echopt.config import make_config
 from sonarset.models.echopt.model import EchoPT
 from sonarset.models.experiments.common import predictor
 from sonarset.models.experiments.control import BurstSchedule, Episode, run_control_experiment, run_episode
-from sonarset.models.experiments.slip import SlipPeriod, SlipTrial, frame_labels, run_slip_experiment, slip_signals
+from sonarset.models.experiments.slip import SlipPeriod, frame_labels, run_slip_experiment, slip_signals
 from sonarset.models.experiments.slip_report import write_slip_report
 from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.windows import N_IN

@@ -112,7 +112,8 @@ def _env(tmp: Path) -> dict[str, str]:
 
 
 def test_blocks_are_found_with_their_markers():
-    text = "x\n<!-- no-test: a robot -->\n```bash\nros2 bag\n```\n<!-- file: a.toml -->\n```toml\nk = 1\n```\n```python\nprint(1)\n```\n"
+    text = ("x\n<!-- no-test: a robot -->\n```bash\nros2 bag\n```\n"
+            "<!-- file: a.toml -->\n```toml\nk = 1\n```\n```python\nprint(1)\n```\n")
     assert blocks(text) == [("no-test", "a robot", "bash", "ros2 bag\n"), ("file", "a.toml", "toml", "k = 1\n"),
                             ("", "", "python", "print(1)\n")]
 

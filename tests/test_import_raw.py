@@ -44,7 +44,7 @@ def _signals(T, grid=SMALL, seed=0):
     """T measurements of a few point echoes that move between measurements: (T, 32, n) float32."""
     rng = np.random.default_rng(seed)
     out = []
-    for k in range(T):
+    for _ in range(T):
         r = rng.uniform(grid.range_min_m + 0.1, grid.range_max_m - 0.1, 3)
         echoes = Echoes(r, rng.uniform(-1, 1, 3), rng.uniform(0.05, 0.3, 3))
         out.append(microphone_signals(echoes, grid, coherent=True)[0])
@@ -469,7 +469,7 @@ def test_a_450_khz_int16_directory_recording_makes_the_same_images(tmp_path, sig
     rng = np.random.default_rng(0)
     fs = 450e3
     sig = []
-    for k in range(2):
+    for _ in range(2):
         r = rng.uniform(0.6, 1.4, 3)
         echoes = Echoes(r, rng.uniform(-1, 1, 3), rng.uniform(0.05, 0.3, 3))
         sig.append((microphone_signals(echoes, SMALL, coherent=True, fs=FS)[0],

@@ -132,8 +132,8 @@ def test_two_process_gloo_ddp_matches_single_process_training(local_ref, tmp_pat
     assert card["processes"] == 2 and card["steps"] == 3
     for (k, a), b in zip(m_ddp.state_dict().items(), m_one.state_dict().values()):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5, msg=k)
-    log = [json.loads(l) for l in (tmp_path / "ddp" / "metrics.jsonl").read_text().splitlines()]
-    ref = [json.loads(l) for l in (tmp_path / "one" / "metrics.jsonl").read_text().splitlines()]
+    log = [json.loads(line) for line in (tmp_path / "ddp" / "metrics.jsonl").read_text().splitlines()]
+    ref = [json.loads(line) for line in (tmp_path / "one" / "metrics.jsonl").read_text().splitlines()]
     assert len(log) == len(ref) == 1
     assert log[0]["val_loss"] == pytest.approx(ref[0]["val_loss"], rel=1e-4)
 

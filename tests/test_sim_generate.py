@@ -188,7 +188,8 @@ def test_beam_patterns_match_the_toolbox_side_lobe_levels():
     """One point target: the level across azimuth (181 directions) at the echo's range, median and
     max re the peak, away from the main lobe (|az| > 10 deg). The Cosys-Lab toolbox's own code on
     the eRTIS layout gives DAS -19 / -14 dB, DAS + CF -47 / -37, DMAS3 -50 / -39 and DMAS3 + CF
-    -79 / -60 (docs/physics.md, "Point-spread functions"). For one echo the coherence factor is the delay-and-sum pattern squared."""
+    -79 / -60 (docs/physics.md, "Point-spread functions"). For one echo the coherence factor is the
+    delay-and-sum pattern squared."""
     from sonarset.sensor.energyscape import dmas3_beam_table
     from sonarset.sim.sonar import beam_table
 

@@ -84,7 +84,8 @@ def test_world_mix_syntax():
     assert world_mix("worlds/a.json:2") == [("worlds/a.json", 2)]
     for bad, runs, why in [("lab:4,orchard", None, "give every world a run count"),
                            ("lab,orchard", None, "several worlds need a run count"),
-                           ("lab:4", 3, "gives the run counts; leave runs unset"), ("lab:1,lab:2", None, "named twice"), (" , ", None, "empty")]:
+                           ("lab:4", 3, "gives the run counts; leave runs unset"), ("lab:1,lab:2", None, "named twice"),
+                           (" , ", None, "empty")]:
         with pytest.raises(SonarSetError, match=why):
             world_mix(bad, runs)
 

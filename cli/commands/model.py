@@ -15,7 +15,8 @@ from sonarset.errors import SonarSetError
 from sonarset.models.echopt.train_config import TrainConfig
 from sonarset.models.registry import BASELINES, HORIZONS
 
-from sonarset.cli.choices import Device, ModelKind, Optimizer, Precision, Inputs, Preset, Prior, Schedule, StepWeights, Trainable, value
+from sonarset.cli.choices import (Device, ModelKind, Optimizer, Precision, Inputs, Preset, Prior, Schedule, StepWeights,
+                                  Trainable)
 from sonarset.cli.common import err, fail, out, per_name_progress, progress_bar, user_errors
 from sonarset.cli.options import Model, ModelDevice, ModelPrecision
 
@@ -44,7 +45,8 @@ def eval_(
                                     "package.module:factory."),
     horizons: str = typer.Option(",".join(map(str, HORIZONS)), "--horizons", help="Prediction horizons (1 = one-shot)."),
     samples: int = typer.Option(1000, "--samples", min=1, help="Windows drawn (seeded), shared by all methods."),
-    out_dir: Path = typer.Option(Path("eval-out"), "--out", help="Directory for metrics.json, per_window.csv, report.md, figures."),
+    out_dir: Path = typer.Option(Path("eval-out"), "--out",
+                                 help="Directory for metrics.json, per_window.csv, report.md, figures."),
     split: str = typer.Option("test", "--split", help="Split to evaluate on."),
     worlds: str = typer.Option("", "--worlds", help="Only runs of these world families, comma-separated "
                                                      "(default: every run of the split)."),

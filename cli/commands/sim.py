@@ -27,7 +27,8 @@ SPEC = {f.name: f.default for f in fields(GenerationSpec)}
 @user_errors
 def generate(
     out_store: str = typer.Argument(..., metavar="OUT", help="Store to write (created, or resumed)."),
-    runs: Optional[int] = typer.Option(None, "--runs", min=0, help=f"Training runs of a single --world (default {DEFAULT_RUNS})."),
+    runs: Optional[int] = typer.Option(None, "--runs", min=0,
+                                       help=f"Training runs of a single --world (default {DEFAULT_RUNS})."),
     minutes: float = typer.Option(SPEC["minutes"], "--minutes", min=0.0, help="Length of each run (5 Hz frames)."),
     test_runs: int = typer.Option(SPEC["test_runs"], "--test-runs", min=0,
                                   help="Test runs (split 'test') of each world, never for training."),

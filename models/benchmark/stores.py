@@ -82,7 +82,8 @@ def ensure_store(recipe: StoreRecipe, protocol: Protocol, folder: Path, *,
                  progress: Callable[[str, int, int], None] | None = None,
                  log: Callable[[str], None] | None = None) -> tuple[SonarStore, dict]:
     """The recipe's store in ``folder``, generated or completed where needed; and what was done:
-    {"file" (its name in the cache: a results file names no directory of the machine), "generated" (bool), "reason" (why it was generated, or None), "seconds"}."""
+    {"file" (its name in the cache: a results file names no directory of the machine), "generated" (bool),
+    "reason" (why it was generated, or None), "seconds"}."""
     from sonarset.sim import generate
 
     path = folder / f"{recipe.name}.zarr"

@@ -124,7 +124,8 @@ def zoo_table(results: dict, costs: dict) -> str:
         shares = [(results["datasets"][n]["horizons"][longest]["methods"][m["method"]].get("gap_share") or {}).get("cc")
                   for n in names]
         known = [s for s in shares if s is not None and math.isfinite(s)]
-        cost = [f"{row['params'] / 1e6:.2f}", f"{row['gflop_per_sample']['1']:.2f} / {row['gflop_per_sample'][str(costs['k'])]:.2f}",
+        cost = [f"{row['params'] / 1e6:.2f}",
+                f"{row['gflop_per_sample']['1']:.2f} / {row['gflop_per_sample'][str(costs['k'])]:.2f}",
                 _number(rates.get("fp32"), ".1f"), _number(rates.get("bf16"), ".1f")] if row else ["-"] * 4
         lines.append(f"| {m['method']} | " + " | ".join(cost + [_number(s, ".2f") for s in shares]
                                                         + [_number(sum(known) / len(known) if known else None, ".2f")]) + " |")

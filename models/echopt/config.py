@@ -114,7 +114,8 @@ class EchoPTConfig:
             sizes.update({f"{name}[{i}]": v for i, v in enumerate(pair)})
         for name, v in sizes.items():
             if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= _MAX_SIZE.get(name, 100_000):
-                raise ConfigError(name.split("[")[0], f"{name} must be an integer in 1..{_MAX_SIZE.get(name, 100_000)}, got {v!r}")
+                raise ConfigError(name.split("[")[0],
+                                  f"{name} must be an integer in 1..{_MAX_SIZE.get(name, 100_000)}, got {v!r}")
         check_rig_and_inputs(self)
         d = self.dropout
         if isinstance(d, bool) or not isinstance(d, (int, float)) or not 0 <= d < 1:

@@ -256,7 +256,8 @@ def statistics_section(res: EvalResult) -> list[str]:
             better = c.a if a_better else c.b
         why = "n/a (one window)" if c.n < 2 else "n/a (undefined)"
         lines.append(f"| {horizon_name(c.horizon)} | {c.metric} | {c.a} | {c.b} | {format_value(c.mean_diff, '+.4f', why)} | "
-                     f"{format_interval(c.ci_low, c.ci_high, '+.4f', why)} | {format_p(c.t_two_sample_p)} | {format_p(c.t_paired_p)} | "
+                     f"{format_interval(c.ci_low, c.ci_high, '+.4f', why)} | "
+                     f"{format_p(c.t_two_sample_p)} | {format_p(c.t_paired_p)} | "
                      f"{format_p(c.wilcoxon_p)} | {format_p(c.p_holm)} | {better} |")
     return lines
 

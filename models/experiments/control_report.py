@@ -111,7 +111,8 @@ def tests_table(res: ControlResult) -> list[str]:
              "that succeeded in both) and deviation, McNemar's exact test on success; Holm-corrected.", "",
              "| a vs b | metric | pairs | mean a - b | p (Holm) |", "| --- | --- | ---: | ---: | ---: |"]
     for c in res.comparisons:
-        lines.append(f"| {c['a']} vs {c['b']} | {c['metric']} | {c['n_pairs']} | {format_value(c['mean_diff'], '+.3f', 'n/a (no pairs)')} | "
+        lines.append(f"| {c['a']} vs {c['b']} | {c['metric']} | {c['n_pairs']} | "
+                     f"{format_value(c['mean_diff'], '+.3f', 'n/a (no pairs)')} | "
                      f"{format_p(c['p_holm'])} |")
     return lines
 

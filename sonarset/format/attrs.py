@@ -208,7 +208,8 @@ class Processing(BaseModel):
         "das", description="das: delay-and-sum; dmas3-cf: third-order delay-multiply-and-sum times the "
                            "coherence factor |sum of analytic signals|^2 / (N sum of |analytic|^2).")
     smoothing_range_m: float = Field(0.0, ge=0, le=10, description="Gaussian smoothing sigma along range, metres (0: none).")
-    smoothing_azimuth_deg: float = Field(0.0, ge=0, le=90, description="Gaussian smoothing sigma along azimuth, degrees (0: none).")
+    smoothing_azimuth_deg: float = Field(0.0, ge=0, le=90,
+                                         description="Gaussian smoothing sigma along azimuth, degrees (0: none).")
     azimuth_mean_factor: float = Field(0.0, ge=0, le=100,
                                        description="Subtract this factor x the mean over azimuth at each range (0: none).")
     clip_at_zero: bool = Field(False, description="Clip negative amplitudes (after the subtraction) to zero.")

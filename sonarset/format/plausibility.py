@@ -136,7 +136,7 @@ def peak_problems(peaks: tuple[float | None, float | None], rig: RobotRig | None
                 else f"{absolute:g} {unit}, beyond any ground robot")
         msg = f"{name} up to {peak:.3g} {unit} exceeds {what}"
         typical = declared_limit if declared_limit is not None else getattr(default, field)
-        hint = unit_hint(kind, peak, lambda x: x <= limit, typical, declared)
+        hint = unit_hint(kind, peak, lambda x, limit=limit: x <= limit, typical, declared)
         if hint:
             msg += f": {hint}"
         elif peak > 1e3 * limit:

@@ -22,7 +22,7 @@ import math
 import numpy as np
 from scipy import ndimage, special
 
-from sonarset.format.attrs import BEAMFORMERS, Processing, SensorGrid
+from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.sensor.ertis import C_SOUND, F_HI, F_LO, microphone_y
 
 

@@ -77,7 +77,7 @@ def reflector_echoes(sensors, seg_a, seg_b, seg_refl, circ_c, circ_r, circ_refl,
     """
     n_seg, n_circ = seg_a.shape[0], circ_c.shape[0]
     cap = 16
-    for j in range(n_seg):  # the most samples one frame can take of each wall
+    for _ in range(n_seg):  # the most samples one frame can take of each wall
         cap += int(2 * r_max / wall_step) + 2
     out = np.empty((sensors.shape[0] * (cap + n_circ), 6))
     m = 0

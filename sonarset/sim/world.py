@@ -91,15 +91,18 @@ class World:
     def to_spec(self) -> WorldSpec:
         return WorldSpec(
             name=self.name,
-            walls=[WallSpec(start=tuple(a), end=tuple(b), reflectivity=r) for a, b, r in zip(self.seg_a, self.seg_b, self.seg_refl)],
-            circles=[CircleSpec(centre=tuple(c), radius=r, reflectivity=q) for c, r, q in zip(self.circ_c, self.circ_r, self.circ_refl)],
+            walls=[WallSpec(start=tuple(a), end=tuple(b), reflectivity=r)
+                   for a, b, r in zip(self.seg_a, self.seg_b, self.seg_refl)],
+            circles=[CircleSpec(centre=tuple(c), radius=r, reflectivity=q)
+                     for c, r, q in zip(self.circ_c, self.circ_r, self.circ_refl)],
             spawn=self.spawn, waypoint=self.waypoint,
             fences=[FenceSpec(start=tuple(a), end=tuple(b)) for a, b in zip(self.fence_a, self.fence_b)],
         )
 
     def obstacle_segments(self) -> tuple[np.ndarray, np.ndarray]:
         """(starts, ends) of every segment the robot cannot drive through: walls, then fences."""
-        return np.concatenate([self.seg_a.reshape(-1, 2), self.fence_a]), np.concatenate([self.seg_b.reshape(-1, 2), self.fence_b])
+        return (np.concatenate([self.seg_a.reshape(-1, 2), self.fence_a]),
+                np.concatenate([self.seg_b.reshape(-1, 2), self.fence_b]))
 
     def clearance(self, points: np.ndarray) -> np.ndarray:
         """Distance from each point (N, 2) to the nearest wall, fence or circle surface."""

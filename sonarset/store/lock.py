@@ -5,9 +5,9 @@ beside the store, ``.<store name>.lock``, for as long as it writes; a second wri
 one line naming the holder. The lock is the kernel's (``flock``): it goes when its process does,
 killed or not, so a lock is never stale; the file holds the holder's pid, host and start for the
 message, and goes when the writer finishes (a killed writer's stays, unlocked, until the next).
-URLs (object stores, servers) have no such lock: their writers must be one by arrangement. Where the lock file cannot be made (a read-only folder), nothing can be written
-either, and writers go on without it (a read-only store still reads, and a writer with nothing to
-do still succeeds).
+URLs (object stores, servers) have no such lock: their writers must be one by arrangement. Where
+the lock file cannot be made (a read-only folder), nothing can be written either, and writers go
+on without it (a read-only store still reads, and a writer with nothing to do still succeeds).
 """
 
 from __future__ import annotations

@@ -8,8 +8,9 @@ its slowest request, not by its size:
 
 - ``SONARSET_REMOTE_TIMEOUT`` (seconds, default 20): the most one request may take, the answer
   read in full. 20 s is generous for a chunk (a few MB) from object storage, and keeps a command
-  that meets a dead server under 30 s with its start-up. A request that runs out of time is not retried: a server that said nothing for
-  that long is not expected to answer the next time, and retrying would multiply the wait.
+  that meets a dead server under 30 s with its start-up. A request that runs out of time is not
+  retried: a server that said nothing for that long is not expected to answer the next time, and
+  retrying would multiply the wait.
 - ``SONARSET_REMOTE_RETRIES`` (default 3): how many times a request that failed transiently
   (HTTP 5xx, 408, 429, a body shorter than its Content-Length, a dropped connection) is tried
   again, after 0.5 s, 1 s, 2 s...

@@ -88,7 +88,8 @@ def _validate(loc: str, check_data: bool, progress: ProgressFn | None, plausibil
         return problems + [Problem(loc, "empty store: no run groups")]
     complete: list[str] = []
     for name, node in nodes.items():
-        problems += _guarded(f"{loc}/{name}", lambda: _check_run(store, name, node, check_data, progress, complete))
+        problems += _guarded(f"{loc}/{name}",
+                             lambda name=name, node=node: _check_run(store, name, node, check_data, progress, complete))
     problems += _guarded(loc, lambda: _check_consolidated(loc, root, list(nodes)))
     if plausibility:
         # A value the format refuses is not also implausible: the format problem says it. Nor are
@@ -138,7 +139,8 @@ def _check_run(store: SonarStore, name: str, group: zarr.Group, check_data: bool
         # The coordinates are checked even in a quick pass: they say whether the run is on the grid.
         if arr is not None and (check_data or key in ("range", "azimuth")):
             gaps = recorded_gap_frames((attrs.model_extra or {}).get("gaps", []))
-            out += _guarded(f"{where}/{key}", lambda: _data_problems(where, key, arr, progress, store, gaps))
+            out += _guarded(f"{where}/{key}",
+                            lambda key=key, arr=arr, gaps=gaps: _data_problems(where, key, arr, progress, store, gaps))
     return out
 
 

@@ -295,7 +295,7 @@ def _read_frames(reader, topic: str, stamps: str, grid: SensorGrid | None, probl
 def _read_commands(reader, topic: str, stamps: str, problems: list[str]) -> Stream:
     times, v, w = [], [], []
     msgtype = reader.topics[topic].msgtype
-    for i, t, msg in _messages(reader, topic, problems, stamps):
+    for _, t, msg in _messages(reader, topic, problems, stamps):
         twist = msg.twist if msgtype == m.TWIST_STAMPED else msg
         times.append(t)
         v.append(twist.linear.x)
@@ -309,7 +309,7 @@ def _read_commands(reader, topic: str, stamps: str, problems: list[str]) -> Stre
 
 def _read_odometry(reader, topic: str, stamps: str, problems: list[str]) -> Stream:
     times, pose = [], []
-    for i, t, msg in _messages(reader, topic, problems, stamps):
+    for _, t, msg in _messages(reader, topic, problems, stamps):
         p = msg.pose.pose
         times.append(t)
         pose.append((p.position.x, p.position.y, m.yaw_of(p.orientation)))
