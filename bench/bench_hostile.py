@@ -297,7 +297,7 @@ def bitflip_cases(work: Path, flips: int) -> None:
     from sonarset.store.store import create_store, open_store
     from sonarset.store.validate import validate_store
     from tests.conftest import make_run
-    from tests.corruption_cases import strip_checksums
+    from sonarset.testing import strip_checksums
 
     grid = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=50, azimuth_min_rad=-math.pi / 2,
                       azimuth_max_rad=math.pi / 2, n_azimuth=30)

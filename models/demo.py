@@ -20,7 +20,7 @@ from sonarset.models.predictor import CheckedPredictor
 from sonarset.models.registry import BASELINES, make_predictor
 
 #: How the demo's sentences name a model (its name otherwise).
-TITLES = {"echopt": "EchoPT"}
+TITLES = {"echopt": "EchoPT", "echowarp": "EchoWarp"}
 
 
 def title(name: str) -> str:

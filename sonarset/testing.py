@@ -114,3 +114,24 @@ def running(pid: int) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
     except OSError:
         return False
+
+
+def strip_checksums(location: str | Path, version: str | None = None) -> None:
+    """The store at ``location`` as a writer before format 1.2 made it: every run array rewritten
+    without the crc32c codec, and with ``version``, ``format_version`` set to it (the conformance
+    fixtures of older versions, and the tests and benches of reading them)."""
+    import zarr
+    from zarr.codecs import Crc32cCodec
+
+    root = zarr.open_group(str(location), mode="r+", use_consolidated=False)
+    for _, run in root.groups():
+        for name, old in list(run.arrays()):
+            values, attrs = old[...], dict(old.attrs)
+            compressors = tuple(c for c in old.compressors if not isinstance(c, Crc32cCodec)) or None
+            chunks, dims, fill = old.chunks, old.metadata.dimension_names, old.metadata.fill_value
+            del run[name]
+            run.create_array(name, shape=values.shape, dtype=values.dtype, chunks=chunks, dimension_names=dims,
+                             compressors=compressors, fill_value=fill, attributes=attrs)[...] = values
+    if version is not None:
+        root.attrs["sonarset"] = {**root.attrs["sonarset"], "format_version": version}
+    zarr.consolidate_metadata(str(location))

@@ -37,22 +37,6 @@ def make_base_store(path: Path) -> Path:
     return path
 
 
-def strip_checksums(location: Path, version: str) -> None:
-    """The store as a writer before format 1.2 made it: every run array rewritten without the
-    crc32c codec, ``format_version`` set to ``version``."""
-    from zarr.codecs import Crc32cCodec
-
-    root = zarr.open_group(str(location), mode="r+", use_consolidated=False)
-    for _, run in root.groups():
-        for name, old in list(run.arrays()):
-            values, attrs = old[...], dict(old.attrs)
-            compressors = tuple(c for c in old.compressors if not isinstance(c, Crc32cCodec)) or None
-            chunks, dims, fill = old.chunks, old.metadata.dimension_names, old.metadata.fill_value
-            del run[name]
-            run.create_array(name, shape=values.shape, dtype=values.dtype, chunks=chunks, dimension_names=dims,
-                             compressors=compressors, fill_value=fill, attributes=attrs)[...] = values
-    root.attrs["sonarset"] = {**root.attrs["sonarset"], "format_version": version}
-    zarr.consolidate_metadata(str(location))
 
 
 # ---- corruptions ---------------------------------------------------------------------------------

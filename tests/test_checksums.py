@@ -22,7 +22,7 @@ from sonarset.format.attrs import FORMAT_VERSION
 from sonarset.store.store import create_store, open_store
 from sonarset.store.validate import validate_store
 from tests.conftest import TINY, make_run
-from tests.corruption_cases import strip_checksums
+from sonarset.testing import strip_checksums
 
 CHUNK = Path("test_000") / "images" / "c" / "1" / "0" / "0"
 

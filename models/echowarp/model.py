@@ -114,12 +114,7 @@ class EchoWarp(ZooModel):
         """frames (B, n_in, R, A), commands (B, n_in + 1, 2) -> the next frame (B, R, A); with ``k``,
         commands (B, n_in + k, 2) -> the next k frames (B, k, R, A)."""
         cfg = self.cfg
-        steps = 1 if k is None else k
-        if not 1 <= steps <= cfg.max_horizon:
-            raise ValueError(f"EchoWarp forecasts 1..{cfg.max_horizon} steps in one pass, not {steps}")
-        n_in = cfg.n_in
-        if commands.shape[1] < n_in + steps:
-            raise ValueError(f"a {steps}-step forecast needs {n_in + steps} commands, got {commands.shape[1]}")
+        steps, n_in = self.forecast_steps(commands, k), cfg.n_in
         self._check_frames(frames)
         B, _, R, A = frames.shape
         ir, ia, motion = self.sources(commands[:, :n_in + steps], n_in, steps)  # (B, steps, n_in, R, A) each

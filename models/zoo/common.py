@@ -121,6 +121,16 @@ class ZooModel(nn.Module):
     def n_params(self) -> int:
         return sum(p.numel() for p in self.parameters())
 
+    def forecast_steps(self, commands: torch.Tensor, k: int | None) -> int:
+        """The steps a forward pass of a multi-step model forecasts (1 without ``k``), checked against
+        its ``max_horizon`` and the commands given (ValueError naming what is wrong)."""
+        steps, most = 1 if k is None else k, self.cfg.max_horizon
+        if not 1 <= steps <= most:
+            raise ValueError(f"{self.title} forecasts 1..{most} steps in one pass, not {steps}")
+        if commands.shape[1] < self.cfg.n_in + steps:
+            raise ValueError(f"a {steps}-step forecast needs {self.cfg.n_in + steps} commands, got {commands.shape[1]}")
+        return steps
+
     def inputs_and_prior(self, frames: torch.Tensor, commands: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The frames the network sees (as measured, or each registered to the predicted frame's pose:
         ``inputs="aligned"``) and the prior image of the next frame (None for ``prior="none"``), after

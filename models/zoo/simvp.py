@@ -138,12 +138,7 @@ class SimVP(ZooModel):
         commands (B, n_in + k, 2) -> the next k frames (B, k, R, A) (:meth:`forecast`; an argument of
         the forward pass, so that a DistributedDataParallel wrapper runs it)."""
         cfg = self.cfg
-        steps = 1 if k is None else k
-        if not 1 <= steps <= cfg.max_horizon:
-            raise ValueError(f"SimVP forecasts 1..{cfg.max_horizon} steps in one pass, not {steps}")
-        n_in = cfg.n_in
-        if commands.shape[1] < n_in + steps:
-            raise ValueError(f"a {steps}-step forecast needs {n_in + steps} commands, got {commands.shape[1]}")
+        steps, n_in = self.forecast_steps(commands, k), cfg.n_in
         frames, prior = self.inputs_and_prior(frames, commands)
         B, _, R, A = frames.shape
         x = frames.reshape(B * n_in, 1, R, A)
