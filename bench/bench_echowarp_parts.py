@@ -48,8 +48,9 @@ def main() -> None:
     model, card = load_checkpoint(args.run, kind="echowarp")
     folder = Path(tempfile.mkdtemp(prefix="echowarp-parts-"))
     specs = ["flow"]
+    trained = {k: v.clone() for k, v in model.state_dict().items()}
     for name, channels in variants(model).items():
-        state = {k: v.clone() for k, v in model.state_dict().items()}
+        state = {k: v.clone() for k, v in trained.items()}  # each variant from the trained weights
         for c in channels:
             state["head.weight"][c] = 0
             state["head.bias"][c] = 0
