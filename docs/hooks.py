@@ -222,12 +222,13 @@ def stage_package() -> None:
     (pkg / "cli").symlink_to(ROOT / "cli")
 
 
+# mkdocstrings resolves its handler's paths when the configuration is read, before any event of
+# this hook: a path that does not exist yet is dropped, so the layout is made when MkDocs loads
+# this module (a fresh clone has no build/ folder).
+stage_package()
+
+
 # ---------------------------------------------------------------- MkDocs events
-
-
-def on_config(config):
-    stage_package()
-    return config
 
 
 
