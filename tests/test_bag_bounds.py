@@ -4,10 +4,8 @@ ROS 1 chunk that lies about its size is inflated no further than the limit."""
 
 from __future__ import annotations
 
-import math
 import struct
 
-import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -15,49 +13,7 @@ pytest.importorskip("rosbags")
 pytest.importorskip("mcap_ros2.writer")
 
 from sonarset.cli.app import app  # noqa: E402
-from tests.test_bag import Drive  # noqa: E402
-
-
-def write_bag(drive: Drive, path, kind: str, compression=None):
-    """``drive`` as a ROS 1 bag or a ROS 2 sqlite3 bag, by rosbags' writers."""
-    from rosbags.rosbag1 import Writer as Writer1
-    from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
-
-    from sonarset.ingest.bag.messages import shipped_types
-
-    store = get_typestore(Stores.ROS1_NOETIC if kind == "ros1" else Stores.ROS2_HUMBLE)
-    store.register(shipped_types())
-    T = store.types
-    writer = Writer1(path) if kind == "ros1" else Writer(path, version=9, storage_plugin=StoragePlugin.SQLITE3)
-    if compression is not None:
-        writer.set_compression(getattr(Writer1.CompressionFormat, compression))
-    serialize = store.serialize_ros1 if kind == "ros1" else store.serialize_cdr
-
-    def header(t):
-        kw = {"stamp": T["builtin_interfaces/msg/Time"](sec=int(t // 10**9), nanosec=int(t % 10**9)), "frame_id": "x"}
-        return T["std_msgs/msg/Header"](seq=0, **kw) if kind == "ros1" else T["std_msgs/msg/Header"](**kw)
-
-    vec = T["geometry_msgs/msg/Vector3"]
-    az = drive.grid.azimuth_centres()
-    with writer as w:
-        ci = w.add_connection("/sonar", "marine_acoustic_msgs/msg/ProjectedSonarImage", typestore=store)
-        cc = w.add_connection("/cmd", "geometry_msgs/msg/TwistStamped", typestore=store)
-        for k, t in enumerate(drive.frame_ns):
-            msg = T["marine_acoustic_msgs/msg/ProjectedSonarImage"](
-                header=header(t), ping_info=T["marine_acoustic_msgs/msg/PingInfo"](
-                    frequency=0.0, sound_speed=343.0, tx_beamwidths=np.zeros(0, np.float32),
-                    rx_beamwidths=np.zeros(0, np.float32)),
-                beam_directions=[vec(x=0.0, y=-math.sin(a), z=math.cos(a)) for a in az],
-                ranges=drive.grid.range_centres().astype(np.float32),
-                image=T["marine_acoustic_msgs/msg/SonarImageData"](is_bigendian=False, dtype=0, beam_count=len(az),
-                                                                   data=drive.images[k].ravel()))
-            w.write(ci, int(t), serialize(msg, ci.msgtype))
-        for t, v, om in zip(drive.command_ns, drive.v, drive.w):
-            msg = T["geometry_msgs/msg/TwistStamped"](header=header(t), twist=T["geometry_msgs/msg/Twist"](
-                linear=vec(x=v, y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=om)))
-            w.write(cc, int(t), serialize(msg, cc.msgtype))
-    return path
+from tests.test_bag import Drive, write_bag  # noqa: E402
 
 
 def _one_line_refusal(tmp_path, bag, says: str) -> str:
