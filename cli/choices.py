@@ -14,7 +14,7 @@ from sonarset.format.attrs import BEAMFORMERS, PROCESSING_PROFILES
 from sonarset.format.schemas import SCHEMAS
 from sonarset.sensor.ertis import AZIMUTH_PSFS
 
-from sonarset.models.echopt.config import INPUTS, PRESETS, PRIORS
+from sonarset.models.echopt.config import INPUTS, PRIORS
 from sonarset.models.echopt.precision import DEVICES, PRECISIONS
 from sonarset.models.echopt.train_config import MODEL_KINDS, OPTIMIZERS, SCHEDULES, STEP_WEIGHTS, TRAINABLE
 from sonarset.ingest.bag.reader import STAMPS
@@ -30,7 +30,6 @@ Beamformer = _choices("Beamformer", BEAMFORMERS)
 ProcessingProfile = _choices("ProcessingProfile", PROCESSING_PROFILES)
 Psf = _choices("Psf", AZIMUTH_PSFS)
 Device = _choices("Device", DEVICES)
-Preset = _choices("Preset", PRESETS)
 Prior = _choices("Prior", PRIORS)
 Inputs = _choices("Inputs", INPUTS)
 Optimizer = _choices("Optimizer", OPTIMIZERS)

@@ -99,14 +99,14 @@ def test_closed_choices_are_the_librarys():
     import pytest
 
     from sonarset.cli import choices
-    from sonarset.models.echopt.config import PRESETS, PRIORS
+    from sonarset.models.echopt.config import PRIORS
     from sonarset.models.echopt.precision import PRECISIONS
     from sonarset.format.attrs import Processing
     from sonarset.format.attrs import BEAMFORMERS
     from sonarset.sim.sonar import BEAMS
 
     values = lambda enum: {c.value for c in enum}  # noqa: E731
-    assert values(choices.Preset) == set(PRESETS) and values(choices.Prior) == set(PRIORS)
+    assert values(choices.Prior) == set(PRIORS)
     assert values(choices.Psf) == set(BEAMS) and values(choices.Beamformer) == set(BEAMFORMERS)
     assert values(choices.Precision) == set(PRECISIONS)
     for profile in values(choices.ProcessingProfile):

@@ -94,6 +94,17 @@ def test_gradients_reach_every_part():
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in model.parameters())
 
 
+def test_its_full_resolution_layer_is_the_resize_then_concatenate_it_stands_for():
+    model = _trained_like(_model())
+    g = torch.Generator().manual_seed(3)
+    y = torch.rand((2, model.cfg.channels[0], GRID.shape[0] // 2, (GRID.shape[1] + 1) // 2), generator=g)
+    x = torch.rand((2, model.full[0][0].in_channels - y.shape[1], *GRID.shape), generator=g)
+    resized = torch.nn.functional.interpolate(y, size=GRID.shape, mode="bilinear", align_corners=False)
+    with torch.no_grad():
+        expected = model.full(torch.cat([resized, x], 1))
+        assert torch.allclose(model.full_resolution(y, x), expected, atol=1e-5)
+
+
 @pytest.mark.parametrize("setting,value", [("prior", "last"), ("prior", "none"), ("inputs", "raw")])
 def test_it_refuses_another_prior_or_inputs(setting, value):
     with pytest.raises(ConfigError, match=setting):

@@ -15,7 +15,7 @@ from sonarset.errors import SonarSetError
 from sonarset.models.echopt.train_config import TrainConfig
 from sonarset.models.registry import BASELINES, HORIZONS
 
-from sonarset.cli.choices import (Device, ModelKind, Optimizer, Precision, Inputs, Preset, Prior, Schedule, StepWeights,
+from sonarset.cli.choices import (Device, ModelKind, Optimizer, Precision, Inputs, Prior, Schedule, StepWeights,
                                   Trainable)
 from sonarset.cli.common import err, fail, out, per_name_progress, progress_bar, user_errors
 from sonarset.cli.options import Model, ModelDevice, ModelPrecision
@@ -148,7 +148,25 @@ def _train_settings(ctx: typer.Context, config: Optional[Path]) -> dict:
     for key, what in (("store", "STORE"), ("out", "--out")):
         if settings[key] is None:
             fail(f"missing {what}: give it on the command line, or as {key} in a recipe (--config)", 2)
+    _check_preset(ctx, config, settings["model"], settings["preset"])
     return settings
+
+
+def _check_preset(ctx: typer.Context, config: Optional[Path], model: str, preset: str) -> None:
+    """A preset the network lacks is a usage error, named where it was given, before any file is read
+    (each network has its own presets, so typer cannot list them as a closed choice)."""
+    from sonarset.models.echopt.networks import presets
+
+    from sonarset.models.echopt.recipes import dump_recipe
+
+    known = presets(model)
+    if preset in known:
+        return
+    why = f"{model} has {', '.join(known)}"
+    given = ctx.get_parameter_source("preset")
+    if config is None or (given is not None and given.name == "COMMANDLINE"):
+        fail(f"--preset {preset}: {why}", 2)
+    raise SonarSetError(f"{config}: {dump_recipe({'preset': preset}).strip()}: {why}")
 
 
 def _setting(key: str, given):
@@ -172,10 +190,13 @@ def train(
                                                                  "store and out; options given here override it "
                                                                  "(docs/guides/training.md)."),
     model: ModelKind = typer.Option(TRAIN.model, "--model",
-                                    help="The network: echopt (the paper's), or a reference method of video "
-                                         "prediction: convlstm, simvp, unet (models/zoo/)."),
-    preset: Preset = typer.Option(TRAIN.preset, "--preset",
-                                  help="small (trains on a CPU), paper (~9 M parameters), tiny (tests)."),
+                                    help="The network: echopt (the paper's), echowarp (sonarset's own, "
+                                         "docs/echowarp.md), or a reference method of video prediction: "
+                                         "convlstm, simvp, unet (models/zoo/)."),
+    preset: str = typer.Option(TRAIN.preset, "--preset",
+                               help="The network's size or variant: small (trains on a CPU), tiny (tests); EchoPT "
+                                    "also paper (~9 M parameters), EchoWarp also its ablation variants "
+                                    "(docs/echowarp.md). A preset the network lacks is refused with its list."),
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Run directory: model.safetensors + model.json, "
                                                                "metrics.jsonl, state.safetensors. Default: the "
                                                                "recipe's."),
@@ -257,7 +278,8 @@ def train(
                                        help="With --stream: DataLoader worker processes reading the store (0: this "
                                             "one)."),
 ) -> None:
-    """Train EchoPT; the best validation weights are kept as OUT/model.safetensors with a model card.
+    """Train a predictor (EchoPT, EchoWarp or a reference method); the best validation weights are
+    kept as OUT/model.safetensors with a model card.
 
     The options may come from a recipe file (--config RECIPE.toml); the card records the whole recipe.
 

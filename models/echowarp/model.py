@@ -128,8 +128,8 @@ class EchoWarp(ZooModel):
             skips.append(y)
         for up, skip in zip(self.up, reversed(skips[:-1])):
             y = up(y, skip)
-        y = F.interpolate(y, size=(R, A), mode="bilinear", align_corners=False)
-        out = self.head(self.full(torch.cat([y, x.to(y.dtype)], 1))).float()
+        # one plane per output, each read whole below (a channels-last slice is strided: tanh was 3x slower)
+        out = self.head(self.full_resolution(y, x)).to(torch.float32, memory_format=torch.contiguous_format)
         pred = out[:, n_in + 1]  # the source term
         if cfg.max_shift:  # the last frame through the corrected warp
             shift = torch.tanh(out[:, :2]) * cfg.max_shift
@@ -140,6 +140,20 @@ class EchoWarp(ZooModel):
             pred = pred + (out[:, 2:n_in + 1] * registered[:, :-1].float()).sum(1)
         pred = pred.reshape(B, steps, R, A)
         return pred[:, 0] if k is None else pred
+
+    def full_resolution(self, y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """``self.full`` on ``y`` resized to the grid of the inputs ``x``, concatenated with them.
+
+        Its first layer is a 1x1 convolution, which commutes with a bilinear resize (both linear, the
+        resize's weights summing to 1), so the part of it that reads ``y`` runs at ``y``'s resolution
+        and its ``full_channels`` outputs are resized instead of ``y``'s wider channels, and no
+        full-resolution concatenation is made: the same function and parameters, in less time (the
+        resize's backward was the step's costliest non-matrix kernel: BENCHMARKS, "EchoWarp")."""
+        first, act = self.full[0]
+        c = y.shape[1]
+        z = F.interpolate(F.conv2d(y, first.weight[:, :c]), size=x.shape[-2:], mode="bilinear", align_corners=False)
+        z = z + F.conv2d(x, first.weight[:, c:], first.bias)
+        return self.full[1](act(z))
 
     def _check_frames(self, frames: torch.Tensor) -> None:
         cfg = self.cfg
