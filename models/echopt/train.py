@@ -288,8 +288,11 @@ class _Run:
     def validate(self, step: int, k: int, tally: _Tally, history: list[dict], best: float) -> float:
         """Validate, append to ``history``, save (rank 0) and report; returns the best loss so far."""
         dist = self.dist
+        # twice a training batch, not a fixed 128 windows: a forecaster (EchoWarp) holds all of a window's
+        # horizons at once, so memory goes with windows x horizons (BENCHMARKS, "EchoWarp")
         val = validation_loss(self.model, self.data.val_batcher, self.data.val_idx, self.val_horizon, dist=dist,
-                              terms=self.terms, precision=self.precision, weights=self.cfg.step_weights)
+                              batch_size=2 * self.cfg.batch_size, terms=self.terms, precision=self.precision,
+                              weights=self.cfg.step_weights)
         run_loss, run_n = dist.all_sum(tally.loss, tally.n)
         rate = tally.samples / (time.perf_counter() - tally.t0)
         rec = {"step": step, "epoch": step / self.plan.steps_per_epoch, "train_loss": run_loss / max(run_n, 1),
