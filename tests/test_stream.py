@@ -306,7 +306,8 @@ def test_streamed_validation_and_test_read_only_their_windows_with_the_in_memory
     # held compressed: under half the bytes of their frames as stored (float16)
     frames = np.unique(streamed.val_idx.rows()).size
     assert streamed.val_batcher.images.nbytes < frames * GRID.n_range * GRID.n_azimuth * 2 / 2
-    losses = [validation_loss(model, w.val_batcher, w.val_idx, 2, precision="fp32", terms={"mse": 1.0})
+    losses = [validation_loss(model, w.val_batcher, w.val_idx, 2, batch_size=2 * cfg.batch_size, precision="fp32",
+                              terms={"mse": 1.0})
               for w in (loaded, streamed)]
     assert losses[0] == losses[1] == res.history[-1]["val_loss"]
     cfg.stream = False
