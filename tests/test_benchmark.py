@@ -1,6 +1,7 @@
 """``sonarset benchmark``: protocol v1 frozen in code, its stores cached and checked, one results file
 per run that compares only with files of its own protocol version."""
 
+import dataclasses
 import json
 import math
 import shutil
@@ -117,6 +118,11 @@ def test_cached_store_is_completed_after_a_kill_and_regenerated_when_stale(tmp_p
     assert info["generated"] and store.runs("test") == ["test_000"]
     images = store.run("test_000").read("images")
     assert ensure_store(RECIPE, TINY, tmp_path)[1]["generated"] is False
+    # a variant of the protocol that scores fewer windows (bench/bench_echowarp_parts.py): its runs
+    # are the recipe's, so the store is marked for it, not simulated again
+    fewer = dataclasses.replace(TINY, version="test-2", samples=2)
+    assert ensure_store(RECIPE, fewer, tmp_path)[1]["generated"] is False
+    assert open_store(tmp_path / "tiny.zarr").group.attrs[MARKER]["version"] == "test-2"
 
     # a generation killed while writing test_000: the run is there but not complete
     path = tmp_path / "tiny.zarr"

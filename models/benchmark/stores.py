@@ -74,8 +74,20 @@ def cache_problem(path: Path, recipe: StoreRecipe, protocol: Protocol) -> tuple[
     except (SonarSetError, OSError, ValueError) as exc:
         return f"unreadable ({exc})", True
     if store.group.attrs.get(MARKER) != marker(recipe, protocol):
-        return "not marked as the recipe's store", False
+        return UNMARKED, False
     return None
+
+
+#: What ``cache_problem`` says of a store whose runs are all the recipe's but whose mark is another
+#: protocol's (a variant that changes only how many windows are scored): marked, not simulated.
+UNMARKED = "not marked as the recipe's store"
+
+
+def _mark(path: Path, recipe: StoreRecipe, protocol: Protocol) -> None:
+    with writer_lock(path):
+        store = open_store(path, "r+")
+        store.group.attrs[MARKER] = marker(recipe, protocol)
+        store.consolidate()
 
 
 def ensure_store(recipe: StoreRecipe, protocol: Protocol, folder: Path, *,
@@ -89,6 +101,9 @@ def ensure_store(recipe: StoreRecipe, protocol: Protocol, folder: Path, *,
     path = folder / f"{recipe.name}.zarr"
     t0 = time.perf_counter()
     problem = cache_problem(path, recipe, protocol)
+    if problem == (UNMARKED, False):
+        _mark(path, recipe, protocol)
+        problem = None
     if problem is not None:
         reason, discard = problem
         if discard:
@@ -98,10 +113,7 @@ def ensure_store(recipe: StoreRecipe, protocol: Protocol, folder: Path, *,
                 f"{reason}")
         folder.mkdir(parents=True, exist_ok=True)
         generate(path, recipe.spec(protocol), progress=progress)
-        with writer_lock(path):
-            store = open_store(path, "r+")
-            store.group.attrs[MARKER] = marker(recipe, protocol)
-            store.consolidate()
+        _mark(path, recipe, protocol)
         left = cache_problem(path, recipe, protocol)
         if left is not None:
             raise SonarSetError(f"{path}: the benchmark's store is still not usable after generating it: {left[0]}")
