@@ -1,4 +1,4 @@
-"""The demo (``sonarset demo``): a model (by default the recommended shipped one, EchoPT) against
+"""The demo (``sonarset demo``): a model (by default the recommended shipped one, EchoWarp) against
 the baselines, the noise ceiling and the observable ceiling, on a test run simulated afresh from a
 seed the model never saw."""
 

@@ -48,7 +48,7 @@ HORIZONS = (1, 3, 5, 10)
 PLUGIN_GROUP = "sonarset.predictors"
 PRETRAINED = "pretrained"
 #: The checkpoint kind whose shipped model a bare ``pretrained`` names.
-RECOMMENDED_KIND = "echopt"
+RECOMMENDED_KIND = "echowarp"
 #: Where the shipped checkpoints live: ``KIND-*.safetensors`` with their cards beside them.
 SHIPPED_DIR = Path(__file__).resolve().parent / "pretrained"
 

@@ -81,13 +81,13 @@ def test_demo_on_a_short_fresh_run(tmp_path):
                                  "--device", "cpu"])
     assert r.exit_code == 0, r.output
     doc = json.loads((tmp_path / "d" / "metrics.json").read_text())
-    assert list(doc["results"]) == ["persistence", "naive", "flow", "echopt", "ceiling", "observable"]
-    assert set(doc["observable"]["gap_closed_vs_flow"]) == {"persistence", "naive", "echopt"}
+    assert list(doc["results"]) == ["persistence", "naive", "flow", "echowarp", "ceiling", "observable"]
+    assert set(doc["observable"]["gap_closed_vs_flow"]) == {"persistence", "naive", "echowarp"}
     assert doc["windows"]["n"] == 10 and doc["windows"]["horizons"] == [1, 3, 5, 10]
-    assert all(doc["results"]["echopt"][h]["n"] == 10 for h in ("1", "3", "5", "10"))
-    assert set(doc["fade"]) == {"persistence", "naive", "flow", "echopt"}
-    assert "| echopt |" in (tmp_path / "d" / "report.md").read_text() and "one-shot cc: EchoPT - flow" in r.output
-    assert "AR-10: EchoPT closes" in r.output
+    assert all(doc["results"]["echowarp"][h]["n"] == 10 for h in ("1", "3", "5", "10"))
+    assert set(doc["fade"]) == {"persistence", "naive", "flow", "echowarp"}
+    assert "| echowarp |" in (tmp_path / "d" / "report.md").read_text() and "one-shot cc: EchoWarp - flow" in r.output
+    assert "AR-10: EchoWarp closes" in r.output
     bad = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "e"), "--model", str(tmp_path / "nope")])
     assert bad.exit_code == 1 and "no EchoPT checkpoint" in bad.output and not (tmp_path / "e").exists()
 
