@@ -319,7 +319,7 @@ def demo(
     device: ModelDevice = Device("auto"),
     precision: ModelPrecision = Precision("auto"),
 ) -> None:
-    """Simulate a fresh test run and compare a model (the recommended pretrained one, EchoPT, by
+    """Simulate a fresh test run and compare a model (the recommended pretrained one, EchoWarp, by
     default) with persistence, naive and flow (and the noise and observable ceilings)."""
     import time
 
@@ -356,8 +356,9 @@ def demo(
 
 @user_errors
 def export_onnx_(
-    model: str = typer.Argument(..., metavar="MODEL", help="EchoPT checkpoint (pretrained, a run directory or a "
-                                                          ".safetensors path), or EchoWarp's as echowarp:RUN."),
+    model: str = typer.Argument(..., metavar="MODEL", help="pretrained (the recommended shipped model), "
+                                                          "KIND:pretrained, an EchoPT run directory or .safetensors "
+                                                          "path, or EchoWarp's as echowarp:RUN."),
     out_path: Path = typer.Argument(..., metavar="OUT.onnx", help="The ONNX file to write."),
 ) -> None:
     """Export EchoPT or EchoWarp to ONNX for onnxruntime: a dynamic batch axis, the flow prior inside the graph,

@@ -30,6 +30,7 @@ from sonarset.models.echopt.checkpoint import load_checkpoint
 from sonarset.models.echopt.model import EchoPT
 from sonarset.models.echopt.networks import A_TITLE, TITLES, kind_of
 from sonarset.models.echopt.onnx_runtime import CARD_KEY, INPUTS, OUTPUT
+from sonarset.models.registry import PRETRAINED, RECOMMENDED_KIND
 
 #: The kinds whose one-step predictor exports as a graph: the reference methods are not shipped to
 #: robots, and ConvLSTM's recurrence and SimVP's slots were never checked against onnxruntime.
@@ -113,8 +114,9 @@ def _onnx_modules():
 
 def export_onnx(spec: str | os.PathLike, out: str | os.PathLike, *, check_windows: int = 8,
                 opset: int = OPSET) -> Export:
-    """Export the checkpoint ``spec`` (``pretrained``, a run directory or a ``.safetensors`` path)
-    to ``out``; written atomically, after the onnxruntime check where onnxruntime is installed."""
+    """Export the checkpoint ``spec`` (``pretrained``, the recommended shipped model; ``KIND:pretrained``;
+    a run directory or a ``.safetensors`` path, EchoPT's, or ``echowarp:`` before one) to ``out``;
+    written atomically, after the onnxruntime check where onnxruntime is installed."""
     out = Path(out)
     if out.suffix != ".onnx":
         raise SonarSetError(f"{out}: the output must be an .onnx file")
@@ -123,6 +125,8 @@ def export_onnx(spec: str | os.PathLike, out: str | os.PathLike, *, check_window
     onnx = _onnx_modules()
     text = str(spec)
     kind = next((k for k in ONNX_KINDS if text.startswith(f"{k}:")), None)
+    if text == PRETRAINED:  # a bare pretrained is the recommended shipped model, as everywhere
+        kind, text = RECOMMENDED_KIND, f"{RECOMMENDED_KIND}:{PRETRAINED}"
     model, card = load_checkpoint(text.removeprefix(f"{kind}:") if kind else text, kind=kind)
     if kind_of(model) not in ONNX_KINDS:
         raise SonarSetError(f"{spec}: {A_TITLE[kind_of(model)]} checkpoint; ONNX export is for "
