@@ -43,13 +43,13 @@ def test_v1_is_the_families_fresh_runs_and_the_demos_run():
 
 def test_quick_end_to_end_through_the_cli(tmp_path):
     cache, first, second = tmp_path / "cache", tmp_path / "a", tmp_path / "b"
-    args = ["benchmark", "flow", "persistence", "--quick", "--cache", str(cache), "--device", "cpu"]
+    args = ["benchmark", "flow", "persistence", "naive", "--quick", "--cache", str(cache), "--device", "cpu"]
     r = runner.invoke(app, [*args, "--out", str(first)])
     assert r.exit_code == 0, r.output
     assert "lab: 40 windows in" in r.output and "simulating families-quick" in r.output
     doc = json.loads((first / "results.json").read_text())
     assert doc["protocol"]["version"] == "v1-quick" and doc["protocol"]["definition"] == PROTOCOL_V1_QUICK.to_dict()
-    assert [m["method"] for m in doc["models"]] == ["flow", "persistence"]
+    assert [m["method"] for m in doc["models"]] == ["flow", "persistence", "naive"]
     for ds in PROTOCOL_V1_QUICK.datasets:
         entry = doc["datasets"][ds.name]
         assert entry["windows"] == 40
@@ -63,13 +63,20 @@ def test_quick_end_to_end_through_the_cli(tmp_path):
             assert math.isclose(per_h["methods"]["persistence"]["vs_reference"]["cc"]["mean_diff"],
                                 per_h["methods"]["persistence"]["cc"]["mean"] - per_h["methods"]["flow"]["cc"]["mean"])
             assert per_h["methods"]["persistence"]["gap_share"]["cc"] < 0  # persistence is worse than flow
-    # Holm over the whole file: 3 datasets x 2 horizons x 7 metrics
-    assert doc["statistics"]["tests"] == 3 * 2 * len(PROTOCOL_V1_QUICK.metrics)
+            # the models against each other: each against every model before it in the file
+            assert "vs_models" not in per_h["methods"]["persistence"]
+            head = per_h["methods"]["naive"]["vs_models"]["persistence"]["cc"]
+            assert math.isclose(head["mean_diff"], per_h["methods"]["naive"]["cc"]["mean"]
+                                - per_h["methods"]["persistence"]["cc"]["mean"]) and head["p_holm"] >= head["t_paired_p"]
+    # Holm over the whole file: 3 datasets x 2 horizons x 7 metrics x 2 models against flow; and apart,
+    # naive against persistence
+    assert doc["statistics"]["tests"] == 3 * 2 * len(PROTOCOL_V1_QUICK.metrics) * 2
+    assert doc["statistics"]["head_to_head_tests"] == 3 * 2 * len(PROTOCOL_V1_QUICK.metrics)
     assert all(doc["stores"][s]["generated"] for s in ("families-quick", "demo-lab-quick"))
     assert doc["machine"]["cores"] >= 1 and doc["machine"]["sonarset"] and doc["timings"]["per_method"]["flow"] > 0
     md = (first / "results.md").read_text()
     rows = [line.split(" | ")[0] for line in md.splitlines()]
-    assert rows.count("| flow") == 4 and rows.count("| persistence") == 4  # the summary and each dataset
+    assert rows.count("| flow") == 4 and rows.count("| persistence") == 4 and rows.count("| naive") == 4
     assert "## demo-lab" in md and "| *observable ceiling* |" in md
 
     stamp = (cache / "families-quick.zarr" / "zarr.json").stat().st_mtime_ns

@@ -134,14 +134,23 @@ def dataset_entry(res: EvalResult, ds: Dataset, protocol: Protocol, seconds: flo
     to the reference, and the ceilings."""
     ref = protocol.reference
     gap = res.gap_closed(reference=ref)
-    vs = {}
+    order = {m: i for i, m in enumerate(res.predictors)}
+    vs, head_to_head = {}, {}
     for c in res.comparisons:
-        if ref in (c.a, c.b) and c.a != c.b:
-            other, sign = (c.b, -1.0) if c.a == ref else (c.a, 1.0)  # as model - reference
-            lo, hi = (c.ci_low, c.ci_high) if sign > 0 else (-c.ci_high, -c.ci_low)
-            vs[(other, c.horizon, c.metric)] = {
-                "n": c.n, "mean_diff": sign * c.mean_diff, "ci_low": lo, "ci_high": hi, "t_paired_p": c.t_paired_p,
+        if c.a == c.b:
+            continue
+        if ref in (c.a, c.b):
+            model, other = (c.b, c.a) if c.a == ref else (c.a, c.b)
+        else:  # two models: the later one in the file's order against the earlier
+            model, other = (c.a, c.b) if order[c.a] > order[c.b] else (c.b, c.a)
+        sign = 1.0 if c.a == model else -1.0  # as model - other
+        lo, hi = (c.ci_low, c.ci_high) if sign > 0 else (-c.ci_high, -c.ci_low)
+        test = {"n": c.n, "mean_diff": sign * c.mean_diff, "ci_low": lo, "ci_high": hi, "t_paired_p": c.t_paired_p,
                 "p_holm": None, "wilcoxon_p": c.wilcoxon_p, "t_two_sample_p": c.t_two_sample_p}
+        if other == ref:
+            vs[(model, c.horizon, c.metric)] = test
+        else:
+            head_to_head.setdefault((model, c.horizon), {}).setdefault(other, {})[c.metric] = test
     horizons = {}
     for h in res.horizons:
         methods = {}
@@ -150,6 +159,8 @@ def dataset_entry(res: EvalResult, ds: Dataset, protocol: Protocol, seconds: flo
             if m != ref:
                 entry["gap_share"] = gap.get(m, {}).get(str(h))
                 entry["vs_reference"] = {k: vs.get((m, h, k)) for k in protocol.metrics}
+                if (m, h) in head_to_head:  # each earlier model of the file, as m - it
+                    entry["vs_models"] = head_to_head[(m, h)]
             methods[m] = entry
         ceilings = {c: {k: metric_stats(res.per_window[c][h][k]) for k in protocol.metrics}
                     for c in CEILINGS if c in res.methods}
@@ -167,8 +178,17 @@ def correct_over_file(datasets: dict, protocol: Protocol) -> dict:
     p = [np.nan if c["t_paired_p"] is None else c["t_paired_p"] for c in tests]
     for c, adjusted in zip(tests, holm(p)):
         c["p_holm"] = adjusted
+    # the models against each other: a family of its own, so adding a model never weakens the
+    # tests against the reference
+    pairs = [c for d in datasets.values() for per_h in d["horizons"].values() for m in per_h["methods"].values()
+             for per_other in (m.get("vs_models") or {}).values() for c in per_other.values() if c is not None]
+    for c, adjusted in zip(pairs, holm([np.nan if c["t_paired_p"] is None else c["t_paired_p"] for c in pairs])):
+        c["p_holm"] = adjusted
     return {"reference": protocol.reference, "tests": len(tests),
             "holm_family": HOLM_FAMILY.format(reference=protocol.reference, n=len(tests)),
+            "head_to_head_tests": len(pairs),
+            "head_to_head_family": f"the paired t-tests of each model against every model before it in the file "
+                                   f"(vs_models) on every dataset, horizon and metric of this file: {len(pairs)} tests",
             "meaning": "per dataset, horizon and metric, model - reference on the same windows: the mean "
                        "difference with a bootstrap 95% CI (BCa, 2000 resamples), the paired t-test, the "
                        "Wilcoxon signed-rank test and the paper's two-sample (Welch) t-test"}
