@@ -51,9 +51,12 @@ class LearnedPredictor(BasePredictor):
         self._chunked(frames, commands, lambda f, c: self.model(f, c), out)
         return out
 
-    def _chunked(self, frames: np.ndarray, commands: np.ndarray, step: Callable, out: np.ndarray) -> None:
-        """``out[chunk] = step(frames, commands)`` of each chunk of ``batch_size`` windows, clamped."""
-        chunks = [slice(lo, lo + self.batch_size) for lo in range(0, len(frames), self.batch_size)]
+    def _chunked(self, frames: np.ndarray, commands: np.ndarray, step: Callable, out: np.ndarray,
+                 batch_size: int | None = None) -> None:
+        """``out[chunk] = step(frames, commands)`` of each chunk of ``batch_size`` windows (default:
+        the predictor's), clamped."""
+        size = batch_size or self.batch_size
+        chunks = [slice(lo, lo + size) for lo in range(0, len(frames), size)]
 
         def run(sl: slice) -> None:
             f = torch.from_numpy(np.ascontiguousarray(frames[sl], dtype=np.float32)).to(self.device)
@@ -92,6 +95,14 @@ class ForecastPredictor(LearnedPredictor):
     in blocks of up to its ``max_horizon`` steps, each block's context the previous block's last
     predictions; ``predict`` is its first step."""
 
+    def __init__(self, model, card: dict, grid: SensorGrid, device: str = "cpu", batch_size: int | None = None,
+                 precision: str = "auto"):
+        super().__init__(model, card, grid, device, batch_size, precision)
+        # a forecast is max_horizon images per window at once: the device's batch counts images, so
+        # that a chunk's activations stay in cache (EchoWarp on 2 cores: 27 ms per ten-step window in
+        # chunks of 2 windows, 52 ms in chunks of 16; BENCHMARKS, "EchoWarp")
+        self.forecast_batch = batch_size or max(1, round(self.batch_size / model.max_horizon))
+
     def rollout(self, frames: np.ndarray, commands: np.ndarray, horizon: int) -> np.ndarray:
         """(B, horizon, R, A) from frames (B, n_in, R, A) and commands (B, n_in + horizon, 2), as
         models.baselines.rollout's contract."""
@@ -104,7 +115,8 @@ class ForecastPredictor(LearnedPredictor):
         while h < horizon:
             m = min(block, horizon - h)
             self._chunked(buf[:, h:h + n_in], commands[:, h:h + n_in + m],
-                          lambda f, c, m=m: self.model.forecast(f, c, m), buf[:, n_in + h:n_in + h + m])
+                          lambda f, c, m=m: self.model.forecast(f, c, m), buf[:, n_in + h:n_in + h + m],
+                          self.forecast_batch)
             h += m
         return buf[:, n_in:]
 
