@@ -24,6 +24,8 @@ from sonarset.models.benchmark.protocol import PROTOCOL_V1
 from sonarset.models.benchmark.run import run_benchmark
 from sonarset.models.benchmark.stores import cache_dir
 
+from bench_echowarp_parts import print_gap_shares
+
 
 def budget(run: Path) -> dict:
     """What a run spent: windows (steps x batch), steps, its preset, wall seconds, the best step."""
@@ -67,12 +69,7 @@ def main() -> None:
         means = [sum(cell(n, h, method)[metric]["mean"] for n in names) / len(names)
                  for metric, h in [("cc", h) for h in horizons] + [("nrmsd", longest), ("echo_f1", longest)]]
         print(f"| {label} {cost} " + " | ".join(f"{m:.3f}" for m in means) + " |")
-    print(f"\nshare of the flow-to-observable CC gap closed at AR-{longest}\n")
-    print("| variant | " + " | ".join(names) + " |")
-    print("|---" * (1 + len(names)) + "|")
-    for method, run in zip(methods[1:], args.runs):
-        shares = [cell(n, longest, method)["gap_share"]["cc"] for n in names]
-        print(f"| {spent[run]['preset']} | " + " | ".join(f"{s:.2f}" for s in shares) + " |")
+    print_gap_shares(results, {method: spent[run]["preset"] for method, run in zip(methods[1:], args.runs)})
 
 
 if __name__ == "__main__":

@@ -39,6 +39,19 @@ def variants(model) -> dict[str, list[int]]:
             "composite": correction + gates + source}
 
 
+def print_gap_shares(results: dict, labels: dict[str, str]) -> None:
+    """The share of the flow-to-observable CC gap each method of ``labels`` closes at the longest
+    horizon, per dataset: a Markdown table, rows labelled as ``labels`` says."""
+    names = list(results["datasets"])
+    longest = str(max(int(h) for h in results["datasets"][names[0]]["horizons"]))
+    print(f"\nshare of the flow-to-observable CC gap closed at AR-{longest}\n")
+    print("| variant | " + " | ".join(names) + " |")
+    print("|---" * (1 + len(names)) + "|")
+    for method, label in labels.items():
+        cells = [results["datasets"][n]["horizons"][longest]["methods"][method]["gap_share"]["cc"] for n in names]
+        print(f"| {label} | " + " | ".join(f"{c:.2f}" for c in cells) + " |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", help="an EchoWarp run directory or .safetensors checkpoint")
@@ -61,16 +74,9 @@ def main() -> None:
     torch.manual_seed(0)
     # v1's stores, from v1's cache
     results = run_benchmark(specs, args.out, protocol=protocol, cache=cache_dir(PROTOCOL_V1), log=print)
-    longest = str(max(protocol.horizons))
-    names = list(results["datasets"])
-    print(f"\nshare of the flow-to-observable CC gap closed at AR-{longest} ({args.samples} windows per dataset)\n")
-    print("| variant | " + " | ".join(names) + " |")
-    print("|---" * (1 + len(names)) + "|")
-    for method in results["datasets"][names[0]]["horizons"][longest]["methods"]:
-        if method == "flow":
-            continue
-        cells = [results["datasets"][n]["horizons"][longest]["methods"][method]["gap_share"]["cc"] for n in names]
-        print(f"| {method.split()[-1].split('/')[0]} | " + " | ".join(f"{c:.2f}" for c in cells) + " |")
+    first = next(iter(results["datasets"].values()))["horizons"][str(max(protocol.horizons))]["methods"]
+    print(f"\n{args.samples} windows per dataset")
+    print_gap_shares(results, {m: m.split()[-1].split("/")[0] for m in first if m != "flow"})
 
 
 if __name__ == "__main__":

@@ -155,14 +155,12 @@ def _train_settings(ctx: typer.Context, config: Optional[Path]) -> dict:
 def _check_preset(ctx: typer.Context, config: Optional[Path], model: str, preset: str) -> None:
     """A preset the network lacks is a usage error, named where it was given, before any file is read
     (each network has its own presets, so typer cannot list them as a closed choice)."""
-    from sonarset.models.echopt.networks import presets
-
+    from sonarset.models.echopt.networks import preset_refusal
     from sonarset.models.echopt.recipes import dump_recipe
 
-    known = presets(model)
-    if preset in known:
+    why = preset_refusal(model, preset)
+    if why is None:
         return
-    why = f"{model} has {', '.join(known)}"
     given = ctx.get_parameter_source("preset")
     if config is None or (given is not None and given.name == "COMMANDLINE"):
         fail(f"--preset {preset}: {why}", 2)

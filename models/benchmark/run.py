@@ -172,18 +172,17 @@ def dataset_entry(res: EvalResult, ds: Dataset, protocol: Protocol, seconds: flo
 
 
 def correct_over_file(datasets: dict, protocol: Protocol) -> dict:
-    """Holm over every comparison with the reference in the file; fills each one's ``p_holm``."""
+    """Holm over every comparison with the reference in the file, and apart over every comparison
+    between two models; fills each one's ``p_holm``."""
     tests = [c for d in datasets.values() for per_h in d["horizons"].values() for m in per_h["methods"].values()
              for c in (m.get("vs_reference") or {}).values() if c is not None]
-    p = [np.nan if c["t_paired_p"] is None else c["t_paired_p"] for c in tests]
-    for c, adjusted in zip(tests, holm(p)):
-        c["p_holm"] = adjusted
     # the models against each other: a family of its own, so adding a model never weakens the
     # tests against the reference
     pairs = [c for d in datasets.values() for per_h in d["horizons"].values() for m in per_h["methods"].values()
              for per_other in (m.get("vs_models") or {}).values() for c in per_other.values() if c is not None]
-    for c, adjusted in zip(pairs, holm([np.nan if c["t_paired_p"] is None else c["t_paired_p"] for c in pairs])):
-        c["p_holm"] = adjusted
+    for family in (tests, pairs):
+        for c, adjusted in zip(family, holm([np.nan if c["t_paired_p"] is None else c["t_paired_p"] for c in family])):
+            c["p_holm"] = adjusted
     return {"reference": protocol.reference, "tests": len(tests),
             "holm_family": HOLM_FAMILY.format(reference=protocol.reference, n=len(tests)),
             "head_to_head_tests": len(pairs),

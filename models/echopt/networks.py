@@ -28,6 +28,15 @@ def presets(kind: str) -> tuple[str, ...]:
     return tuple(ECHOPT_PRESETS) if kind == "echopt" else tuple(network(kind).presets)
 
 
+def preset_refusal(kind: str, preset: str) -> str | None:
+    """Why ``kind`` cannot be built at ``preset`` (None: it can), in words for an error message."""
+    known = presets(kind)
+    if preset in known:
+        return None
+    what = "EchoPT's only (the paper's network)" if preset in presets("echopt") else "unknown"
+    return f"{what}; {kind} has {', '.join(known)}"
+
+
 def build(kind: str, preset: str, n_range: int, n_azimuth: int, **overrides) -> nn.Module:
     """A ``kind``'s ``preset`` network on an ``n_range`` x ``n_azimuth`` grid (``overrides``: any
     config field; ValueError, or config.ConfigError naming the setting, for one no network can have)."""

@@ -13,7 +13,7 @@ from sonarset.store.store import SonarStore
 from sonarset.models.echopt.checkpoint import load_checkpoint
 from sonarset.models.echopt.config import ADDABLE_FIELDS, WARM_START_FIELDS, ConfigError, grid_and_rig
 from sonarset.models.echopt.model import GEOMETRY_PREFIX
-from sonarset.models.echopt.networks import TITLES, build, presets
+from sonarset.models.echopt.networks import TITLES, build, preset_refusal
 from sonarset.models.echopt.train_config import TrainConfig
 
 
@@ -48,9 +48,9 @@ def refuse_echopt_options(cfg: TrainConfig) -> None:
     """A reference method (``cfg.model`` other than echopt) has its own presets, and none of
     EchoPT's own options: each is refused in one line naming it, not silently ignored."""
     kind, title = cfg.model, TITLES[cfg.model]
-    if cfg.preset not in presets(kind):
-        what = "EchoPT's only (the paper's network)" if cfg.preset in presets("echopt") else "unknown"
-        raise SonarSetError(f"preset {cfg.preset}: {what}; {kind} has {', '.join(presets(kind))}", parameter="preset")
+    why = preset_refusal(kind, cfg.preset)
+    if why:
+        raise SonarSetError(f"preset {cfg.preset}: {why}", parameter="preset")
     if cfg.geometry_channels > 0:
         raise SonarSetError(f"geometry_channels {cfg.geometry_channels}: an EchoPT option; {title} has no geometry "
                             "branch", parameter="geometry_channels")
