@@ -2,14 +2,15 @@
 matmul roof of the same process, on CPU and on a GPU when there is one.
 
     python bench/bench_train.py [--presets small,paper] [--steps 5] [--devices cpu,cuda]
-                                [--roof-kinds echowarp:10,echopt:3] [--roof-batch 16]
+                                [--roof-kinds echowarp:10,echopt:3] [--roof-batch 16] [--roof-compile]
 
 The roof section (CPU): each ``KIND:K`` of ``--roof-kinds`` built as its small preset and trained as
 its recipe trains it (a K-step rollout per window: EchoWarp forecasts its K horizons in one pass),
 its forward and backward GFLOP per window (torch's flop counter), training samples/s in fp32 and in
 bf16 autocast, and the achieved TFLOP/s as a share of a large torch.matmul's in the same precision,
 measured in the same process (bench/bench_zoo.py's functions). On a CPU without bf16 units the
-share that counts is fp32's.
+share that counts is fp32's. ``--roof-compile`` adds bf16 with the network ``torch.compile``-d
+(inductor's CPU code; its compilation is not timed): whether the compiler earns its place on a CPU.
 
 Times full optimizer steps (forward, backward, Adam) on batch 64 of the default 200 x 90 grid
 with data already in memory, in fp32 and in bf16 autocast (the precision ``--precision auto`` picks
@@ -76,6 +77,7 @@ def main() -> None:
     ap.add_argument("--roof-kinds", default="echowarp:10,echopt:3", help="KIND:K,... ('' skips the roof section)")
     ap.add_argument("--roof-batch", type=int, default=16)
     ap.add_argument("--matmul", type=int, default=2048, help="size of the roof's square matmul")
+    ap.add_argument("--roof-compile", action="store_true", help="also time bf16 with torch.compile")
     args = ap.parse_args()
     devices = args.devices.split(",")
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "none"
@@ -129,6 +131,11 @@ def roof_section(args) -> None:
             rate = samples_per_s(model, (200, 90), int(k or 1), args.roof_batch, args.steps, precision)
             cells.append(f"{precision} {rate:6.1f} samples/s = {rate * gflop / 1e3:.3f} TFLOP/s "
                          f"({100 * rate * gflop / 1e3 / roof[precision]:.1f}% of roof)")
+        if args.roof_compile:
+            compiled = torch.compile(model)
+            samples_per_s(compiled, (200, 90), int(k or 1), args.roof_batch, 1, "bf16")  # compiles forward and backward
+            rate = samples_per_s(compiled, (200, 90), int(k or 1), args.roof_batch, args.steps, "bf16")
+            cells.append(f"bf16 + torch.compile {rate:6.1f} samples/s ({100 * rate * gflop / 1e3 / roof['bf16']:.1f}% of roof)")
         print(f"{kind:9s} small, {k}-step windows, batch {args.roof_batch}: {gflop:.2f} GFLOP/window; "
               + ";  ".join(cells), flush=True)
 

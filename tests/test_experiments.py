@@ -15,7 +15,16 @@ from sonarset.models.echopt.config import make_config
 from sonarset.models.echopt.model import EchoPT
 from sonarset.models.experiments.common import predictor
 from sonarset.models.experiments.control import BurstSchedule, Episode, run_control_experiment, run_episode
-from sonarset.models.experiments.slip import SlipPeriod, frame_labels, run_slip_experiment, slip_signals
+from sonarset.models.experiments.slip import (
+    DETECTORS,
+    HORIZONS,
+    KINDS,
+    SlipPeriod,
+    frame_labels,
+    run_slip_experiment,
+    slip_signals,
+    summarise,
+)
 from sonarset.models.experiments.slip_report import write_slip_report
 from sonarset.format.attrs import Processing, SensorGrid
 from sonarset.windows import N_IN
@@ -116,6 +125,22 @@ def test_slip_labels_follow_the_horizon():
     assert np.array_equal(four["one"], lab["one"]) and four["clean"][[6, 7, 15]].all()
     assert not four["clean"][:6].any() and not four["clean"][14]
     assert SlipPeriod(1, 2, (0.2, 0.3)).kind == "both" and SlipPeriod(1, 2, (1.0, 0.3)).kind == "one"
+
+
+def test_slip_tests_each_model_against_the_baselines_and_the_models_before_it():
+    """A new model beside an old one is tested against it: b's AUC above a's by 0.05 in every trial."""
+    rng = np.random.default_rng(0)
+    names = ["naive", "flow", "old", "new"]
+    trials = []
+    for _ in range(12):
+        base = rng.uniform(0.6, 0.8)
+        trials.append({f"{n}|{h}|{k}|{d}": base + 0.05 * i + rng.normal(0, 0.005)
+                       for i, n in enumerate(names) for h in HORIZONS for k in KINDS for d in DETECTORS})
+    _, comps = summarise(trials, names)
+    pairs = {(c["a"], c["b"]) for c in comps}
+    assert pairs == {("old", "naive"), ("old", "flow"), ("new", "naive"), ("new", "flow"), ("new", "old")}
+    new_vs_old = [c for c in comps if (c["a"], c["b"]) == ("new", "old")]
+    assert all(abs(c["mean_auc_diff"] - 0.05) < 0.01 and c["p_holm"] < 0.05 for c in new_vs_old)
 
 
 def test_slip_experiment_end_to_end_with_a_tiny_echopt(tmp_path):

@@ -50,7 +50,7 @@ class TrainConfig:
     eval_every: int = 0  # steps between validations and checkpoints; 0 = once per epoch
     max_steps: int = 0  # stop after this many optimizer steps in total (0 = no limit)
     max_minutes: float = 0.0  # stop after this much wall time in this process (0 = no limit)
-    compile: bool = False  # torch.compile (GPU)
+    compile: bool = False  # torch.compile (GPU; on a CPU it measured 0.69x eager: BENCHMARKS.md)
     precision: str = "auto"  # auto | fp32 | bf16 autocast (models/echopt/precision.py); auto: bf16 where the hardware has it
     test_samples: int = 1000  # one-shot + AR test metrics in the card (0 = skip)
     prior: str = ""  # config.PRIORS (none | last | flow); "" = the preset's (paper: none, small and tiny: flow)

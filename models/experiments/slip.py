@@ -240,9 +240,11 @@ def summarise(per_trial: list[dict], names: list[str], seed: int = 0) -> tuple[l
             m, lo, hi = mean_ci(x, seed)
             summary.append({"predictor": name, "horizon": h, "kind": kind, "detector": det, "auc_mean": m,
                             "ci_low": lo, "ci_high": hi, "n": int(np.isfinite(x).sum())})
-    # every model (a checkpoint, a plugin, a module:factory) against every baseline beside it
-    for a in (n for n in names if n not in BASELINES):
-        for b in (n for n in names if n in BASELINES):
+    # every model (a checkpoint, a plugin, a module:factory) against every baseline beside it and
+    # every model listed before it (as the benchmark's vs_models): a new model meets the old one
+    learned = [n for n in names if n not in BASELINES]
+    for i, a in enumerate(learned):
+        for b in [n for n in names if n in BASELINES] + learned[:i]:
             for h, kind, det in keys:
                 x = np.array([t[f"{a}|{h}|{kind}|{det}"] - t[f"{b}|{h}|{kind}|{det}"] for t in per_trial], float)
                 x = x[np.isfinite(x)]

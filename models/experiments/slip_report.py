@@ -77,11 +77,12 @@ def auc_table(res: SlipResult) -> list[str]:
 
 
 def tests_table(res: SlipResult) -> list[str]:
-    """EchoPT against each baseline (paired Wilcoxon, Holm); nothing without EchoPT."""
+    """Each learned predictor against each baseline and each learned predictor before it (paired
+    Wilcoxon, Holm); nothing without a learned predictor."""
     if not res.comparisons:
         return []
-    lines = ["", "EchoPT against each baseline, paired Wilcoxon signed-rank tests on per-trajectory AUC "
-             "(Holm-corrected over all rows):", "",
+    lines = ["", "Each learned predictor against each baseline and each learned predictor listed before it, "
+             "paired Wilcoxon signed-rank tests on per-trajectory AUC (Holm-corrected over all rows):", "",
              "| detector | a - b | horizon | kind | mean AUC difference | p (Holm) |",
              "| --- | --- | ---: | --- | ---: | ---: |"]
     for c in res.comparisons:
