@@ -13,7 +13,7 @@ pytest.importorskip("rosbags")
 pytest.importorskip("mcap_ros2.writer")
 
 from sonarset.cli.app import app  # noqa: E402
-from tests.test_bag import Drive, write_bag  # noqa: E402
+from tests.bag_drives import Drive, write_bag  # noqa: E402
 
 
 def _one_line_refusal(tmp_path, bag, says: str) -> str:

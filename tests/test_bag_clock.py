@@ -18,7 +18,7 @@ from sonarset import open_store  # noqa: E402
 from sonarset.cli.app import app  # noqa: E402
 from sonarset.format.attrs import SensorGrid  # noqa: E402
 from sonarset.ingest.bag.clock import estimate_offset, image_motion  # noqa: E402
-from tests.test_bag import BASE_NS, Drive, jittery_times  # noqa: E402
+from tests.bag_drives import BASE_NS, Drive, jittery_times  # noqa: E402
 
 HZ = 7.1
 
