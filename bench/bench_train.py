@@ -126,16 +126,16 @@ def roof_section(args) -> None:
         kind, _, k = item.partition(":")
         model = network(kind, "small", (200, 90))
         gflop = gflop_per_sample(model, (200, 90), int(k or 1))
-        cells = []
-        for precision in ("fp32", "bf16"):
-            rate = samples_per_s(model, (200, 90), int(k or 1), args.roof_batch, args.steps, precision)
-            cells.append(f"{precision} {rate:6.1f} samples/s = {rate * gflop / 1e3:.3f} TFLOP/s "
-                         f"({100 * rate * gflop / 1e3 / roof[precision]:.1f}% of roof)")
+        runs = [(precision, model, precision) for precision in ("fp32", "bf16")]
         if args.roof_compile:
             compiled = torch.compile(model)
             samples_per_s(compiled, (200, 90), int(k or 1), args.roof_batch, 1, "bf16")  # compiles forward and backward
-            rate = samples_per_s(compiled, (200, 90), int(k or 1), args.roof_batch, args.steps, "bf16")
-            cells.append(f"bf16 + torch.compile {rate:6.1f} samples/s ({100 * rate * gflop / 1e3 / roof['bf16']:.1f}% of roof)")
+            runs.append(("bf16 + torch.compile", compiled, "bf16"))
+        cells = []
+        for label, net, precision in runs:
+            rate = samples_per_s(net, (200, 90), int(k or 1), args.roof_batch, args.steps, precision)
+            cells.append(f"{label} {rate:6.1f} samples/s = {rate * gflop / 1e3:.3f} TFLOP/s "
+                         f"({100 * rate * gflop / 1e3 / roof[precision]:.1f}% of roof)")
         print(f"{kind:9s} small, {k}-step windows, batch {args.roof_batch}: {gflop:.2f} GFLOP/window; "
               + ";  ".join(cells), flush=True)
 

@@ -128,7 +128,8 @@ def test_slip_labels_follow_the_horizon():
 
 
 def test_slip_tests_each_model_against_the_baselines_and_the_models_before_it():
-    """A new model beside an old one is tested against it: b's AUC above a's by 0.05 in every trial."""
+    """A new model beside an old one is tested against it: each name's AUC is 0.05 above the one
+    listed before it in every trial."""
     rng = np.random.default_rng(0)
     names = ["naive", "flow", "old", "new"]
     trials = []

@@ -243,8 +243,9 @@ def summarise(per_trial: list[dict], names: list[str], seed: int = 0) -> tuple[l
     # every model (a checkpoint, a plugin, a module:factory) against every baseline beside it and
     # every model listed before it (as the benchmark's vs_models): a new model meets the old one
     learned = [n for n in names if n not in BASELINES]
+    baselines = [n for n in names if n in BASELINES]
     for i, a in enumerate(learned):
-        for b in [n for n in names if n in BASELINES] + learned[:i]:
+        for b in baselines + learned[:i]:
             for h, kind, det in keys:
                 x = np.array([t[f"{a}|{h}|{kind}|{det}"] - t[f"{b}|{h}|{kind}|{det}"] for t in per_trial], float)
                 x = x[np.isfinite(x)]
