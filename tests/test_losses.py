@@ -5,9 +5,12 @@ import pytest
 import torch
 
 from sonarset.errors import SonarSetError
-from sonarset.models.echopt.losses import (LOSSES, echo_energy_loss, image_loss, nrmsd_loss, parse_loss,
+from sonarset.models.echopt.losses import (ECHO_MARGIN, LOSSES, echo_energy_loss, echo_match_loss, image_loss,
+                                         nrmsd_loss, parse_loss,
                                          capped_nrmsd_loss, floored_nrmsd_loss, pooled_nrmsd_loss,
                                          rollout_losses, step_weights, value_distribution_loss, weighted_loss)
+from sonarset.format.attrs import SensorGrid
+from sonarset.scoring.echoes import find_echoes, tolerance_bins
 from sonarset.scoring.metrics import nrmsd
 
 
@@ -23,7 +26,7 @@ def test_parse_loss_terms_and_errors():
     assert parse_loss("mse") == {"mse": 1.0}
     assert parse_loss("mse=1,w1=0.3") == {"mse": 1.0, "w1": 0.3}
     assert set(LOSSES) == {"mse", "l1", "gdl", "cc", "nrmsd", "nrmsd_pooled", "nrmsd_floored", "nrmsd_capped",
-                           "w1", "energy"}
+                           "w1", "energy", "echo"}
     with pytest.raises(SonarSetError, match="unknown term 'wasserstein'"):
         parse_loss("mse,wasserstein")
     with pytest.raises(SonarSetError, match="weight of 'w1' is not a number"):
@@ -70,6 +73,55 @@ def test_echo_energy_loss_calibrates_the_batch_not_each_image():
     assert echo_energy_loss(1.2 * a, a).item() > 0.19 and echo_energy_loss(0.8 * b, b).item() > 0.19
     # ~0, but for the echo tails that the scaling moves across the floor.
     assert echo_energy_loss(pred, torch.cat([a, b])).item() < 0.02
+
+
+def test_echo_match_loss_costs_missed_and_false_echoes_not_offsets_within_the_tolerance():
+    window = (3, 1)  # range, azimuth bins
+    target = _echo(20, 1.5)
+    assert echo_match_loss(target, target, window).item() == 0.0
+    assert echo_match_loss(_echo(22, 1.5), target, window).item() == 0.0  # 2 bins off: a match
+    # 8 bins off: the target's echo is missed (the brightest forecast pixel within 3 bins of it is
+    # the moved echo's tail, 5 bins from its peak) and the forecast's is false; 2 echoes counted.
+    moved = echo_match_loss(_echo(28, 1.5), target, window).item()
+    tail = np.exp(-0.5 * (5 / 1.5) ** 2)
+    assert moved == pytest.approx(((0.3 + ECHO_MARGIN - tail) + (1.0 - 0.3 + ECHO_MARGIN)) / 2, rel=1e-5)
+    # A faded echo in the right place is a miss only while it is below the level (and its margin).
+    assert echo_match_loss(_echo(20, 1.5, 0.25), target, window).item() == pytest.approx(0.1, rel=1e-3)
+    assert echo_match_loss(_echo(20, 1.5, 0.4), target, window).item() == 0.0
+
+
+def test_echo_match_loss_pushes_only_the_pixels_that_decide_a_match():
+    window = (3, 1)
+    target = _echo(20, 1.5)
+    # A faint echo near the target's and a false one far from it.
+    pred = (_echo(21, 1.5, 0.2) + _echo(34, 1.0, 0.6)).requires_grad_(True)
+    echo_match_loss(pred, target, window).backward()
+    pushed = pred.grad.nonzero().tolist()
+    assert sorted(pushed) == [[0, 21, 6], [0, 34, 6]]
+    assert pred.grad[0, 21, 6] < 0 < pred.grad[0, 34, 6]  # descent raises the near one, lowers the false one
+    with pytest.raises(ValueError, match="echo tolerance"):
+        image_loss(pred, target, {"echo": 1})
+    assert image_loss(pred, target, {"echo": 2}, echo_window=window).item() == pytest.approx(
+        2 * echo_match_loss(pred, target, window).item())
+
+
+def test_echo_match_loss_finds_the_echoes_the_metric_finds():
+    grid = SensorGrid(range_min_m=0.5, range_max_m=2.5, n_range=40, azimuth_min_rad=-1.2, azimuth_max_rad=1.2,
+                      n_azimuth=16)
+    rng = np.random.default_rng(3)
+    images = rng.random((4, 40, 16), dtype=np.float32) ** 8  # sparse bright pixels
+    window = tolerance_bins(grid)
+    x = torch.from_numpy(images)
+    # Against a blank forecast every echo the metric finds is missed by its value (at most level +
+    # margin), and their count is the denominator.
+    echoes = find_echoes(images, grid)
+    r = np.rint((echoes.range_m - grid.range_min_m) / grid.range_step - 0.5).astype(int)
+    a = np.rint((np.radians(echoes.azimuth_deg) - grid.azimuth_min_rad) / grid.azimuth_step - 0.5).astype(int)
+    shortfalls = np.minimum(images[echoes.image, r, a], 0.3 + ECHO_MARGIN)
+    assert len(shortfalls) > 4 and shortfalls.min() < 0.3 + ECHO_MARGIN  # some echoes below level + margin
+    assert echo_match_loss(torch.zeros_like(x), x, window).item() == pytest.approx(shortfalls.mean(), rel=1e-5)
+    # And a forecast equal to the target matches each.
+    assert echo_match_loss(x, x, window).item() == 0.0
 
 
 def test_nrmsd_loss_is_the_metric_and_weights_a_faint_target_as_it_does():

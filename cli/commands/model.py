@@ -232,7 +232,9 @@ def train(
                                                         "image, weight capped where flow's NRMSD is above "
                                                         "2), w1 (1-D "
                                                         "Wasserstein of the pixel values), energy (the batch's "
-                                                        "echo-energy deficit), or a weighted sum: cc=1,w1=50."),
+                                                        "echo-energy deficit), echo (hinges on missed and false "
+                                                        "echoes, the echo F1's matching), or a weighted sum: "
+                                                        "cc=1,w1=50."),
     curriculum: str = typer.Option(TRAIN.curriculum, "--curriculum",
                                    help="Rollout steps k of the unrolled loss: k, or step:k,... "
                                         "(e.g. 0:1,300:2,600:4,900:6)."),

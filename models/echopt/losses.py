@@ -15,8 +15,9 @@ from sonarset.models.echopt.distributed import Dist
 from sonarset.models.echopt.precision import autocast
 from sonarset.models.echopt.train_config import STEP_WEIGHTS
 from sonarset.models.eval.result import ECHO_FLOOR
+from sonarset.scoring.echoes import EchoMatching
 
-LOSSES = ("mse", "l1", "gdl", "cc", "nrmsd", "nrmsd_pooled", "nrmsd_floored", "nrmsd_capped", "w1", "energy")
+LOSSES = ("mse", "l1", "gdl", "cc", "nrmsd", "nrmsd_pooled", "nrmsd_floored", "nrmsd_capped", "w1", "energy", "echo")
 # terms that compare the forecast with the flow baseline's forecast of the same target
 REFERENCE_TERMS = ("nrmsd_capped",)
 
@@ -132,10 +133,43 @@ def capped_nrmsd_loss(pred: torch.Tensor, target: torch.Tensor, reference: torch
     return (diff / torch.maximum(norms, cap).clamp_min(1e-6)).mean()
 
 
+ECHO_MARGIN = 0.05  # how far past the detection level a hinge of echo_match_loss reaches
+
+
+def echo_match_loss(pred: torch.Tensor, target: torch.Tensor, window: tuple[int, int],
+                    level: float = EchoMatching.level, margin: float = ECHO_MARGIN) -> torch.Tensor:
+    """A differentiable stand-in for the echo metrics' matching (sonarset/scoring/echoes.py), over
+    (B, R, A) images, ``window`` the tolerance in bins (``tolerance_bins``):
+
+    - a target echo (a local maximum >= ``level``) whose forecast holds no pixel as bright as the
+      echo, or as ``level + margin``, within the tolerance costs the shortfall of the brightest one
+      there (a miss: its gradient raises the forecast where the echo is, not a smear around it);
+    - a forecast echo with no target echo within the tolerance costs its excess over
+      ``level - margin`` (a false echo: lowered until it is no echo).
+
+    The sum over both kinds, divided by the number of target and forecast echoes, is 0 when every
+    echo is matched with margin to spare, as F1's denominator counts them. CC and NRMSD score the
+    pixels; an echo a pixel term draws as a smear below the level, or as two maxima, they barely
+    see, and the echo F1 counts in full. Unlike F1 it ignores the one-to-one pairing.
+    """
+    def pool(x: torch.Tensor) -> torch.Tensor:  # each pixel's maximum within the tolerance (padded with -inf)
+        return F.max_pool2d(x[:, None], (2 * window[0] + 1, 2 * window[1] + 1), stride=1, padding=window)[:, 0]
+
+    nearby = pool(pred)  # the forecast's brightest pixel within the tolerance of each pixel
+    with torch.no_grad():
+        t_echo = (target >= level) & (target >= pool(target))
+        p_echo = (pred >= level) & (pred >= nearby)
+        false = p_echo & (pool(t_echo.float()) == 0)
+    missed = F.relu(target.clamp(max=level + margin) - nearby)[t_echo].sum()
+    extra = F.relu(pred - (level - margin))[false].sum()
+    return (missed + extra) / (t_echo.sum() + p_echo.sum()).clamp_min(1)
+
+
 def image_loss(pred: torch.Tensor, target: torch.Tensor, terms: dict[str, float],
-               reference: torch.Tensor | None = None) -> torch.Tensor:
+               reference: torch.Tensor | None = None, echo_window: tuple[int, int] | None = None) -> torch.Tensor:
     """Weighted sum of per-pixel losses over (B, R, A) images; ``reference``, the flow baseline's
-    forecasts of the same targets, is needed by the ``REFERENCE_TERMS`` only."""
+    forecasts of the same targets, is needed by the ``REFERENCE_TERMS`` only, ``echo_window``
+    (the echo tolerance in bins) by ``echo``."""
     total = pred.new_zeros(())
     for name, w in terms.items():
         if name == "mse":
@@ -158,6 +192,10 @@ def image_loss(pred: torch.Tensor, target: torch.Tensor, terms: dict[str, float]
             v = value_distribution_loss(pred, target)
         elif name == "energy":
             v = echo_energy_loss(pred, target)
+        elif name == "echo":
+            if echo_window is None:
+                raise ValueError("the echo term needs the echo tolerance in bins (tolerance_bins of the grid)")
+            v = echo_match_loss(pred, target, echo_window)
         else:  # 1 - CC (the paper's metric) per image
             p = pred.flatten(1) - pred.flatten(1).mean(1, keepdim=True)
             t = target.flatten(1) - target.flatten(1).mean(1, keepdim=True)
@@ -192,7 +230,8 @@ def forecaster(fwd) -> torch.nn.Module | None:
 
 
 def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch.Tensor, terms: dict[str, float],
-                   pushforward: bool = False, precision: str = "fp32", flow=None) -> list[torch.Tensor]:
+                   pushforward: bool = False, precision: str = "fp32", flow=None,
+                   echo_window: tuple[int, int] | None = None) -> list[torch.Tensor]:
     """One loss per rollout step: step h predicts target h from the last n_in frames, measured or
     the model's own (clamped to [0, 1], as in evaluation) predictions. With ``pushforward`` all
     steps but the last run without gradient, and only the last step's loss is returned. A
@@ -204,7 +243,7 @@ def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch
     of up to its ``max_horizon`` steps (once, for every protocol horizon), through ``fwd`` with the
     block's length as a third argument, each block's context the measured frames or the previous
     block's predictions; with ``pushforward`` only the last block carries gradient, and its steps'
-    losses are returned (one block: the same as without)."""
+    losses are returned (one block: the same as without). ``echo_window`` is the ``echo`` term's."""
     n_in, k = frames.shape[1], targets.shape[1]
     buf = list(frames.unbind(1))
     if not any(t in REFERENCE_TERMS for t in terms):
@@ -230,7 +269,7 @@ def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch
                 with torch.no_grad():
                     reference = flow(reference.float(), cmds[:, h + j + n_in])
             if grad or not pushforward:
-                losses.append(image_loss(pred, targets[:, h + j], terms, reference))
+                losses.append(image_loss(pred, targets[:, h + j], terms, reference, echo_window))
             buf.append(pred.clamp(0, 1))
         h += m
     return losses
@@ -239,7 +278,8 @@ def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch
 @torch.no_grad()
 def validation_loss(model: torch.nn.Module, batcher: WindowBatcher, index: WindowIndex, horizon: int = 1,
                     batch_size: int = 128, dist: Dist = Dist(), terms: dict[str, float] | None = None,
-                    precision: str = "fp32", weights: str = "uniform") -> float:
+                    precision: str = "fp32", weights: str = "uniform",
+                    echo_window: tuple[int, int] | None = None) -> float:
     """The training loss (``terms``, default MSE) per pixel over ``index``, over a rollout of
     ``horizon`` steps shared by ``weights`` (``step_weights``); each process takes every world-th
     batch. The kept model is the best by the objective it was trained for: with a sharpness term,
@@ -253,7 +293,7 @@ def validation_loss(model: torch.nn.Module, batcher: WindowBatcher, index: Windo
     for lo in list(starts)[dist.rank::dist.world]:
         b = batcher.gather(index, np.arange(lo, min(len(index), lo + batch_size)), horizon)
         losses = rollout_losses(model, b.frames, b.commands, b.targets, terms or {"mse": 1.0}, precision=precision,
-                                flow=model.flow_prior)
+                                flow=model.flow_prior, echo_window=echo_window)
         total += float(weighted_loss(losses, weights)) * len(b)
         n += len(b)
         del b, losses

@@ -53,6 +53,7 @@ import torch.nn as nn
 
 from sonarset import __version__
 from sonarset.errors import SonarSetError
+from sonarset.scoring.echoes import tolerance_bins
 from sonarset.store.store import SonarStore
 
 from sonarset.models.echopt.checkpoint import save_checkpoint
@@ -247,6 +248,7 @@ class _Run:
     fwd: Callable
     opt: torch.optim.Optimizer
     terms: dict[str, float]
+    echo_window: tuple[int, int]  # the echo term's tolerance in bins on the store's grid
     data: MemoryWindows | StreamedWindows
     plan: _Plan
     val_horizon: int
@@ -271,7 +273,7 @@ class _Run:
         for g in self.opt.param_groups:
             g["lr"] = self.cfg.lr_at(step, self.plan.total_steps)
         losses = rollout_losses(self.fwd, frames, cmds, targets, self.terms, self.cfg.pushforward, self.precision,
-                                flow=self.model.flow_prior)
+                                flow=self.model.flow_prior, echo_window=self.echo_window)
         loss = weighted_loss(losses, self.cfg.step_weights)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -292,7 +294,7 @@ class _Run:
         # horizons at once, so memory goes with windows x horizons (BENCHMARKS, "EchoWarp")
         val = validation_loss(self.model, self.data.val_batcher, self.data.val_idx, self.val_horizon, dist=dist,
                               batch_size=2 * self.cfg.batch_size, terms=self.terms, precision=self.precision,
-                              weights=self.cfg.step_weights)
+                              weights=self.cfg.step_weights, echo_window=self.echo_window)
         run_loss, run_n = dist.all_sum(tally.loss, tally.n)
         rate = tally.samples / (time.perf_counter() - tally.t0)
         rec = {"step": step, "epoch": step / self.plan.steps_per_epoch, "train_loss": run_loss / max(run_n, 1),
@@ -337,7 +339,8 @@ def _train(store: SonarStore, out: Path, cfg: TrainConfig, resume: bool, progres
     step, best, history = 0, float("inf"), []
     if resume and (out / STATE).is_file():
         step, best, history = _resumed(out, model, opt, cfg, dist)
-    run = _Run(cfg, out, dist, model, _forward(model, cfg, dist, device), opt, terms, data, plan, val_horizon, precision,
+    run = _Run(cfg, out, dist, model, _forward(model, cfg, dist, device), opt, terms, tolerance_bins(store.grid), data,
+               plan, val_horizon, precision,
                _card_base(store, cfg, out, data.run_names, data.n_train, len(data.val_idx), plan.steps_per_epoch,
                           precision),
                progress)

@@ -64,12 +64,19 @@ class Peaks:
         return self.range_m[keep], self.azimuth_deg[keep]
 
 
+def tolerance_bins(grid: SensorGrid, matching: EchoMatching = EchoMatching()) -> tuple[int, int]:
+    """The matching tolerances in bins on ``grid``, (range, azimuth), at least one each: an echo is
+    the largest pixel within this many bins either side, and a match is within them."""
+    half_r = max(1, int(np.ceil(matching.range_tol_m / grid.range_step - 1e-9)))
+    half_a = max(1, int(np.ceil(np.radians(matching.azimuth_tol_deg) / grid.azimuth_step - 1e-9)))
+    return half_r, half_a
+
+
 def find_echoes(images: np.ndarray, grid: SensorGrid, matching: EchoMatching = EchoMatching()) -> Peaks:
     """The echoes of ``images`` (N, R, A) or (R, A) on ``grid``."""
     x = np.asarray(images, np.float32)
     x = x.reshape(-1, *x.shape[-2:])
-    half_r = max(1, int(np.ceil(matching.range_tol_m / grid.range_step - 1e-9)))
-    half_a = max(1, int(np.ceil(np.radians(matching.azimuth_tol_deg) / grid.azimuth_step - 1e-9)))
+    half_r, half_a = tolerance_bins(grid, matching)
     idx = _local_maxima(x, half_r, half_a, matching.level)
     _, R, A = x.shape
     img, rem = np.divmod(idx, R * A)
