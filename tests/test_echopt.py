@@ -253,7 +253,7 @@ def test_rollout_training_options_and_priors(tiny_store, tmp_path):
     rollout_losses(model, torch.from_numpy(f), torch.from_numpy(c5), torch.rand(4, 2, *TINY_GRID.shape),
                    {"nrmsd_capped": 1.0}, flow=lambda last, cmd: drawn.append(model.flow_prior(last, cmd)) or drawn[-1])
     np.testing.assert_allclose(torch.stack(drawn, 1).detach().numpy(), rollout(flow, f, c5, 2), atol=1e-5)
-    res = train(tiny_store, tmp_path / "capped", _cfg(max_steps=2, curriculum="2", loss="cc=1,nrmsd_capped=1",
+    res = train(tiny_store, tmp_path / "capped", _cfg(max_steps=2, curriculum="2", loss="cc=1,nrmsd_capped=1,echo=1",
                                                      prior="last", val_horizon=2))
     assert all(np.isfinite(r["train_loss"]) and np.isfinite(r["val_loss"]) for r in res.history)
     for bad, msg in ((dict(curriculum="2:3"), "start at step 0"), (dict(loss="mse,fancy"), "unknown term"),
