@@ -5,8 +5,8 @@ import pytest
 import torch
 
 from sonarset.errors import SonarSetError
-from sonarset.models.echopt.losses import (ECHO_MARGIN, LOSSES, echo_energy_loss, echo_match_loss, image_loss,
-                                         nrmsd_loss, parse_loss,
+from sonarset.models.echopt.losses import (ECHO_MARGIN, LOSSES, brightest_near, echo_energy_loss, echo_match_loss,
+                                         image_loss, nrmsd_loss, parse_loss, window_max,
                                          capped_nrmsd_loss, floored_nrmsd_loss, pooled_nrmsd_loss,
                                          rollout_losses, step_weights, value_distribution_loss, weighted_loss)
 from sonarset.format.attrs import SensorGrid
@@ -122,6 +122,19 @@ def test_echo_match_loss_finds_the_echoes_the_metric_finds():
     assert echo_match_loss(torch.zeros_like(x), x, window).item() == pytest.approx(shortfalls.mean(), rel=1e-5)
     # And a forecast equal to the target matches each.
     assert echo_match_loss(x, x, window).item() == 0.0
+
+
+@pytest.mark.parametrize("window", [(1, 1), (3, 2), (2, 0), (5, 3)])
+def test_window_max_is_a_clipped_max_pool_and_brightest_near_picks_its_pixel(window):
+    x = torch.rand(3, 13, 9, generator=torch.Generator().manual_seed(1))
+    pooled = torch.nn.functional.max_pool2d(x[:, None], (2 * window[0] + 1, 2 * window[1] + 1), stride=1,
+                                            padding=window)[:, 0]
+    assert torch.equal(window_max(x, window), pooled)
+    at = torch.tensor([[0, 0, 0], [1, 6, 4], [2, 12, 8], [2, 3, 0]])  # corners, middle, an edge
+    pick = brightest_near(x.requires_grad_(True), at, window)
+    assert torch.equal(pick.detach(), pooled[at[:, 0], at[:, 1], at[:, 2]])
+    pick.sum().backward()
+    assert (x.grad > 0).sum() <= len(at) and x.grad.sum() == len(at)  # one pixel each (two picks may share one)
 
 
 def test_nrmsd_loss_is_the_metric_and_weights_a_faint_target_as_it_does():

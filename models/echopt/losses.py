@@ -136,6 +136,35 @@ def capped_nrmsd_loss(pred: torch.Tensor, target: torch.Tensor, reference: torch
 ECHO_MARGIN = 0.05  # how far past the detection level a hinge of echo_match_loss reaches
 
 
+def window_max(x: torch.Tensor, window: tuple[int, int]) -> torch.Tensor:
+    """Each pixel's maximum within +-``window`` (range, azimuth) bins of (..., R, A) images, the
+    window clipped to the image (``max_pool2d`` with stride 1 padded with -inf): in range, then in
+    azimuth, as elementwise maxima of shifted views, 30x faster than ``max_pool2d`` on the CPU."""
+    for dim, h in ((-2, window[0]), (-1, window[1])):
+        n = x.shape[dim]
+        padded = F.pad(x, (0, 0, h, h) if dim == -2 else (h, h), value=float("-inf"))
+        out = padded.narrow(dim, 0, n)
+        for d in range(1, 2 * h + 1):
+            out = torch.maximum(out, padded.narrow(dim, d, n))
+        x = out
+    return x
+
+
+def brightest_near(x: torch.Tensor, at: torch.Tensor, window: tuple[int, int]) -> torch.Tensor:
+    """The largest pixel of (B, R, A) images ``x`` within +-``window`` bins of each pixel ``at`` (K, 3)
+    (image, range, azimuth indices), (K,), differentiable: it is that pixel itself, found without
+    gradient, so its gradient reaches that pixel alone."""
+    _, R, A = x.shape
+    with torch.no_grad():
+        dr, da = torch.meshgrid(torch.arange(-window[0], window[0] + 1, device=x.device),
+                                torch.arange(-window[1], window[1] + 1, device=x.device), indexing="ij")
+        r, a = at[:, 1:2] + dr.reshape(1, -1), at[:, 2:3] + da.reshape(1, -1)  # (K, window pixels)
+        inside = (r >= 0) & (r < R) & (a >= 0) & (a < A)
+        r, a = r.clamp(0, R - 1), a.clamp(0, A - 1)
+        best = x[at[:, :1], r, a].masked_fill(~inside, float("-inf")).argmax(1, keepdim=True)
+    return x[at[:, 0], r.gather(1, best)[:, 0], a.gather(1, best)[:, 0]]
+
+
 def echo_match_loss(pred: torch.Tensor, target: torch.Tensor, window: tuple[int, int],
                     level: float = EchoMatching.level, margin: float = ECHO_MARGIN) -> torch.Tensor:
     """A differentiable stand-in for the echo metrics' matching (sonarset/scoring/echoes.py), over
@@ -152,15 +181,13 @@ def echo_match_loss(pred: torch.Tensor, target: torch.Tensor, window: tuple[int,
     pixels; an echo a pixel term draws as a smear below the level, or as two maxima, they barely
     see, and the echo F1 counts in full. Unlike F1 it ignores the one-to-one pairing.
     """
-    def pool(x: torch.Tensor) -> torch.Tensor:  # each pixel's maximum within the tolerance (padded with -inf)
-        return F.max_pool2d(x[:, None], (2 * window[0] + 1, 2 * window[1] + 1), stride=1, padding=window)[:, 0]
-
-    nearby = pool(pred)  # the forecast's brightest pixel within the tolerance of each pixel
     with torch.no_grad():
-        t_echo = (target >= level) & (target >= pool(target))
-        p_echo = (pred >= level) & (pred >= nearby)
-        false = p_echo & (pool(t_echo.float()) == 0)
-    missed = F.relu(target.clamp(max=level + margin) - nearby)[t_echo].sum()
+        t_echo = (target >= level) & (target >= window_max(target, window))
+        p_echo = (pred >= level) & (pred >= window_max(pred, window))
+        false = p_echo & (window_max(t_echo.float(), window) == 0)
+    # a miss costs the shortfall of the forecast's brightest pixel near the echo, and moves it alone
+    near = brightest_near(pred, t_echo.nonzero(), window)
+    missed = F.relu(target[t_echo].clamp(max=level + margin) - near).sum()
     extra = F.relu(pred - (level - margin))[false].sum()
     return (missed + extra) / (t_echo.sum() + p_echo.sum()).clamp_min(1)
 
