@@ -3,12 +3,16 @@ matmul roof of the same process, on CPU and on a GPU when there is one.
 
     python bench/bench_train.py [--presets small,paper] [--steps 5] [--devices cpu,cuda]
                                 [--roof-kinds echowarp:10,echopt:3] [--roof-batch 16] [--roof-compile]
+                                [--roof-loss mse]
 
 The roof section (CPU): each ``KIND:K`` of ``--roof-kinds`` built as its small preset and trained as
 its recipe trains it (a K-step rollout per window: EchoWarp forecasts its K horizons in one pass),
 its forward and backward GFLOP per window (torch's flop counter), training samples/s in fp32 and in
 bf16 autocast, and the achieved TFLOP/s as a share of a large torch.matmul's in the same precision,
-measured in the same process (bench/bench_zoo.py's functions). On a CPU without bf16 units the
+measured in the same process (bench/bench_zoo.py's functions). ``--roof-loss`` is the training
+loss, as a recipe's ``loss`` spells it (default MSE): a recipe's terms cost time the flop count
+(the network's) does not credit, so its share is what that recipe's training achieves. On a CPU
+without bf16 units the
 share that counts is fp32's. ``--roof-compile`` adds bf16 with the network ``torch.compile``-d
 (inductor's CPU code; its compilation is not timed): whether the compiler earns its place on a CPU.
 
@@ -31,8 +35,10 @@ import torch
 import torch.nn.functional as F
 
 from sonarset.models.echopt.config import make_config
+from sonarset.models.echopt.losses import parse_loss
 from sonarset.models.echopt.model import EchoPT
 from sonarset.models.echopt.precision import cpu_bf16_flags, resolve_precision
+from sonarset.perf import keep_freed_memory
 
 warnings.filterwarnings("ignore", message="Using padding='same'")
 
@@ -67,6 +73,7 @@ def rate(preset: str, device: str, steps: int, batch: int, bf16: bool = False, c
 
 
 def main() -> None:
+    keep_freed_memory()  # as the CLI does (cli/app.py): without it each step's activations are fresh page faults
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--presets", default="small,paper")
     ap.add_argument("--steps", type=int, default=5)
@@ -78,13 +85,14 @@ def main() -> None:
     ap.add_argument("--roof-batch", type=int, default=16)
     ap.add_argument("--matmul", type=int, default=2048, help="size of the roof's square matmul")
     ap.add_argument("--roof-compile", action="store_true", help="also time bf16 with torch.compile")
+    ap.add_argument("--roof-loss", default="mse", help="the roof section's training loss, a recipe's loss spec")
     args = ap.parse_args()
     devices = args.devices.split(",")
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "none"
     print(f"# bench_train  {platform.node()}  {os.cpu_count()} cores  torch {torch.__version__}  "
           f"{torch.get_num_threads()} threads  GPU: {gpu}")
     print(f"# CPU bf16 flags: {', '.join(cpu_bf16_flags()) or 'none'} (--precision auto -> {resolve_precision('auto', 'cpu')})")
-    for preset in args.presets.split(","):
+    for preset in filter(None, args.presets.split(",")):  # --presets '' times the roof section alone
         n = EchoPT(make_config(preset)).n_params()
         if "cpu" in devices:
             # interleaved rounds, median: a noisy machine slows both alike, so the ratio holds
@@ -118,10 +126,11 @@ def roof_section(args) -> None:
     """Each model's training speed as a share of the matmul roof of this process."""
     from bench_zoo import gflop_per_sample, matmul_tflops, network, samples_per_s
 
+    terms = parse_loss(args.roof_loss)
     roof = {p: matmul_tflops(torch.float32 if p == "fp32" else torch.bfloat16, args.matmul) for p in ("fp32", "bf16")}
     print(f"# matmul roof ({args.matmul}^2, this process): fp32 {roof['fp32']:.3f} TFLOP/s, bf16 "
           f"{roof['bf16']:.3f} TFLOP/s; the share that counts: "
-          f"{'bf16' if resolve_precision('auto', 'cpu') == 'bf16' else 'fp32'}")
+          f"{'bf16' if resolve_precision('auto', 'cpu') == 'bf16' else 'fp32'}; loss {args.roof_loss}")
     for item in args.roof_kinds.split(","):
         kind, _, k = item.partition(":")
         model = network(kind, "small", (200, 90))
@@ -129,11 +138,11 @@ def roof_section(args) -> None:
         runs = [(precision, model, precision) for precision in ("fp32", "bf16")]
         if args.roof_compile:
             compiled = torch.compile(model)
-            samples_per_s(compiled, (200, 90), int(k or 1), args.roof_batch, 1, "bf16")  # compiles forward and backward
+            samples_per_s(compiled, (200, 90), int(k or 1), args.roof_batch, 1, "bf16", terms)  # compiles forward and backward
             runs.append(("bf16 + torch.compile", compiled, "bf16"))
         cells = []
         for label, net, precision in runs:
-            rate = samples_per_s(net, (200, 90), int(k or 1), args.roof_batch, args.steps, precision)
+            rate = samples_per_s(net, (200, 90), int(k or 1), args.roof_batch, args.steps, precision, terms)
             cells.append(f"{label} {rate:6.1f} samples/s = {rate * gflop / 1e3:.3f} TFLOP/s "
                          f"({100 * rate * gflop / 1e3 / roof[precision]:.1f}% of roof)")
         print(f"{kind:9s} small, {k}-step windows, batch {args.roof_batch}: {gflop:.2f} GFLOP/window; "

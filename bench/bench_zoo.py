@@ -28,10 +28,13 @@ import warnings
 import torch
 from torch.utils.flop_counter import FlopCounterMode, conv_backward_flop
 
-from sonarset.models.echopt.losses import rollout_losses, weighted_loss
+from sonarset.format.attrs import SensorGrid
+from sonarset.models.echopt.losses import REFERENCE_TERMS, rollout_losses, weighted_loss
 from sonarset.models.echopt.networks import KINDS, build
 from sonarset.models.echopt.precision import cpu_bf16_flags
 from sonarset.models.echopt.recipes import config_of, load_recipe
+from sonarset.perf import keep_freed_memory
+from sonarset.scoring.echoes import tolerance_bins
 
 warnings.filterwarnings("ignore", message="Using padding='same'")
 
@@ -72,7 +75,8 @@ def batch(n: int, grid: tuple[int, int], k: int, n_in: int = 3) -> tuple[torch.T
     frames = (torch.rand(shape, generator=g) * (torch.rand(shape, generator=g) > 0.88)).contiguous(
         memory_format=torch.channels_last)
     commands = (torch.rand((n, n_in + k, 2), generator=g) * 2 - 1) * torch.tensor([0.3, 1.0])
-    return frames, commands, torch.rand((n, k, *grid), generator=g)
+    tshape = (n, k, *grid)
+    return frames, commands, torch.rand(tshape, generator=g) * (torch.rand(tshape, generator=g) > 0.88)
 
 
 def gflop_per_sample(model: torch.nn.Module, grid: tuple[int, int], k: int, n: int = 2) -> float:
@@ -84,13 +88,20 @@ def gflop_per_sample(model: torch.nn.Module, grid: tuple[int, int], k: int, n: i
     return counter.get_total_flops() / n / 1e9
 
 
-def samples_per_s(model: torch.nn.Module, grid: tuple[int, int], k: int, n: int, steps: int, precision: str) -> float:
-    """Full optimizer steps (forward, backward, Adam) as the trainer takes them."""
+def samples_per_s(model: torch.nn.Module, grid: tuple[int, int], k: int, n: int, steps: int, precision: str,
+                  terms: dict[str, float] | None = None) -> float:
+    """Full optimizer steps (forward, backward, Adam) as the trainer takes them, with the loss
+    ``terms`` (default MSE; a term against the flow baseline uses the network's ``flow_prior``, the
+    ``echo`` term the default sensor's matching tolerance on this grid, as training does)."""
     opt = torch.optim.Adam(model.parameters(), lr=1e-5, weight_decay=1e-4)
     frames, commands, targets = batch(n, grid, k)
+    terms = terms or {"mse": 1.0}
+    sensor = SensorGrid.default().model_copy(update={"n_range": grid[0], "n_azimuth": grid[1]})
+    flow = getattr(model, "flow_prior", None) if any(t in REFERENCE_TERMS for t in terms) else None
 
     def step() -> None:
-        loss = weighted_loss(rollout_losses(model, frames, commands, targets, {"mse": 1.0}, precision=precision))
+        loss = weighted_loss(rollout_losses(model, frames, commands, targets, terms, precision=precision, flow=flow,
+                                            echo_window=tolerance_bins(sensor)))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -118,6 +129,7 @@ def matmul_tflops(dtype: torch.dtype, n: int, seconds: float = 0.5, bursts: int 
 
 
 def main() -> None:
+    keep_freed_memory()  # as the CLI does (cli/app.py): without it each step's activations are fresh page faults
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--kinds", default=",".join(KINDS))
     ap.add_argument("--preset", default="small")
@@ -138,8 +150,14 @@ def main() -> None:
           f"fp32 {roof['fp32']:.3f} TFLOP/s, bf16 {roof['bf16']:.3f} TFLOP/s")
     print(f"{'kind':9s} {'M params':>8s} {'GFLOP/sample':>14s} " + " ".join(
         f"{p + ' k=' + str(k) + ' samples/s (% roof)':>28s}" for p in precisions for k in (1, args.k)))
+    kinds = args.kinds.split(",")
+    if args.recipes:  # the zoo's recipes are its reference methods: EchoWarp trains by its own (recipes/echowarp/)
+        missing = [k for k in kinds if not os.path.exists(os.path.join(args.recipes, f"{k}-{args.preset}.toml"))]
+        if missing:
+            print(f"# no {args.preset} recipe in {args.recipes} for {', '.join(missing)}: skipped")
+        kinds = [k for k in kinds if k not in missing]
     rows = []
-    for kind in args.kinds.split(","):
+    for kind in kinds:
         model = network(kind, args.preset, grid, args.recipes)
         flops = {k: gflop_per_sample(model, grid, k) for k in (1, args.k)}
         row = {"kind": kind, "params": sum(p.numel() for p in model.parameters()),
