@@ -39,8 +39,10 @@ STRIP = "\"'()[]{},;:."
 
 
 def markdown_files() -> list[Path]:
-    return sorted(p for p in ROOT.rglob("*.md")
-                  if not any(part in SKIP or part.endswith(".egg-info") for part in p.relative_to(ROOT).parts))
+    # a virtual environment inside the checkout, whatever its name, holds other projects' documents
+    envs = {cfg.parent.name for cfg in ROOT.glob("*/pyvenv.cfg")}
+    return sorted(p for p in ROOT.rglob("*.md") if p.relative_to(ROOT).parts[0] not in envs
+                  and not any(part in SKIP or part.endswith(".egg-info") for part in p.relative_to(ROOT).parts))
 
 
 def prose_lines(text: str):
