@@ -11,10 +11,11 @@ its forward and backward GFLOP per window (torch's flop counter), training sampl
 bf16 autocast, and the achieved TFLOP/s as a share of a large torch.matmul's in the same precision,
 measured in the same process (bench/bench_zoo.py's functions). ``--roof-loss`` is the training
 loss, as a recipe's ``loss`` spells it (default MSE): a recipe's terms cost time the flop count
-(the network's) does not credit, so its share is what that recipe's training achieves. On a CPU
-without bf16 units the
-share that counts is fp32's. ``--roof-compile`` adds bf16 with the network ``torch.compile``-d
-(inductor's CPU code; its compilation is not timed): whether the compiler earns its place on a CPU.
+(the network's) does not credit, so its share is what that recipe's training achieves. The C heap
+is set as the CLI sets it (``sonarset.perf.keep_freed_memory``), so the rates are what ``sonarset
+train`` gets. On a CPU without bf16 units the share that counts is fp32's. ``--roof-compile`` adds
+bf16 with the network ``torch.compile``-d (inductor's CPU code; its compilation is not timed):
+whether the compiler earns its place on a CPU.
 
 Times full optimizer steps (forward, backward, Adam) on batch 64 of the default 200 x 90 grid
 with data already in memory, in fp32 and in bf16 autocast (the precision ``--precision auto`` picks

@@ -14,6 +14,8 @@ counted by torch.utils.flop_counter.FlopCounterMode; training samples/s of full 
 (forward, backward, Adam; data in memory) in fp32 and, where the CPU has bf16 units
 (models/echopt/precision.py), in bf16 autocast; and the achieved GFLOP/s against the roof of the
 same process: a large torch.matmul in fp32 and bf16, TFLOP/s. Prints a table and writes JSON.
+The C heap is set as the CLI sets it (``sonarset.perf.keep_freed_memory``): the rates are what
+``sonarset train`` gets.
 """
 
 from __future__ import annotations
