@@ -98,12 +98,12 @@ def samples_per_s(model: torch.nn.Module, grid: tuple[int, int], k: int, n: int,
     opt = torch.optim.Adam(model.parameters(), lr=1e-5, weight_decay=1e-4)
     frames, commands, targets = batch(n, grid, k)
     terms = terms or {"mse": 1.0}
-    sensor = SensorGrid.default().model_copy(update={"n_range": grid[0], "n_azimuth": grid[1]})
+    echo_window = tolerance_bins(SensorGrid.default().model_copy(update={"n_range": grid[0], "n_azimuth": grid[1]}))
     flow = getattr(model, "flow_prior", None) if any(t in REFERENCE_TERMS for t in terms) else None
 
     def step() -> None:
         loss = weighted_loss(rollout_losses(model, frames, commands, targets, terms, precision=precision, flow=flow,
-                                            echo_window=tolerance_bins(sensor)))
+                                            echo_window=echo_window))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
