@@ -122,7 +122,8 @@ def test_its_predictor_forecasts_in_one_pass_and_chains_beyond_its_horizon():
     np.testing.assert_allclose(out[:, :4], first, atol=1e-5)
 
 
-def test_it_exports_to_onnx_and_runs_in_onnxruntime(tmp_path):
+@pytest.mark.parametrize("outside", ["border", "zeros"])
+def test_it_exports_to_onnx_and_runs_in_onnxruntime(tmp_path, outside):
     pytest.importorskip("onnxruntime")
     pytest.importorskip("onnxscript")
     from sonarset import SonarSetError
@@ -130,7 +131,7 @@ def test_it_exports_to_onnx_and_runs_in_onnxruntime(tmp_path):
     from sonarset.models.echopt.onnx_export import PARITY_TOLERANCE, export_onnx, random_windows
     from sonarset.models.registry import make_predictor
 
-    model = _trained_like(_model())
+    model = _trained_like(_model(outside=outside))
     for p in model.parameters():
         p.data *= 0.1
     card = {"preset": "tiny", "grid": GRID.model_dump(), "rig": RIG.model_dump(mode="json")}
@@ -138,6 +139,7 @@ def test_it_exports_to_onnx_and_runs_in_onnxruntime(tmp_path):
     e = export_onnx(f"echowarp:{tmp_path / 'run'}", tmp_path / "warp.onnx")
     assert e.kind == "echowarp" and e.max_abs_diff is not None and e.max_abs_diff <= PARITY_TOLERANCE
     torch_pred = make_predictor(f"echowarp:{ckpt}", GRID, RIG, precision="fp32")
+    assert torch_pred.predictor.model.cfg.outside == outside
     onnx_pred = make_predictor(f"echowarp:{e.path}", GRID, RIG)
     assert onnx_pred.name == "echowarp"
     frames, commands = (t.numpy() for t in random_windows(model, 5, seed=3))
@@ -157,3 +159,39 @@ def test_each_part_switches_off_for_the_ablation(switch):
         channel = 0 if switch == "max_shift" else 2  # the warp's correction, or the first older frame's gate
         ablated.head.weight[channel] += 1.0
         torch.testing.assert_close(ablated.forecast(frames, commands, 2), out)  # that output is unused
+
+
+def test_outside_the_view_it_reads_the_edge_or_nothing():
+    """``outside``: where a pixel's source lies outside the view, the warp reads the edge's value
+    (border, legs 1-9) or nothing (zeros), for the last frame and the registered older ones alike;
+    inside the view both read the same. A card without the setting is a border model."""
+    from types import SimpleNamespace
+
+    from sonarset.models.echopt.card_images import card_processing
+    from sonarset.models.echopt.train_model import init_from
+    from sonarset.models.echowarp.model import EchoWarpConfig
+
+    border, zeros = _model(), _model(outside="zeros")
+    frames = torch.zeros(1, 3, *GRID.shape)
+    frames[0, :, 10:20, [0, -1]] = 1.0  # echoes along both edges of the view
+    commands = torch.tensor([[[0.0, 0.0]] * 3 + [[0.0, 1.0]] * 4])  # a turn: new azimuths enter at an edge
+    with torch.no_grad():
+        a, b = border.forecast(frames, commands, 4)[0].numpy(), zeros.forecast(frames, commands, 4)[0].numpy()
+    ir, ia = border.sources(commands, 3, 4)[:2]
+    ir, ia = ir[0, :, -1].numpy(), ia[0, :, -1].numpy()  # (4, R, A): each pixel's source in the last frame
+    outside = (ia < 0) | (ia > GRID.shape[1] - 1)
+    along = outside & (ir > 11) & (ir < 18)  # sourced beyond the edge, beside the echo
+    assert along[-1].sum() >= 8
+    beyond = (ia <= -1) | (ia >= GRID.shape[1])  # past the bilinear blend with the edge's pixel
+    assert (a[along] > 0.99).all() and (b[beyond] == 0).all() and (along & beyond).any()
+    inside = (ia > 1) & (ia < GRID.shape[1] - 2) & (ir > 1) & (ir < GRID.shape[0] - 2)
+    np.testing.assert_allclose(a[inside], b[inside], atol=1e-6)
+    with pytest.raises(ConfigError, match="outside must be one of"):
+        _model(outside="reflect")
+    old = {k: v for k, v in zeros.cfg.to_dict().items() if k != "outside"}
+    assert EchoWarpConfig.from_dict(old).outside == "border"
+    # a fine-tune may change it: the same weights, read through the other sampling
+    trained = _trained_like(_model())
+    card = {"processing": None}
+    init_from(zeros, "leg", trained, card, SimpleNamespace(processing=card_processing(card)))
+    assert all(torch.equal(p, q) for p, q in zip(zeros.parameters(), trained.parameters()))

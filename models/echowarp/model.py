@@ -44,6 +44,8 @@ MAX_HORIZON = 10
 #: (pixels) over a horizon.
 MOTION_SCALE = (0.5, 0.5, 0.5)
 SHIFT_SCALE = 16.0
+#: What the warp reads outside the view (EchoWarpConfig.outside): grid_sample's padding modes.
+OUTSIDE = ("border", "zeros")
 
 
 @dataclass(frozen=True)
@@ -53,8 +55,14 @@ class EchoWarpConfig(ZooConfig):
     full_channels: int = 16  # the one convolution at full resolution
     max_shift: int = 6  # pixels: the largest correction of where a pixel is sampled from (0: none)
     older_frames: int = 1  # 1: gates add the registered older frames; 0: the last frame alone
+    # what the warp reads where a pixel's source lies outside the view: "border", the edge's value
+    # (the flow's choice; legs 1-9), or "zeros", nothing heard there (the source term adds what enters)
+    outside: str = "border"
     max_horizon: int = MAX_HORIZON
     switches: ClassVar[tuple[str, ...]] = ("max_shift", "older_frames")  # the ablation's parts
+
+    def sizes(self) -> dict[str, int | tuple[int, ...]]:
+        return {k: v for k, v in super().sizes().items() if k != "outside"}  # a mode, checked below
 
     def check(self) -> None:
         super().check()
@@ -63,6 +71,8 @@ class EchoWarpConfig(ZooConfig):
         if self.inputs != "aligned":
             raise ConfigError("inputs", f"EchoWarp registers its inputs to the predicted pose (inputs aligned), "
                               f"not inputs {self.inputs}")
+        if self.outside not in OUTSIDE:
+            raise ConfigError("outside", f"outside must be one of {', '.join(OUTSIDE)}, got {self.outside!r}")
         if len(self.channels) < 2:
             raise ConfigError("channels", f"channels needs at least 2 levels, got {self.channels!r}")
 
@@ -75,6 +85,9 @@ PRESETS: dict[str, dict] = {
     "small-no-correction": dict(max_shift=0),  # the network's output is an intensity residual on the warp
     "small-last-frame": dict(older_frames=0),  # the older registered frames are inputs only
     "small-chained": dict(max_horizon=1),  # one step at a time, each from the last prediction: resampled h times
+    # small, reading nothing outside the view: an echo at the edge is not smeared into a turn's new
+    # view (leg 10: recipes/echowarp/small-10.toml)
+    "small-zeros-outside": dict(outside="zeros"),
 }
 
 
@@ -196,11 +209,12 @@ class EchoWarp(ZooModel):
 
     def sample(self, images: torch.Tensor, ir: torch.Tensor, ia: torch.Tensor) -> torch.Tensor:
         """``images`` (N, C, R, A) each sampled bilinearly at the pixel indices ``ir``, ``ia`` (N, C, R, A),
-        edge values outside the view: the flow's sampling, for C images at once."""
+        for C images at once; outside the view, the edge's values (the flow's sampling) or zeros
+        (``cfg.outside``)."""
         N, C, R, A = images.shape
         grid = torch.stack([2 * ia / max(A - 1, 1) - 1, 2 * ir / max(R - 1, 1) - 1], -1)
         out = F.grid_sample(images.reshape(N * C, 1, R, A).float(), grid.reshape(N * C, R, A, 2), mode="bilinear",
-                            padding_mode="border", align_corners=True)
+                            padding_mode=self.cfg.outside, align_corners=True)
         return out.reshape(N, C, R, A)
 
     def features(self, registered: torch.Tensor, ir: torch.Tensor, ia: torch.Tensor, motion: torch.Tensor,
