@@ -86,7 +86,7 @@ PRESETS: dict[str, dict] = {
     "small-last-frame": dict(older_frames=0),  # the older registered frames are inputs only
     "small-chained": dict(max_horizon=1),  # one step at a time, each from the last prediction: resampled h times
     # small, reading nothing outside the view: an echo at the edge is not smeared into a turn's new
-    # view (leg 10's twin: recipes/echowarp/small-10-zeros-outside.toml)
+    # view; leg 10's twin (recipes/echowarp/small-10-zeros-outside.toml), behind it in the walled worlds
     "small-zeros-outside": dict(outside="zeros"),
 }
 
