@@ -144,9 +144,9 @@ class EchoPTConfig:
 
 PRIORS = ("none", "last", "flow")
 INPUTS = ("raw", "aligned")
-#: Settings a fine-tune (``init``) may change: they prepare the inputs (EchoWarp's ``outside``: what its
-#: warp reads outside the view) and change no weight's shape or meaning enough to forbid starting from
-#: a trained model (the card's lineage records the change).
+#: Settings a fine-tune (``init``) may change: how the inputs are prepared, and EchoWarp's ``outside``
+#: (what its warp reads outside the view); none changes a weight's shape or meaning enough to forbid
+#: starting from a trained model (the card's lineage records the change).
 WARM_START_FIELDS = ("inputs", "outside")
 #: A fine-tune may also add the geometry branch to a model without one: it starts at zero, so the
 #: new model starts as the trained one.

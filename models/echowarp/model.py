@@ -56,7 +56,7 @@ class EchoWarpConfig(ZooConfig):
     max_shift: int = 6  # pixels: the largest correction of where a pixel is sampled from (0: none)
     older_frames: int = 1  # 1: gates add the registered older frames; 0: the last frame alone
     # what the warp reads where a pixel's source lies outside the view: "border", the edge's value
-    # (the flow's choice; legs 1-9), or "zeros", nothing heard there (the source term adds what enters)
+    # (the flow's choice; legs 1-11), or "zeros", nothing heard there (the source term adds what enters)
     outside: str = "border"
     max_horizon: int = MAX_HORIZON
     switches: ClassVar[tuple[str, ...]] = ("max_shift", "older_frames")  # the ablation's parts
