@@ -5,7 +5,7 @@ frames they forecast (issue 51: the control experiment's midline deviation).
 
 On protocol v1's stores (``sonarset benchmark`` caches them), windows of the test runs of each
 world are forecast up to ``--horizon`` steps (6: a 1.2 s burst at 5 Hz, the control experiment's).
-The controller's corridor layer (``SubsumptionController.lateral_distances``, the energy balance
+The controller's corridor layer (``SubsumptionController.corridor_turn``, the energy balance
 of the lateral flow regions) turns each measured target and each forecast into a turn rate. It
 prints, per predictor, the mean |w(forecast) - w(measured)| and its mean (a steering bias) at
 steps 1, 3 and the last, over the windows where both see a lateral echo, and how often a forecast
@@ -31,11 +31,8 @@ from sonarset.windows import FrameBank, WindowBatcher, WindowIndex
 
 def turn_rate(ctrl: SubsumptionController, image: np.ndarray) -> float:
     """The corridor layer's turn rate for ``image``; NaN when neither side holds a lateral echo."""
-    g = ctrl.gains
-    d_left, d_right = ctrl.lateral_distances(ctrl.energy(image))
-    if d_left < g.lateral_max or d_right < g.lateral_max:
-        return g.k_corridor * (d_left - d_right) / (d_left + d_right)
-    return float("nan")
+    w = ctrl.corridor_turn(ctrl.energy(image))
+    return float("nan") if w is None else w
 
 
 def main() -> None:

@@ -60,9 +60,7 @@ class EchoWarpConfig(ZooConfig):
     outside: str = "border"
     max_horizon: int = MAX_HORIZON
     switches: ClassVar[tuple[str, ...]] = ("max_shift", "older_frames")  # the ablation's parts
-
-    def sizes(self) -> dict[str, int | tuple[int, ...]]:
-        return {k: v for k, v in super().sizes().items() if k != "outside"}  # a mode, checked below
+    modes: ClassVar[tuple[str, ...]] = ("outside",)
 
     def check(self) -> None:
         super().check()

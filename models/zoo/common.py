@@ -48,11 +48,13 @@ class ZooConfig:
 
     #: The sizes that may be 0: a part of the network switched off (an ablation).
     switches: ClassVar[tuple[str, ...]] = ()
+    #: Fields a method adds that are no size (a named mode): its own ``check`` checks them.
+    modes: ClassVar[tuple[str, ...]] = ()
 
     def sizes(self) -> dict[str, int | tuple[int, ...]]:
-        """The network's sizes: the fields a method's config adds."""
-        shared = {f.name for f in fields(ZooConfig)}
-        return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in shared}
+        """The network's sizes: the fields a method's config adds, its modes aside."""
+        other = {f.name for f in fields(ZooConfig)} | set(self.modes)
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in other}
 
     def check(self) -> None:
         """ConfigError (GridMismatchError for the grid) naming the first setting no network can have:

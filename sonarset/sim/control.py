@@ -103,6 +103,15 @@ class SubsumptionController:
             out.append(float((w * np.abs(reg.y[mask])).sum() / total) if total > g.min_lateral_energy else g.lateral_max)
         return out[0], out[1]
 
+    def corridor_turn(self, e: np.ndarray) -> float | None:
+        """The corridor layer's turn rate (before the rate limit) for the pixel energies ``e``: the
+        lateral distances balanced; None when neither side holds an echo (the layer passes)."""
+        g = self.gains
+        d_left, d_right = self.lateral_distances(e)
+        if d_left < g.lateral_max or d_right < g.lateral_max:
+            return g.k_corridor * (d_left - d_right) / (d_left + d_right)
+        return None
+
     def __call__(self, image: np.ndarray, pose: np.ndarray) -> Decision:
         g, reg = self.gains, self.regions
         e = self.energy(image)
@@ -118,9 +127,8 @@ class SubsumptionController:
             return Decision(0.0, -g.w_max if left > right else g.w_max, "avoid")
         v = g.v_cruise * float(np.clip((nearest - g.stop_distance) / (g.slow_distance - g.stop_distance), 0.0, 1.0))
         # Layer 2, corridor following: balance the lateral distances along the flow lines.
-        d_left, d_right = self.lateral_distances(e)
-        if d_left < g.lateral_max or d_right < g.lateral_max:
-            w = g.k_corridor * (d_left - d_right) / (d_left + d_right)
+        w = self.corridor_turn(e)
+        if w is not None:
             return Decision(v, float(np.clip(w, -g.w_max, g.w_max)), "corridor")
         # Layer 1, goal seeking on odometry.
         dx, dy = self.waypoint - pose[:2]
