@@ -78,7 +78,8 @@ def model_against_flow(res: EvalResult) -> list[str]:
     one = {c.metric: c for c in res.comparisons if c.horizon == 1 and {c.a, c.b} == {"flow", model}
            and c.metric in ("cc", "nrmsd")}
     lines = [f"one-shot {k}: {name} - flow = {(-c.mean_diff if c.a == 'flow' else c.mean_diff):+.4f}, "
-             f"paired t-test p {format_p(c.t_paired_p)} (Holm {format_p(c.p_holm)})" for k, c in one.items()]
+             f"paired t-test p {format_p(c.t_paired_p)} (Holm {format_p(c.p_holm)}; with the windows' serial "
+             f"correlation {format_p(c.t_hac_p)})" for k, c in one.items()]
     gap = res.gap_closed().get(model, {})
     longest = str(max(res.horizons))
     if gap.get(longest, {}).get("cc") is not None:

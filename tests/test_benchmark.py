@@ -59,7 +59,8 @@ def test_quick_end_to_end_through_the_cli(tmp_path):
             for k in PROTOCOL_V1_QUICK.metrics:
                 assert per_h["methods"]["flow"][k]["n"] > 0 and per_h["methods"]["persistence"][k]["n"] > 0
                 c = per_h["methods"]["persistence"]["vs_reference"][k]
-                assert set(c) >= {"mean_diff", "t_paired_p", "p_holm", "wilcoxon_p", "ci_low", "ci_high"}
+                assert set(c) >= {"mean_diff", "t_paired_p", "p_holm", "wilcoxon_p", "ci_low", "ci_high", "t_hac_p",
+                                  "p_hac_holm"}
             assert math.isclose(per_h["methods"]["persistence"]["vs_reference"]["cc"]["mean_diff"],
                                 per_h["methods"]["persistence"]["cc"]["mean"] - per_h["methods"]["flow"]["cc"]["mean"])
             assert per_h["methods"]["persistence"]["gap_share"]["cc"] < 0  # persistence is worse than flow
@@ -68,6 +69,7 @@ def test_quick_end_to_end_through_the_cli(tmp_path):
             head = per_h["methods"]["naive"]["vs_models"]["persistence"]["cc"]
             assert math.isclose(head["mean_diff"], per_h["methods"]["naive"]["cc"]["mean"]
                                 - per_h["methods"]["persistence"]["cc"]["mean"]) and head["p_holm"] >= head["t_paired_p"]
+            assert head["p_hac_holm"] >= head["t_hac_p"] > 0
     # Holm over the whole file: 3 datasets x 2 horizons x 7 metrics x 2 models against flow; and apart,
     # naive against persistence
     assert doc["statistics"]["tests"] == 3 * 2 * len(PROTOCOL_V1_QUICK.metrics) * 2

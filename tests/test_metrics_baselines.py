@@ -7,7 +7,7 @@ import pytest
 
 from sonarset.scoring.metrics import cc, cc_and_nrmsd, nrmsd, slip_error
 from sonarset.format.attrs import RobotRig, SensorGrid
-from sonarset.scoring.stats import auc, compare, holm, mcnemar_p, wilson_interval
+from sonarset.scoring.stats import WindowPlaces, auc, compare, hac_t_p, hac_variance, holm, mcnemar_p, wilson_interval
 from sonarset.windows import N_IN
 from sonarset.models.baselines import AcousticFlow, NaiveShift, Persistence, rollout
 from sonarset.models.registry import make_predictor
@@ -61,6 +61,40 @@ def test_holm_and_paired_comparison():
     # the paired test sees a small shift that the two-sample test (the paper's) cannot
     noisy = compare(a + 0.02 + rng.normal(0, 0.01, 300), a, metric="cc", horizon=1, names=("x", "y"))
     assert noisy.t_paired_p < 1e-6 < noisy.t_two_sample_p
+
+
+def test_serial_robust_test_counts_correlated_windows_once():
+    rng = np.random.default_rng(3)
+    d = rng.normal(0.1, 1, 200)
+    apart = np.arange(200) * 100.0  # farther apart than the kernel reaches: the paired t-test
+    c = compare(d, np.zeros(200), metric="cc", horizon=1, names=("x", "y"),
+                windows=WindowPlaces.of([("run", int(k)) for k in apart], span=13))
+    assert c.t_hac_p == pytest.approx(c.t_paired_p, rel=1e-9)
+    # every window twice at the same frame: no more evidence than once, the variance of the mean doubles
+    twice = hac_variance(np.repeat(d, 2), np.repeat(apart, 2), np.zeros(400), bandwidth=50)
+    assert twice == pytest.approx(2 * np.var(np.repeat(d, 2), ddof=1) / 400, rel=0.01)
+    # the same frames of two runs are independent windows
+    runs = np.repeat([0, 1], 200)
+    assert hac_variance(np.r_[d, d], np.r_[apart, apart], runs, 50) == pytest.approx(np.var(np.r_[d, d], ddof=1) / 400)
+    with pytest.raises(ValueError):  # positions and values must agree
+        hac_variance(d, apart[:10], np.zeros(10), 50)
+
+
+def test_serial_robust_test_holds_its_level_where_the_paired_t_test_does_not():
+    """Differences with no mean but correlated neighbours (AR(1), rho 0.6, one window per frame): the
+    paired t-test rejects 7 times as often as its 5 %; the robust test close to it (Newey-West's
+    known small excess at this n)."""
+    rng = np.random.default_rng(4)
+    n, reps, rho = 600, 300, 0.6
+    e = rng.normal(size=(reps, n))
+    d = np.empty_like(e)
+    d[:, 0] = e[:, 0]
+    for i in range(1, n):
+        d[:, i] = rho * d[:, i - 1] + np.sqrt(1 - rho ** 2) * e[:, i]
+    frames, runs = np.arange(n, dtype=float), np.zeros(n)
+    naive = np.mean([compare(x, np.zeros(n), metric="cc", horizon=1, names=("x", "y")).t_paired_p < 0.05 for x in d])
+    robust = np.mean([hac_t_p(x, frames, runs, bandwidth=20) < 0.05 for x in d])
+    assert naive > 0.25 and robust < 0.12, (naive, robust)
 
 
 def test_persistence_copies_the_last_frame():

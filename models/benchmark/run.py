@@ -19,7 +19,7 @@ import numpy as np
 
 from sonarset.report.numbers import finite_or_none, horizon_name
 from sonarset.scoring.ceiling import CEILINGS
-from sonarset.scoring.stats import holm
+from sonarset.scoring.stats import HAC_SPANS, holm
 from sonarset.store.atomic import atomic_text, publish_files
 
 from sonarset.models.benchmark.machine import machine
@@ -146,7 +146,8 @@ def dataset_entry(res: EvalResult, ds: Dataset, protocol: Protocol, seconds: flo
         sign = 1.0 if c.a == model else -1.0  # as model - other
         lo, hi = (c.ci_low, c.ci_high) if sign > 0 else (-c.ci_high, -c.ci_low)
         test = {"n": c.n, "mean_diff": sign * c.mean_diff, "ci_low": lo, "ci_high": hi, "t_paired_p": c.t_paired_p,
-                "p_holm": None, "wilcoxon_p": c.wilcoxon_p, "t_two_sample_p": c.t_two_sample_p}
+                "p_holm": None, "wilcoxon_p": c.wilcoxon_p, "t_two_sample_p": c.t_two_sample_p,
+                "t_hac_p": finite_or_none(c.t_hac_p), "p_hac_holm": None}
         if other == ref:
             vs[(model, c.horizon, c.metric)] = test
         else:
@@ -181,8 +182,9 @@ def correct_over_file(datasets: dict, protocol: Protocol) -> dict:
     pairs = [c for d in datasets.values() for per_h in d["horizons"].values() for m in per_h["methods"].values()
              for per_other in (m.get("vs_models") or {}).values() for c in per_other.values() if c is not None]
     for family in (tests, pairs):
-        for c, adjusted in zip(family, holm([np.nan if c["t_paired_p"] is None else c["t_paired_p"] for c in family])):
-            c["p_holm"] = adjusted
+        for test, adjusted in (("t_paired_p", "p_holm"), ("t_hac_p", "p_hac_holm")):
+            for c, p in zip(family, holm([np.nan if c.get(test) is None else c[test] for c in family])):
+                c[adjusted] = finite_or_none(p)
     return {"reference": protocol.reference, "tests": len(tests),
             "holm_family": HOLM_FAMILY.format(reference=protocol.reference, n=len(tests)),
             "head_to_head_tests": len(pairs),
@@ -190,7 +192,10 @@ def correct_over_file(datasets: dict, protocol: Protocol) -> dict:
                                    f"(vs_models) on every dataset, horizon and metric of this file: {len(pairs)} tests",
             "meaning": "per dataset, horizon and metric, model - reference on the same windows: the mean "
                        "difference with a bootstrap 95% CI (BCa, 2000 resamples), the paired t-test, the "
-                       "Wilcoxon signed-rank test and the paper's two-sample (Welch) t-test"}
+                       "Wilcoxon signed-rank test, the paper's two-sample (Welch) t-test, and the paired test with "
+                       "the windows' serial correlation in its variance (t_hac_p: Newey-West, Bartlett kernel "
+                       f"reaching {HAC_SPANS} window spans within a run; Holm-corrected over the same family as "
+                       "p_hac_holm)"}
 
 
 def timings(datasets: dict, stores: dict, total: float) -> dict:

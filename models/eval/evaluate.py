@@ -18,7 +18,7 @@ from sonarset.errors import FormatError, SonarSetError
 from sonarset.format.arrays import FRAME_INTERVAL_TOLERANCE
 from sonarset.format.attrs import RobotRig
 from sonarset.scoring.echoes import EchoMatching
-from sonarset.scoring.stats import Comparison, compare, holm
+from sonarset.scoring.stats import Comparison, WindowPlaces, compare, holm
 from sonarset.store.store import SonarStore
 from sonarset.stream import window_bank
 from sonarset.windows import N_IN, FrameBank, RunLayout, WindowBatcher, WindowIndex
@@ -196,15 +196,19 @@ def _windows(store: SonarStore, bank: FrameBank | RunLayout, split: str, n_in: i
 def _compare_all(res: EvalResult, seed: int) -> list[Comparison]:
     pairs = [(h, a, b, k) for h in res.horizons for a, b in combinations(res.predictors, 2)  # ceilings: no predictors
              for k in METRICS]
+    # one reach for every horizon: what correlates windows beyond their shared frames is the scene
+    # the robot drives through, the same at every horizon
+    places = WindowPlaces.of(res.window_ids, res.n_in + max(res.horizons))
 
     def one(pair: tuple) -> Comparison:
         h, a, b, k = pair
-        return compare(res.per_window[a][h][k], res.per_window[b][h][k], metric=k, horizon=h, names=(a, b), seed=seed)
+        return compare(res.per_window[a][h][k], res.per_window[b][h][k], metric=k, horizon=h, names=(a, b), seed=seed,
+                       windows=places)
 
     # the bootstraps (168 in the demo) spend their time in NumPy, which releases the GIL; each is
     # seeded on its own, so the threads change no value
     with cf.ThreadPoolExecutor(min(4, os.cpu_count() or 1)) as pool:
         comps = list(pool.map(one, pairs))
-    for c, p in zip(comps, holm([c.t_paired_p for c in comps])):
-        c.p_holm = p
+    for c, p, p_hac in zip(comps, holm([c.t_paired_p for c in comps]), holm([c.t_hac_p for c in comps])):
+        c.p_holm, c.p_hac_holm = p, p_hac
     return comps

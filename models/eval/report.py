@@ -14,6 +14,7 @@ import numpy as np
 from sonarset.store.atomic import atomic_text, atomic_write, publish_files
 from sonarset.scoring.ceiling import CEILING, CEILINGS, OBSERVABLE
 from sonarset.scoring.echoes import ECHO_METRICS
+from sonarset.scoring.stats import HAC_SPANS
 from sonarset.report.numbers import finite_or_none, format_interval, format_p, format_value, horizon_name
 
 from sonarset.models.eval.result import (ECHO_FLOOR, FADE_TOLERANCE, IMAGE_METRICS, METRICS, EvalResult, fade_summary,
@@ -244,10 +245,13 @@ def statistics_section(res: EvalResult) -> list[str]:
         "Per horizon and metric, each pair of methods on the same windows: mean difference (a - b) "
         "with a bootstrap 95% CI (BCa, 2000 resamples); the paper's two-sample t-test (Welch); the "
         "paired t-test and Wilcoxon signed-rank test on per-window differences; the paired t-test's "
-        f"p adjusted by Holm over all {len(res.comparisons)} comparisons.",
+        f"p adjusted by Holm over all {len(res.comparisons)} comparisons; and the paired test with the "
+        "windows' serial correlation in its variance (windows of one run share frames and scene: "
+        f"Newey-West, a Bartlett kernel reaching {HAC_SPANS} window spans), Holm-adjusted alike.",
         "",
-        "| horizon | metric | a | b | mean(a-b) | 95% CI | 2-sample t p | paired t p | Wilcoxon p | Holm p | better |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| horizon | metric | a | b | mean(a-b) | 95% CI | 2-sample t p | paired t p | Wilcoxon p | Holm p "
+        "| serial-robust p | its Holm p | better |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for c in res.comparisons:
         better = "-"
@@ -258,7 +262,8 @@ def statistics_section(res: EvalResult) -> list[str]:
         lines.append(f"| {horizon_name(c.horizon)} | {c.metric} | {c.a} | {c.b} | {format_value(c.mean_diff, '+.4f', why)} | "
                      f"{format_interval(c.ci_low, c.ci_high, '+.4f', why)} | "
                      f"{format_p(c.t_two_sample_p)} | {format_p(c.t_paired_p)} | "
-                     f"{format_p(c.wilcoxon_p)} | {format_p(c.p_holm)} | {better} |")
+                     f"{format_p(c.wilcoxon_p)} | {format_p(c.p_holm)} | {format_p(c.t_hac_p)} | "
+                     f"{format_p(c.p_hac_holm)} | {better} |")
     return lines
 
 

@@ -25,13 +25,18 @@ class Comparison:
     t_paired_p: float
     wilcoxon_p: float
     p_holm: float = float("nan")  # paired t-test p, Holm-corrected over all comparisons made
+    # the paired test with the windows' serial correlation in its variance (hac_t_p), and Holm of it
+    t_hac_p: float = float("nan")
+    p_hac_holm: float = float("nan")
 
     def to_dict(self) -> dict:
         return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in asdict(self).items()}
 
 
 def compare(a: np.ndarray, b: np.ndarray, *, metric: str, horizon: int, names: tuple[str, str],
-            n_resamples: int = 2000, seed: int = 0) -> Comparison:
+            n_resamples: int = 2000, seed: int = 0, windows: "WindowPlaces | None" = None) -> Comparison:
+    """``a`` against ``b``, per-window values of the same windows (NaN where undefined, dropped
+    pairwise). With ``windows``, where each window lies, the comparison also gets ``t_hac_p``."""
     a, b = np.asarray(a, float), np.asarray(b, float)
     ok = np.isfinite(a) & np.isfinite(b)
     a, b = a[ok], b[ok]
@@ -41,10 +46,24 @@ def compare(a: np.ndarray, b: np.ndarray, *, metric: str, horizon: int, names: t
         nan = float("nan")
         return Comparison(metric, horizon, *names, n, float(d.mean()) if n else nan, nan, nan, nan, nan, nan)
     lo, hi = bootstrap_ci(d, n_resamples, seed)
-    return Comparison(
-        metric, horizon, *names, n, float(d.mean()), lo, hi,
-        *_pvalues(a, b, d),
-    )
+    hac = float("nan") if windows is None else hac_t_p(d, windows.frames[ok], windows.runs[ok], windows.bandwidth)
+    return Comparison(metric, horizon, *names, n, float(d.mean()), lo, hi, *_pvalues(a, b, d), t_hac_p=hac)
+
+
+@dataclass(frozen=True)
+class WindowPlaces:
+    """Where each compared window lies: its run (any label) and start frame in that run, and the
+    kernel's reach in frames (:data:`HAC_SPANS` window spans)."""
+
+    runs: np.ndarray
+    frames: np.ndarray
+    bandwidth: float
+
+    @classmethod
+    def of(cls, window_ids: list[tuple[str, int]], span: int) -> "WindowPlaces":
+        runs = np.array([r for r, _ in window_ids], dtype=object)
+        return cls(np.unique(runs, return_inverse=True)[1], np.array([k for _, k in window_ids], float),
+                   float(HAC_SPANS * span))
 
 
 def bootstrap_ci(x: np.ndarray, n_resamples: int = 2000, seed: int = 0) -> tuple[float, float]:
@@ -116,3 +135,41 @@ def holm(pvalues: list[float]) -> list[float]:
     adj = np.maximum.accumulate((m - np.arange(m)) * p[order])
     out[order] = np.minimum(adj, 1.0)
     return out.tolist()
+
+
+#: The serial-correlation-robust test's kernel reaches this many window spans: windows closer than
+#: one span share frames, and the scene a robot drives through persists for a few more (on protocol
+#: v1's runs the HAC t of CC at AR-10 stops falling at about four spans; BENCHMARKS.md).
+HAC_SPANS = 4
+
+
+def hac_variance(d: np.ndarray, positions: np.ndarray, groups: np.ndarray, bandwidth: float) -> float:
+    """The variance of the mean of ``d`` when values close in time are correlated: a Newey-West
+    (Bartlett kernel) estimate over irregularly spaced windows, weighting each pair of the same
+    group (run) by ``1 - |distance| / bandwidth`` in ``positions`` (frames). Pairs of different
+    groups, or ``bandwidth`` or more apart, count as independent; with no such pair it is the
+    paired t-test's ``var(d, ddof=1) / n``. The triangular kernel is positive definite, so the
+    estimate is never negative."""
+    d = np.asarray(d, float)
+    n = len(d)
+    if np.shape(positions) != d.shape or np.shape(groups) != d.shape:
+        raise ValueError(f"{n} values, {np.shape(positions)} positions and {np.shape(groups)} groups: one each per window")
+    order = np.lexsort((positions, groups))
+    dc, s, g = d[order] - d.mean(), np.asarray(positions, float)[order], np.asarray(groups)[order]
+    total = float(dc @ dc)
+    for lag in range(1, n):  # the k-th neighbour after each window, while any is within the bandwidth
+        w = np.where(g[lag:] == g[:-lag], 1.0 - (s[lag:] - s[:-lag]) / bandwidth, 0.0)
+        if not np.any(w > 0):
+            break
+        total += 2.0 * float(np.sum(np.clip(w, 0.0, None) * dc[lag:] * dc[:-lag]))
+    return total / (n * (n - 1))
+
+
+def hac_t_p(d: np.ndarray, positions: np.ndarray, groups: np.ndarray, bandwidth: float) -> float:
+    """Two-sided p of mean(d) = 0 with :func:`hac_variance` (the Diebold-Mariano test of forecast
+    comparison, on windows drawn at irregular times), from Student's t with n - 1 degrees of freedom."""
+    var = hac_variance(d, positions, groups, bandwidth)
+    if not var > 0:
+        return float("nan")
+    t = float(np.mean(d)) / np.sqrt(var)
+    return float(2.0 * stats.t.sf(abs(t), len(d) - 1))
