@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from sonarset.scoring.metrics import cc, cc_and_nrmsd, nrmsd, slip_error
 from sonarset.format.attrs import RobotRig, SensorGrid
@@ -78,6 +79,9 @@ def test_serial_robust_test_counts_correlated_windows_once():
     assert hac_variance(np.r_[d, d], np.r_[apart, apart], runs, 50) == pytest.approx(np.var(np.r_[d, d], ddof=1) / 400)
     with pytest.raises(ValueError):  # positions and values must agree
         hac_variance(d, apart[:10], np.zeros(10), 50)
+    with pytest.raises(ValueError):
+        hac_variance(d, apart, np.zeros(200), 0)
+    assert math.isnan(hac_t_p(np.ones(5), np.arange(5.0), np.zeros(5), 10))  # no spread: undefined
 
 
 def test_serial_robust_test_holds_its_level_where_the_paired_t_test_does_not():
@@ -92,7 +96,7 @@ def test_serial_robust_test_holds_its_level_where_the_paired_t_test_does_not():
     for i in range(1, n):
         d[:, i] = rho * d[:, i - 1] + np.sqrt(1 - rho ** 2) * e[:, i]
     frames, runs = np.arange(n, dtype=float), np.zeros(n)
-    naive = np.mean([compare(x, np.zeros(n), metric="cc", horizon=1, names=("x", "y")).t_paired_p < 0.05 for x in d])
+    naive = np.mean([stats.ttest_1samp(x, 0).pvalue < 0.05 for x in d])  # compare's paired t-test
     robust = np.mean([hac_t_p(x, frames, runs, bandwidth=20) < 0.05 for x in d])
     assert naive > 0.25 and robust < 0.12, (naive, robust)
 

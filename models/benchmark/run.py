@@ -29,8 +29,9 @@ from sonarset.models.eval.result import EvalResult
 
 Progress = Callable[[str, int, int], None]
 #: What the Holm correction of a results file covers, in words (its ``statistics`` entry).
-HOLM_FAMILY = ("the paired t-tests of every model against {reference} on every dataset, horizon and metric of "
-               "this results file ({n} tests), corrected together (Holm); each evaluation's own all-pairs "
+HOLM_FAMILY = ("the tests of every model against {reference} on every dataset, horizon and metric of "
+               "this results file ({n} tests), corrected together (Holm), the paired t-tests as p_holm and the "
+               "serial-robust ones as p_hac_holm; each evaluation's own all-pairs "
                "correction is not used")
 
 
@@ -174,7 +175,7 @@ def dataset_entry(res: EvalResult, ds: Dataset, protocol: Protocol, seconds: flo
 
 def correct_over_file(datasets: dict, protocol: Protocol) -> dict:
     """Holm over every comparison with the reference in the file, and apart over every comparison
-    between two models; fills each one's ``p_holm``."""
+    between two models; fills each one's ``p_holm`` (paired t-test) and ``p_hac_holm`` (serial-robust)."""
     tests = [c for d in datasets.values() for per_h in d["horizons"].values() for m in per_h["methods"].values()
              for c in (m.get("vs_reference") or {}).values() if c is not None]
     # the models against each other: a family of its own, so adding a model never weakens the
@@ -188,13 +189,13 @@ def correct_over_file(datasets: dict, protocol: Protocol) -> dict:
     return {"reference": protocol.reference, "tests": len(tests),
             "holm_family": HOLM_FAMILY.format(reference=protocol.reference, n=len(tests)),
             "head_to_head_tests": len(pairs),
-            "head_to_head_family": f"the paired t-tests of each model against every model before it in the file "
+            "head_to_head_family": f"the tests of each model against every model before it in the file "
                                    f"(vs_models) on every dataset, horizon and metric of this file: {len(pairs)} tests",
             "meaning": "per dataset, horizon and metric, model - reference on the same windows: the mean "
                        "difference with a bootstrap 95% CI (BCa, 2000 resamples), the paired t-test, the "
                        "Wilcoxon signed-rank test, the paper's two-sample (Welch) t-test, and the paired test with "
                        "the windows' serial correlation in its variance (t_hac_p: Newey-West, Bartlett kernel "
-                       f"reaching {HAC_SPANS} window spans within a run; Holm-corrected over the same family as "
+                       f"reaching {HAC_SPANS} window spans within a run; Holm-corrected over the same family: "
                        "p_hac_holm)"}
 
 

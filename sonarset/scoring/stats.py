@@ -148,16 +148,22 @@ def hac_variance(d: np.ndarray, positions: np.ndarray, groups: np.ndarray, bandw
     (Bartlett kernel) estimate over irregularly spaced windows, weighting each pair of the same
     group (run) by ``1 - |distance| / bandwidth`` in ``positions`` (frames). Pairs of different
     groups, or ``bandwidth`` or more apart, count as independent; with no such pair it is the
-    paired t-test's ``var(d, ddof=1) / n``. The triangular kernel is positive definite, so the
-    estimate is never negative."""
+    paired t-test's ``var(d, ddof=1) / n``. The triangular kernel is a positive-definite function,
+    so the estimate is never negative. NaN for fewer than 2 values."""
     d = np.asarray(d, float)
     n = len(d)
     if np.shape(positions) != d.shape or np.shape(groups) != d.shape:
         raise ValueError(f"{n} values, {np.shape(positions)} positions and {np.shape(groups)} groups: one each per window")
+    if not (np.isfinite(bandwidth) and bandwidth > 0):
+        raise ValueError(f"bandwidth {bandwidth}: a positive number of frames")
+    if n < 2:
+        return float("nan")
     order = np.lexsort((positions, groups))
     dc, s, g = d[order] - d.mean(), np.asarray(positions, float)[order], np.asarray(groups)[order]
     total = float(dc @ dc)
-    for lag in range(1, n):  # the k-th neighbour after each window, while any is within the bandwidth
+    # Sorted by run, then frame: each window's k-th successor is no closer than its (k-1)-th, so
+    # the first lag with no pair in reach ends the sum.
+    for lag in range(1, n):
         w = np.where(g[lag:] == g[:-lag], 1.0 - (s[lag:] - s[:-lag]) / bandwidth, 0.0)
         if not np.any(w > 0):
             break
@@ -167,7 +173,11 @@ def hac_variance(d: np.ndarray, positions: np.ndarray, groups: np.ndarray, bandw
 
 def hac_t_p(d: np.ndarray, positions: np.ndarray, groups: np.ndarray, bandwidth: float) -> float:
     """Two-sided p of mean(d) = 0 with :func:`hac_variance` (the Diebold-Mariano test of forecast
-    comparison, on windows drawn at irregular times), from Student's t with n - 1 degrees of freedom."""
+    comparison, on windows drawn at irregular times), from Student's t with n - 1 degrees of
+    freedom; NaN, as :func:`compare` has it, for fewer than 3 values or all of them equal."""
+    d = np.asarray(d, float)
+    if len(d) < 3 or np.all(d == d[0]):
+        return float("nan")
     var = hac_variance(d, positions, groups, bandwidth)
     if not var > 0:
         return float("nan")
