@@ -148,7 +148,7 @@ def dataset_entry(res: EvalResult, ds: Dataset, protocol: Protocol, seconds: flo
         lo, hi = (c.ci_low, c.ci_high) if sign > 0 else (-c.ci_high, -c.ci_low)
         test = {"n": c.n, "mean_diff": sign * c.mean_diff, "ci_low": lo, "ci_high": hi, "t_paired_p": c.t_paired_p,
                 "p_holm": None, "wilcoxon_p": c.wilcoxon_p, "t_two_sample_p": c.t_two_sample_p,
-                "t_hac_p": finite_or_none(c.t_hac_p), "p_hac_holm": None}
+                "t_hac_p": c.t_hac_p, "p_hac_holm": None}
         if other == ref:
             vs[(model, c.horizon, c.metric)] = test
         else:
@@ -185,7 +185,7 @@ def correct_over_file(datasets: dict, protocol: Protocol) -> dict:
     for family in (tests, pairs):
         for test, adjusted in (("t_paired_p", "p_holm"), ("t_hac_p", "p_hac_holm")):
             for c, p in zip(family, holm([np.nan if c.get(test) is None else c[test] for c in family])):
-                c[adjusted] = finite_or_none(p)
+                c[adjusted] = p
     return {"reference": protocol.reference, "tests": len(tests),
             "holm_family": HOLM_FAMILY.format(reference=protocol.reference, n=len(tests)),
             "head_to_head_tests": len(pairs),
