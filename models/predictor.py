@@ -115,6 +115,12 @@ class CheckedPredictor:
     def __repr__(self) -> str:
         return f"CheckedPredictor({self.name!r}, n_in={self.n_in}, of {self.who})"
 
+    @property
+    def chains(self) -> bool:
+        """Its rollout feeds each prediction back as the newest input frame (it has no ``rollout``
+        of its own): a forecast k steps ahead is then the next step from the k - 1 before it."""
+        return self._own_rollout is None
+
     def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:
         out = self._call("predict", self.predictor.predict, frames, commands)
         return self._checked(out, (frames.shape[0], *frames.shape[2:]), "predict", "(B, R, A)")

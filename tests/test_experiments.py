@@ -226,6 +226,73 @@ def test_bursts_stall_the_controller_and_a_predictor_bridges_them(processing):
     assert bridged["outcome"] == "success"
 
 
+def test_a_burst_is_forecast_from_the_frames_before_it_k_steps_ahead(monkeypatch):
+    """The k-th frame of a burst is the k-step forecast from the frames the controller used before
+    the burst: a model that forecasts every horizon from measured frames is never fed its own
+    forecasts as if they were measurements. For a model that chains one step at a time this is the
+    same as bridging frame by frame."""
+    from sonarset.models.experiments import control
+    from sonarset.models.predictor import as_predictor
+
+    class Recorder:  # a multi-step forecaster that marks its forecasts
+        name, n_in = "recorder", N_IN
+        card = precision = None
+
+        def __init__(self):
+            self.calls, self.flow = [], predictor("flow", GRID)
+
+        def predict(self, frames, commands):
+            raise AssertionError("bridging must forecast from the anchor, not chain predict")
+
+        def rollout(self, frames, commands, horizon):
+            assert commands.shape[1] == N_IN + horizon
+            self.calls.append((frames[0].copy(), horizon))
+            out = self.flow.rollout(frames, commands, horizon)
+            out[:, -1, 0, 0] = -1.0  # a pixel no measured frame has
+            return out
+
+    rec = Recorder()
+    monkeypatch.setattr(control, "predictor", lambda *a, **k: as_predictor(rec))
+    ep = run_episode(Episode(0, 7, "bursts+recorder", GRID, max_time_s=40))
+    assert ep["predicted"].sum() == len(rec.calls) > 6
+    calls, k, measured, checked = iter(rec.calls), 0, 0, 0
+    for bridged in ep["predicted"]:
+        if not bridged:
+            k, measured = 0, measured + 1
+            continue
+        k += 1
+        anchor, horizon = next(calls)
+        assert horizon == k  # the k-th frame of a burst, k steps ahead
+        if k == 1:
+            first = anchor
+            if measured >= N_IN:  # the frames before the burst were all measured
+                assert (anchor[:, 0, 0] >= 0).all()
+                checked += 1
+            measured = 0
+        assert np.array_equal(anchor, first)  # every frame of a burst from the same anchor
+    assert checked >= 2
+
+    class FlowFromTheAnchor:  # flow, but as a forecaster: every bridged frame a rollout from the anchor
+        name, n_in = "flow", N_IN
+
+        def __init__(self):
+            self.flow = predictor("flow", GRID)
+
+        def predict(self, frames, commands):
+            return self.flow.predict(frames, commands)
+
+        def rollout(self, frames, commands, horizon):
+            return self.flow.rollout(frames, commands, horizon)
+
+    assert predictor("flow", GRID).chains and not as_predictor(FlowFromTheAnchor()).chains
+    monkeypatch.setattr(control, "predictor", lambda *a, **k: as_predictor(FlowFromTheAnchor()))
+    anchored = run_episode(Episode(0, 7, "bursts+flow", GRID, max_time_s=40))
+    monkeypatch.undo()
+    chained = run_episode(Episode(0, 7, "bursts+flow", GRID, max_time_s=40))
+    assert chained["predicted"].sum() > 6  # a chained model steps frame by frame: the same run
+    np.testing.assert_array_equal(anchored["pose"], chained["pose"])
+
+
 def test_control_experiment_cli_with_a_tiny_echopt(tmp_path):
     ckpt = save_checkpoint(tmp_path / "tiny", EchoPT(make_config("tiny", *GRID.shape, max_tokens=256)),
                            {"grid": GRID.model_dump(), "preset": "tiny"})

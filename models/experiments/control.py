@@ -7,8 +7,12 @@ run from the same spawn poses and (for the last two) the same burst schedules:
 - ``clean``: every frame at the nominal SNR (5 dB);
 - ``bursts``: noise bursts (SNR -80 dB for 1.2 s, about 30% of the time) reach the controller;
 - ``bursts+<model>``: a burst detector on each image replaces burst frames by the model's
-  forecast from the last frames the controller used (as many as the model's window takes) and the
-  commands (the paper's condition with EchoPT; any predictor spec works, e.g. ``flow`` for comparison).
+  forecast (the paper's condition with EchoPT; any predictor spec works, e.g. ``flow`` for
+  comparison). The k-th frame of a burst is forecast k steps ahead, by the model's ``rollout``,
+  from the frames the controller used before the burst (as many as the model's window takes) and
+  the commands since. A model that predicts one step at a time chains its own predictions, as it
+  would frame by frame; one that forecasts every horizon from measured frames (EchoWarp) is used
+  as it was trained, instead of being fed its own forecasts as if they were measurements.
 
 A run ends at the waypoint (success), on contact with a pole (collision) or after ``max_time_s``
 (timeout). Reported per condition: success/collision/timeout counts with Wilson CIs, travel time
@@ -73,47 +77,59 @@ class Episode:
     device: str = "cpu"
     processing: Processing = field(default_factory=Processing.ertis)  # the simulator's default images
     precision: str = "auto"  # EchoPT's arithmetic (models/echopt/precision.py)
+    # a diagnostic: on every bridged frame also steer by the frame measured without the burst
+    # (its own noise draw), recorded as "w_measured" beside the commanded "w"; the run is unchanged
+    shadow: bool = False
 
 
 def run_episode(ep: Episode, world: World | None = None) -> dict:
-    """Drive one run; returns its trajectory, per-frame SNR, burst and prediction flags, and outcome."""
+    """Drive one run; returns its trajectory, per-frame SNR, burst and prediction flags, turn
+    rates, and outcome."""
     world = world or corridor_world()
-    spawn_ss, burst_ss, noise_ss = np.random.SeedSequence(ep.seed).spawn(3)
+    spawn_ss, burst_ss, noise_ss, shadow_ss = np.random.SeedSequence(ep.seed).spawn(4)
     pose = world.sample_spawn(np.random.default_rng(spawn_ss))
     dt = RIG.frame_interval_s
     n_max = int(round(ep.max_time_s / dt))
     burst = ep.bursts.frames(np.random.default_rng(burst_ss), n_max, dt) if ep.condition != "clean" \
         else np.zeros(n_max, bool)
-    noise_rng = np.random.default_rng(noise_ss)
+    noise_rng, shadow_rng = np.random.default_rng(noise_ss), np.random.default_rng(shadow_ss)
     model = SonarModel(ep.grid, snr_db=ep.snr_db, processing=ep.processing)
     ctrl = SubsumptionController(ep.grid, world.waypoint, ep.gains)
     detector = BurstDetector()
     spec = ep.condition.partition("+")[2]
     pred = predictor(spec, ep.grid, ep.device, ep.precision) if spec else None
     n_in = pred.n_in if pred is not None else N_IN  # the frames a forecast starts from
-    frames: list[np.ndarray] = []  # what the controller saw
+    frames: list[np.ndarray] = []  # what the controller saw: the anchor of a forecast, then the forecasts
     commands = [np.zeros(2, np.float32)]  # commands[k] moved the robot into frame k
-    poses, snr, flagged, predicted, layers = [], [], [], [], []
+    ahead = 0  # how many of the last frames are forecasts (the steps since the anchor)
+    poses, snr, flagged, predicted, layers, turns, shadow = [], [], [], [], [], [], []
     outcome = "timeout"
     for k in range(n_max):
         img, eff = model.render(world, pose, noise_rng, snr_db=ep.bursts.snr_db if burst[k] else None, return_snr=True)
         is_burst = detector(img)
         used = img
-        if pred is not None and is_burst and len(frames) >= n_in:
-            window = np.stack(frames[-n_in:])[None]
-            cmds = np.stack(commands[-(n_in + 1):])[None]
-            used = pred.predict(window, cmds)[0]
+        if pred is not None and is_burst and len(frames) - ahead >= n_in:
+            ahead += 1
+            if pred.chains:  # the same forecast as its rollout from the anchor, one step instead of ahead
+                used = pred.predict(np.stack(frames[-n_in:])[None], np.stack(commands[-(n_in + 1):])[None])[0]
+            else:
+                anchor = np.stack(frames[len(frames) - (ahead - 1) - n_in:len(frames) - (ahead - 1)])[None]
+                used = pred.rollout(anchor, np.stack(commands[-(n_in + ahead):])[None], ahead)[0, -1]
+        else:
+            ahead = 0
         frames.append(np.asarray(used, np.float32))
-        del frames[:-n_in]
+        del frames[:-(n_in + ahead)]
         decision = ctrl(used, pose)  # odometry: no slip here, so it is the true pose
         poses.append(pose), snr.append(eff), flagged.append(is_burst), predicted.append(used is not img)
-        layers.append(decision.layer)
+        layers.append(decision.layer), turns.append(decision.w)
+        if ep.shadow:
+            shadow.append(ctrl(model.render(world, pose, shadow_rng), pose).w if used is not img else np.nan)
         if np.hypot(*(world.waypoint - pose[:2])) < GOAL_RADIUS:
             outcome = "success"
             break
         pose = integrate(pose, decision.v, decision.w, dt)
         commands.append(np.array([decision.v, decision.w], np.float32))
-        del commands[:-(n_in + 1)]
+        del commands[:-(n_in + ahead + 1)]
         if world.clearance(pose[None, :2])[0] < ROBOT_RADIUS:
             poses.append(pose)
             outcome = "collision"
@@ -127,6 +143,7 @@ def run_episode(ep: Episode, world: World | None = None) -> dict:
         "midline_deviation_m": float(np.abs(poses[inside, 1]).mean()) if inside.any() else float("nan"),
         "pose": poses, "snr_db": np.array(snr), "burst": burst[:n], "flagged": np.array(flagged),
         "predicted": np.array(predicted), "layers": {k: layers.count(k) for k in ("avoid", "corridor", "goal")},
+        "w": np.array(turns), **({"w_measured": np.array(shadow)} if ep.shadow else {}),
     }
 
 
