@@ -4,20 +4,19 @@
 
 Runs the control experiment's bridged condition for each model (the same spawns, bursts and noise
 as ``sonarset experiment control``) with a shadow controller: on every bridged frame it also
-steers by the frame the sensor would have measured there without the burst. Per model it prints
-the midline deviation, and by the frame's place in its burst (1 = the first frame bridged):
+steers by the frame the sensor would have measured there without the burst. With y the robot's
+lateral offset, "away" is sign(y) (w(forecast) - w(measured)): positive when the forecast turns
+the robot further from the midline than the measurement would. Per model it prints:
 
-- the mean |w(forecast) - w(measured)|, the turn-rate error the forecast causes there;
-- the mean of sign(y) (w(forecast) - w(measured)), with y the robot's lateral offset: positive
-  when the forecasts steer away from the midline more than the measurements would;
-- how often the forecast's turn and the measurement's differ in sign;
-- over every bridged frame, the mean "away" with its standard error over the runs (a steering
-  bias: the turn rates themselves are small, a few 0.01 rad/s, and the measured frame's own noise
-  makes single frames' differences noisy), and on the bridged frames more than 2 cm off the
-  midline alone, with how many there are.
-
-Then the deviation itself: the mean |y| on bridged frames against the others, and its mean change
-over a burst (|y| at the frame after the burst minus at its first frame).
+- the midline deviation;
+- by the frame's place in its burst (1 = the first frame bridged): the mean |w(forecast) -
+  w(measured)| and the mean away;
+- away over every bridged frame: the frames' mean, and the mean of each run's mean with its
+  standard error over the runs (the turn rates are a few 0.01 rad/s, and the measured frame's own
+  noise makes single frames' differences noisy);
+- the bridged frames within 3 mm of the midline and those 2 cm or more off it: their share of the
+  bridged frames, their mean away, and their share of the summed away;
+- the mean change of |y| over a burst (at the frame after it minus at its first frame).
 """
 
 from __future__ import annotations
@@ -42,6 +41,16 @@ def burst_places(bridged: np.ndarray) -> np.ndarray:
     return place
 
 
+def at_places(values: np.ndarray, place: np.ndarray, fmt: str) -> str:
+    """The mean of ``values`` at burst frames 1, 3 and 6 ("-" where no burst is that long)."""
+    return "/".join(format(values[place == k].mean(), fmt) if (place == k).any() else "-" for k in (1, 3, 6))
+
+
+def band(away: np.ndarray, keep: np.ndarray) -> str:
+    """The share of the frames in ``keep``, their mean away, and their share of the summed away."""
+    return f"{keep.mean():.0%}, {away[keep].mean():+.4f}, {away[keep].sum() / away.sum():.0%}"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--models", default="flow,echopt:pretrained,pretrained")
@@ -51,48 +60,37 @@ def main() -> None:
     args = ap.parse_args()
     grid, seeds = SensorGrid.default(), spawn_seeds(args.seed, args.runs)
     print(f"# bench_control_trace  {platform.node()}  {time.strftime('%Y-%m-%d')}  {args.runs} runs")
-    print("| model | midline dev. [mm] | mean abs dw at frame 1/3/6 [rad/s] | away from midline 1/3/6 "
-          "| sign differs 1/3/6 | away, all bridged frames [rad/s] | away, 2 cm or more off [rad/s] | abs y bridged / not [mm] "
-          "| abs y change over a burst [mm] |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| model | midline dev. [mm] | mean abs dw at burst frame 1/3/6 [rad/s] | away at frame 1/3/6 "
+          "| away, every bridged frame: frames' mean; runs' mean (SE) | within 3 mm: frames, away, share of the sum "
+          "| 2 cm or more off: frames, away, share of the sum | abs y change over a burst [mm] |")
+    print("|---|---|---|---|---|---|---|---|")
     for spec in args.models.split(","):
         t0 = time.perf_counter()
         eps = parallel_map(run_episode, [Episode(i, s, f"bursts+{spec}", grid, shadow=True)
                                          for i, s in enumerate(seeds)], args.workers)
-        place, dw, away, y_bridged, y_other, change, run_away = [], [], [], [], [], [], []
-        off = []  # per bridged frame: is the robot 2 cm or more off the midline
+        place, dw, away, offset, run_away, change = [], [], [], [], [], []
         for ep in eps:
             bridged = ep["predicted"]
             y = ep["pose"][:len(bridged), 1]
             at = burst_places(bridged)
             d = ep["w"] - ep["w_measured"]
             place.append(at[bridged]), dw.append(d[bridged]), away.append((np.sign(y) * d)[bridged])
+            offset.append(np.abs(y[bridged]))
             if bridged.any():
                 run_away.append(away[-1].mean())
-            y_bridged.append(np.abs(y[bridged])), y_other.append(np.abs(y[~bridged]))
-            off.append(np.abs(y[bridged]) >= 0.02)
             starts = np.flatnonzero(at == 1)
             ends = np.flatnonzero(bridged[:-1] & ~bridged[1:]) + 1  # the first frame after each burst
             change += [abs(y[e]) - abs(y[s]) for s, e in zip(starts, ends)]
-        place, dw, away, off = (np.concatenate(a) for a in (place, dw, away, off))
-        sign_differs = []
-        for ep in eps:
-            b = ep["predicted"]
-            sign_differs.append(np.sign(ep["w"][b]) != np.sign(ep["w_measured"][b]))
-        sign_differs = np.concatenate(sign_differs)
-        ks = [k for k in (1, 3, 6) if (place == k).any()]
+        place, dw, away, offset = (np.concatenate(a) for a in (place, dw, away, offset))
+
         cells = [
             f"{1000 * np.nanmean([e['midline_deviation_m'] for e in eps]):.2f}",
-            "/".join(f"{np.abs(dw[place == k]).mean():.3f}" for k in ks),
-            "/".join(f"{away[place == k].mean():+.3f}" for k in ks),
-            "/".join(f"{sign_differs[place == k].mean():.0%}" for k in ks),
-            f"{np.mean(run_away):+.4f} +- {np.std(run_away, ddof=1) / np.sqrt(len(run_away)):.4f}",
-            f"{away[off].mean():+.4f} ({off.sum()} frames)",
-            f"{1000 * np.concatenate(y_bridged).mean():.2f} / {1000 * np.concatenate(y_other).mean():.2f}",
+            at_places(np.abs(dw), place, ".3f"), at_places(away, place, "+.3f"),
+            f"{away.mean():+.4f}; {np.mean(run_away):+.4f} ({np.std(run_away, ddof=1) / np.sqrt(len(run_away)):.4f})",
+            band(away, offset < 0.003), band(away, offset >= 0.02),
             f"{1000 * np.mean(change):+.2f} over {len(change)} bursts",
         ]
         print(f"| {spec} | " + " | ".join(cells) + f" |  <!-- {time.perf_counter() - t0:.0f} s -->")
-
 
 if __name__ == "__main__":
     main()

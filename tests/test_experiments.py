@@ -228,9 +228,10 @@ def test_bursts_stall_the_controller_and_a_predictor_bridges_them(processing):
 
 def test_a_burst_is_forecast_from_the_frames_before_it_k_steps_ahead(monkeypatch):
     """The k-th frame of a burst is the k-step forecast from the frames the controller used before
-    the burst: a model that forecasts every horizon from measured frames is never fed its own
-    forecasts as if they were measurements. For a model that chains one step at a time this is the
-    same as bridging frame by frame."""
+    the burst: a model that forecasts every horizon from measured frames is not fed its own
+    forecasts as if they were measurements (unless bursts come closer than its window). For a model
+    that chains one step at a time this is the same as bridging frame by frame. The shadow
+    controller (a diagnostic) leaves the run as it was."""
     from sonarset.models.experiments import control
     from sonarset.models.predictor import as_predictor
 
@@ -291,6 +292,11 @@ def test_a_burst_is_forecast_from_the_frames_before_it_k_steps_ahead(monkeypatch
     chained = run_episode(Episode(0, 7, "bursts+flow", GRID, max_time_s=40))
     assert chained["predicted"].sum() > 6  # a chained model steps frame by frame: the same run
     np.testing.assert_array_equal(anchored["pose"], chained["pose"])
+    shadowed = run_episode(Episode(0, 7, "bursts+flow", GRID, max_time_s=40, shadow=True))
+    np.testing.assert_array_equal(shadowed["pose"], chained["pose"])
+    np.testing.assert_array_equal(shadowed["w"], chained["w"])
+    np.testing.assert_array_equal(np.isfinite(shadowed["w_measured"]), shadowed["predicted"])
+    assert "w_measured" not in chained
 
 
 def test_control_experiment_cli_with_a_tiny_echopt(tmp_path):

@@ -12,7 +12,8 @@ run from the same spawn poses and (for the last two) the same burst schedules:
   from the frames the controller used before the burst (as many as the model's window takes) and
   the commands since. A model that predicts one step at a time chains its own predictions, as it
   would frame by frame; one that forecasts every horizon from measured frames (EchoWarp) is used
-  as it was trained, instead of being fed its own forecasts as if they were measurements.
+  as it was trained, instead of being fed its own forecasts as if they were measurements (only a
+  burst that starts fewer than n_in frames after the previous one starts from that one's forecasts).
 
 A run ends at the waypoint (success), on contact with a pole (collision) or after ``max_time_s``
 (timeout). Reported per condition: success/collision/timeout counts with Wilson CIs, travel time
