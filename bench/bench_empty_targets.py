@@ -1,0 +1,118 @@
+"""How much of protocol v1's NRMSD verdicts rests on targets that hold no echo?
+
+    python bench/bench_empty_targets.py --models flow,echopt:pretrained,pretrained
+
+NRMSD divides by the target's norm, ||p - m|| / ||m||. A target with no echo in view (a turn away
+from every wall, an open stretch of the orchard) holds only the post-processed noise floor, and
+there any predicted energy gives an NRMSD of several or tens. This evaluates the models on protocol
+v1's datasets (the benchmark's stores, windows and Holm families) and prints, per dataset and
+horizon, how many targets hold no echo (no local maximum at or above the echo level, 0.3: the
+windows where echo recall is undefined), what share of the variance of each NRMSD difference
+those windows carry, and each NRMSD comparison's Holm p as protocol v1 scores it and with those
+windows set aside (every other test of the family as it is). Then it counts the cells (dataset x
+horizon x CC, NRMSD, echo F1) each model wins at Holm p < 0.001 both ways. A sensitivity
+analysis, not a protocol: protocol v1 scores every window.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import platform
+import time
+
+import numpy as np
+
+from bench_serial import METRICS, passes  # the same cells, counted the same way
+from sonarset.models.benchmark.protocol import PROTOCOL_V1
+from sonarset.models.benchmark.run import correct_over_file, dataset_entry, evaluate_dataset, method_specs
+from sonarset.models.benchmark.stores import cache_dir, ensure_store
+from sonarset.scoring.stats import WindowPlaces, compare
+
+
+def empty_targets(res, h: int) -> np.ndarray:
+    """The windows whose horizon-h target holds no echo (echo recall undefined, whoever predicts)."""
+    return ~np.isfinite(res.per_window[res.predictors[0]][h]["echo_recall"])
+
+
+def set_aside(res, places: WindowPlaces) -> None:
+    """Each NRMSD comparison of ``res`` again, over the windows whose target holds an echo."""
+    for i, c in enumerate(res.comparisons):
+        if c.metric != "nrmsd":
+            continue
+        keep = ~empty_targets(res, c.horizon)
+        a, b = (np.where(keep, res.per_window[m][c.horizon]["nrmsd"], np.nan) for m in (c.a, c.b))
+        res.comparisons[i] = compare(a, b, metric="nrmsd", horizon=c.horizon, names=(c.a, c.b), windows=places)
+
+
+def variance_share(res, c) -> float:
+    """The share of the variance of c's NRMSD differences carried by the windows with an empty target."""
+    d = res.per_window[c.a][c.horizon]["nrmsd"] - res.per_window[c.b][c.horizon]["nrmsd"]
+    empty, ok = empty_targets(res, c.horizon), np.isfinite(d)
+    dev = (d - d[ok].mean()) ** 2
+    return float(dev[ok & empty].sum() / dev[ok].sum())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--models", default="flow,echopt:pretrained,pretrained")
+    ap.add_argument("--precision", default="auto")
+    ap.add_argument("--samples", type=int, default=PROTOCOL_V1.samples, help="windows per dataset (fewer: a quick look)")
+    args = ap.parse_args()
+    protocol = dataclasses.replace(PROTOCOL_V1, samples=args.samples)
+    specs = method_specs(args.models.split(","), protocol.reference)
+    folder, stores, results = cache_dir(protocol), {}, {}
+    t0 = time.perf_counter()
+    for ds in protocol.datasets:
+        if ds.store.name not in stores:
+            stores[ds.store.name] = ensure_store(ds.store, protocol, folder)[0]
+        results[ds.name] = evaluate_dataset(stores[ds.store.name], ds, specs, protocol, "cpu", args.precision, None)
+    print(f"# bench_empty_targets  {platform.node()}  {time.strftime('%Y-%m-%d')}  {time.perf_counter() - t0:.0f} s  "
+          f"protocol {protocol.version}, {protocol.samples} windows per dataset\n")
+    scored = {}
+    for label in ("every window", "empty targets set aside"):
+        datasets = {}
+        for ds in protocol.datasets:
+            res, seconds = results[ds.name]
+            if label != "every window":
+                set_aside(res, WindowPlaces.of(res.window_ids, res.n_in + max(protocol.horizons)))
+            datasets[ds.name] = dataset_entry(res, ds, protocol, seconds)
+        correct_over_file(datasets, protocol)
+        scored[label] = datasets
+    res0 = next(iter(results.values()))[0]
+    pairs = [(res0.predictors[j], res0.predictors[i]) for j in range(1, len(res0.predictors)) for i in range(j)]
+    print("NRMSD: windows whose target holds no echo; per pair (later - earlier), the mean difference, the share "
+          "of its variance on those windows, and Holm p with every window -> with those set aside\n")
+    print("| dataset | horizon | empty targets | " + " | ".join(f"{a} - {b}" for a, b in pairs) + " |")
+    print("|---|---|---|" + "---|" * len(pairs))
+    for ds in protocol.datasets:
+        res = results[ds.name][0]
+        for h in protocol.horizons:
+            cells = []
+            for a, b in pairs:
+                c = next(c for c in res.comparisons if c.metric == "nrmsd" and c.horizon == h and {c.a, c.b} == {a, b})
+                before, after = (test_of(scored[k][ds.name], a, b, h, protocol.reference) for k in scored)
+                cells.append(f"{before['mean_diff']:+.3f}, {variance_share(res, c):.0%}, "
+                             f"{before['p_holm']:.1g} -> {after['p_holm']:.1g}")
+            print(f"| {ds.name} | {h} | {int(empty_targets(res, h).sum())} | " + " | ".join(cells) + " |")
+    cells = len(protocol.datasets) * len(protocol.horizons) * len(METRICS)
+    print(f"\nCells (of {cells}) in which the model is better at Holm p < 0.001:\n")
+    counted = {k: passes(v, protocol.reference, "p_holm") for k, v in scored.items()}
+    print("| NRMSD over | " + " | ".join(f"{m} vs {o}" for m, o in counted["every window"]) + " |")
+    print("|---|" + "---|" * len(counted["every window"]))
+    for label, fails in counted.items():
+        print(f"| {label} | " + " | ".join(str(cells - len(f)) for f in fails.values()) + " |")
+    for pair, fails in counted["empty targets set aside"].items():
+        print(f"\n{pair[0]} vs {pair[1]}, still not passing with empty targets set aside: {', '.join(fails) or 'none'}")
+
+
+def test_of(entry: dict, a: str, b: str, h: int, reference: str) -> dict:
+    """The NRMSD test of a against b at horizon h in a results file's dataset entry."""
+    methods = entry["horizons"][str(h) if str(h) in entry["horizons"] else h]["methods"]
+    if b == reference:
+        return methods[a]["vs_reference"]["nrmsd"]
+    return methods[a]["vs_models"][b]["nrmsd"]
+
+
+if __name__ == "__main__":
+    main()
