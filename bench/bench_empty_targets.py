@@ -25,17 +25,12 @@ p < 0.001, each way. A sensitivity analysis, not a protocol: protocol v1 stands.
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
-import platform
-import time
 
 import numpy as np
 
-from bench_serial import METRICS, passes  # the same cells, counted the same way
+from bench_serial import METRICS, evaluate_protocol, passes  # the same cells, counted the same way
 from sonarset.models.benchmark.protocol import PROTOCOL_V1
-from sonarset.models.benchmark.run import correct_over_file, dataset_entry, evaluate_dataset, method_specs
-from sonarset.models.benchmark.stores import cache_dir, ensure_store
+from sonarset.models.benchmark.run import correct_over_file, dataset_entry
 from sonarset.scoring.stats import WindowPlaces, compare
 
 
@@ -69,6 +64,11 @@ def silence(res, a: str, b: str, h: int) -> tuple[int, int]:
     return int((quiet_a & (fb == 0)).sum()), int((quiet_b & (fa == 0)).sum())
 
 
+def comparison(res, a: str, b: str, h: int):
+    """The NRMSD comparison of a and b at horizon h, either way round."""
+    return next(c for c in res.comparisons if c.metric == "nrmsd" and c.horizon == h and {c.a, c.b} == {a, b})
+
+
 def variance_share(res, c) -> float:
     """The share of the variance of c's NRMSD differences carried by the windows with an empty target."""
     d = res.per_window[c.a][c.horizon]["nrmsd"] - res.per_window[c.b][c.horizon]["nrmsd"]
@@ -78,21 +78,8 @@ def variance_share(res, c) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--models", default="flow,echopt:pretrained,pretrained")
-    ap.add_argument("--precision", default="auto")
-    ap.add_argument("--samples", type=int, default=PROTOCOL_V1.samples, help="windows per dataset (fewer: a quick look)")
-    args = ap.parse_args()
-    protocol = dataclasses.replace(PROTOCOL_V1, samples=args.samples)
-    specs = method_specs(args.models.split(","), protocol.reference)
-    folder, stores, results = cache_dir(protocol), {}, {}
-    t0 = time.perf_counter()
-    for ds in protocol.datasets:
-        if ds.store.name not in stores:
-            stores[ds.store.name] = ensure_store(ds.store, protocol, folder)[0]
-        results[ds.name] = evaluate_dataset(stores[ds.store.name], ds, specs, protocol, "cpu", args.precision, None)
-    print(f"# bench_empty_targets  {platform.node()}  {time.strftime('%Y-%m-%d')}  {time.perf_counter() - t0:.0f} s  "
-          f"protocol {protocol.version}, {protocol.samples} windows per dataset\n")
+    protocol, results = evaluate_protocol("bench_empty_targets", __doc__)
+    print()
     scored = {}
     steps = {"protocol v1": None, "NRMSD without no-echo targets": "nrmsd",
              "and echo F1 scoring a correct no-echo 1": "echo_f1"}
@@ -108,35 +95,27 @@ def main() -> None:
     res0 = next(iter(results.values()))[0]
     pairs = [(res0.predictors[j], res0.predictors[i]) for j in range(1, len(res0.predictors)) for i in range(j)]
     v1, nrmsd, f1 = scored.values()
-    print("NRMSD: windows whose target holds no echo; per pair (later - earlier), the mean difference and the Holm "
-          "p with every window -> with those set aside, and the share of the variance on those windows\n")
-    print("| dataset | horizon | empty targets | " + " | ".join(f"{a} - {b}" for a, b in pairs) + " |")
-    print("|---|---|---|" + "---|" * len(pairs))
-    for ds in protocol.datasets:
-        res = results[ds.name][0]
-        for h in protocol.horizons:
-            cells = []
-            for a, b in pairs:
-                c = next(c for c in res.comparisons if c.metric == "nrmsd" and c.horizon == h and {c.a, c.b} == {a, b})
-                before, after = (test_of(x[ds.name], a, b, h, protocol.reference, "nrmsd") for x in (v1, nrmsd))
-                cells.append(f"{before['mean_diff']:+.3f} -> {after['mean_diff']:+.3f}, {variance_share(res, c):.0%}, "
-                             f"{before['p_holm']:.2g} -> {after['p_holm']:.2g}")
-            print(f"| {ds.name} | {h} | {int(empty_targets(res, h).sum())} | " + " | ".join(cells) + " |")
+    def table(metric: str, scored_after: dict, cell) -> None:
+        print("| dataset | horizon | " + ("no-echo targets | " if metric == "nrmsd" else "")
+              + " | ".join(f"{a} - {b}" for a, b in pairs) + " |")
+        print("|---|---|" + "---|" * (len(pairs) + (metric == "nrmsd")))
+        for ds in protocol.datasets:
+            res = results[ds.name][0]
+            for h in protocol.horizons:
+                row = [f"{int(empty_targets(res, h).sum())}"] if metric == "nrmsd" else []
+                for a, b in pairs:
+                    before, after = (test_of(x[ds.name], a, b, h, protocol.reference, metric) for x in (v1, scored_after))
+                    row.append(cell(res, a, b, h) + f"{before['mean_diff']:+.3f} -> {after['mean_diff']:+.3f}, "
+                               f"{before['p_holm']:.2g} -> {after['p_holm']:.2g}")
+                print(f"| {ds.name} | {h} | " + " | ".join(row) + " |")
+
+    print("NRMSD: windows whose target holds no echo; per pair (later - earlier), the share of the difference's "
+          "variance on those windows, the mean difference and the Holm p with every window -> with those set aside\n")
+    table("nrmsd", nrmsd, lambda res, a, b, h: f"{variance_share(res, comparison(res, a, b, h)):.0%}, ")
     print("\nEcho F1: per pair, the windows the later model forecasts correctly empty while the earlier draws an "
-          "echo / the other way round, then the mean difference and the Holm p as protocol v1 scores it -> with a "
+          "echo / the other way round, the mean difference and the Holm p as protocol v1 scores it -> with a "
           "correct no-echo scored 1\n")
-    print("| dataset | horizon | " + " | ".join(f"{a} - {b}" for a, b in pairs) + " |")
-    print("|---|---|" + "---|" * len(pairs))
-    for ds in protocol.datasets:
-        res = results[ds.name][0]
-        for h in protocol.horizons:
-            cells = []
-            for a, b in pairs:
-                before, after = (test_of(x[ds.name], a, b, h, protocol.reference, "echo_f1") for x in (v1, f1))
-                won, lost = silence(res, a, b, h)
-                cells.append(f"{won}/{lost}, {before['mean_diff']:+.3f} -> {after['mean_diff']:+.3f}, "
-                             f"{before['p_holm']:.2g} -> {after['p_holm']:.2g}")
-            print(f"| {ds.name} | {h} | " + " | ".join(cells) + " |")
+    table("echo_f1", f1, lambda res, a, b, h: "{}/{}, ".format(*silence(res, a, b, h)))
     cells = len(protocol.datasets) * len(protocol.horizons) * len(METRICS)
     print(f"\nCells (of {cells}) in which the model is better at Holm p < 0.001:\n")
     counted = {k: passes(v, protocol.reference, "p_holm") for k, v in scored.items()}

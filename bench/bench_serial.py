@@ -95,24 +95,29 @@ def passes(datasets: dict, reference: str, key: str) -> dict[tuple[str, str], li
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def evaluate_protocol(name: str, doc: str):
+    """Parse the bench's options (--models, --precision, --samples), evaluate the models on protocol
+    v1's datasets and print the bench's header line; (protocol, {dataset: (EvalResult, seconds)})."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
     ap.add_argument("--models", default="flow,echopt:pretrained,pretrained")
     ap.add_argument("--precision", default="auto")
     ap.add_argument("--samples", type=int, default=PROTOCOL_V1.samples, help="windows per dataset (fewer: a quick look)")
     args = ap.parse_args()
     protocol = dataclasses.replace(PROTOCOL_V1, samples=args.samples)
     specs = method_specs(args.models.split(","), protocol.reference)
-    folder = cache_dir(protocol)
-    results = {}
-    stores = {}
+    folder, stores, results = cache_dir(protocol), {}, {}
     t0 = time.perf_counter()
     for ds in protocol.datasets:
         if ds.store.name not in stores:
             stores[ds.store.name] = ensure_store(ds.store, protocol, folder)[0]
         results[ds.name] = evaluate_dataset(stores[ds.store.name], ds, specs, protocol, "cpu", args.precision, None)
-    print(f"# bench_serial  {platform.node()}  {time.strftime('%Y-%m-%d')}  {time.perf_counter() - t0:.0f} s  "
+    print(f"# {name}  {platform.node()}  {time.strftime('%Y-%m-%d')}  {time.perf_counter() - t0:.0f} s  "
           f"protocol {protocol.version}, {protocol.samples} windows per dataset")
+    return protocol, results
+
+
+def main() -> None:
+    protocol, results = evaluate_protocol("bench_serial", __doc__)
     res0 = next(iter(results.values()))[0]
     span = res0.n_in + max(protocol.horizons)
     cells = len(protocol.datasets) * len(protocol.horizons) * len(METRICS)
