@@ -296,6 +296,8 @@ def test_a_burst_is_forecast_from_the_frames_before_it_k_steps_ahead(monkeypatch
     np.testing.assert_array_equal(shadowed["pose"], chained["pose"])
     np.testing.assert_array_equal(shadowed["w"], chained["w"])
     np.testing.assert_array_equal(np.isfinite(shadowed["w_measured"]), shadowed["predicted"])
+    np.testing.assert_array_equal(shadowed["layer_measured"] != "", shadowed["predicted"])
+    assert set(shadowed["layer"]) <= {"avoid", "corridor", "goal"} and len(shadowed["layer"]) == len(shadowed["w"])
     assert "w_measured" not in chained
 
 

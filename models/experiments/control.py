@@ -78,8 +78,9 @@ class Episode:
     device: str = "cpu"
     processing: Processing = field(default_factory=Processing.ertis)  # the simulator's default images
     precision: str = "auto"  # EchoPT's arithmetic (models/echopt/precision.py)
-    # a diagnostic: on every bridged frame also steer by the frame measured without the burst
-    # (its own noise draw), recorded as "w_measured" beside the commanded "w"; the run is unchanged
+    # a diagnostic: on every bridged frame also steer by the frame measured without the burst (its
+    # own noise draw), recorded as "w_measured" and "layer_measured" beside the commanded "w" and
+    # "layer"; the run is unchanged
     shadow: bool = False
 
 
@@ -124,7 +125,7 @@ def run_episode(ep: Episode, world: World | None = None) -> dict:
         poses.append(pose), snr.append(eff), flagged.append(is_burst), predicted.append(used is not img)
         layers.append(decision.layer), turns.append(decision.w)
         if ep.shadow:
-            shadow.append(ctrl(model.render(world, pose, shadow_rng), pose).w if used is not img else np.nan)
+            shadow.append(ctrl(model.render(world, pose, shadow_rng), pose) if used is not img else None)
         if np.hypot(*(world.waypoint - pose[:2])) < GOAL_RADIUS:
             outcome = "success"
             break
@@ -144,7 +145,9 @@ def run_episode(ep: Episode, world: World | None = None) -> dict:
         "midline_deviation_m": float(np.abs(poses[inside, 1]).mean()) if inside.any() else float("nan"),
         "pose": poses, "snr_db": np.array(snr), "burst": burst[:n], "flagged": np.array(flagged),
         "predicted": np.array(predicted), "layers": {k: layers.count(k) for k in ("avoid", "corridor", "goal")},
-        "w": np.array(turns), **({"w_measured": np.array(shadow)} if ep.shadow else {}),
+        "w": np.array(turns), "layer": np.array(layers),
+        **({"w_measured": np.array([np.nan if d is None else d.w for d in shadow]),
+            "layer_measured": np.array(["" if d is None else d.layer for d in shadow])} if ep.shadow else {}),
     }
 
 
