@@ -17,8 +17,9 @@ the robot further from the midline than the measurement would. Per model it prin
 - the bridged frames within 3 mm of the midline and those 2 cm or more off it: their share of the
   bridged frames, their mean away, and their share of the summed away;
 - the bridged frames on which the forecast alone trips the collision-avoidance layer (a frontal
-  echo nearer than the stop distance: the robot stops and turns in place at full rate) and their
-  mean away, and the mean away on the frames 2 cm or more off the midline where
+  echo nearer than the stop distance: the robot stops and turns in place at full rate), their
+  mean away, in how many runs and at which frames of a run they fall, and the mean away on the
+  frames 2 cm or more off the midline where
   both forecast and measurement steer by the corridor layer;
 - the mean change of |y| over a burst (at the frame after it minus at its first frame).
 """
@@ -66,7 +67,7 @@ def main() -> None:
     print(f"# bench_control_trace  {platform.node()}  {time.strftime('%Y-%m-%d')}  {args.runs} runs")
     print("| model | midline dev. [mm] | mean abs dw at burst frame 1/3/6 [rad/s] | away at frame 1/3/6 "
           "| away, every bridged frame: frames' mean; runs' mean (SE) | within 3 mm: frames, away, share of the sum "
-          "| 2 cm or more off: frames, away, share of the sum | forecast alone trips avoidance: frames, away "
+          "| 2 cm or more off: frames, away, share of the sum | forecast alone trips avoidance: frames, away, where "
           "| away, 2 cm or more off, corridor layer both | abs y change over a burst [mm] |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for spec in args.models.split(","):
@@ -74,6 +75,7 @@ def main() -> None:
         eps = parallel_map(run_episode, [Episode(i, s, f"bursts+{spec}", grid, shadow=True)
                                          for i, s in enumerate(seeds)], args.workers)
         place, dw, away, offset, run_away, change, tripped, corridor = [], [], [], [], [], [], [], []
+        trip_frames, trip_runs = [], 0  # the frames of a run at which a forecast alone trips avoidance
         for ep in eps:
             bridged = ep["predicted"]
             y = ep["pose"][:len(bridged), 1]
@@ -82,6 +84,8 @@ def main() -> None:
             place.append(at[bridged]), dw.append(d[bridged]), away.append((np.sign(y) * d)[bridged])
             offset.append(np.abs(y[bridged]))
             tripped.append((ep["layer"] == "avoid")[bridged] & (ep["layer_measured"] != "avoid")[bridged])
+            trip_frames += list(np.flatnonzero(bridged)[tripped[-1]])
+            trip_runs += bool(tripped[-1].any())
             corridor.append(((ep["layer"] == "corridor") & (ep["layer_measured"] == "corridor"))[bridged])
             if bridged.any():
                 run_away.append(away[-1].mean())
@@ -97,7 +101,8 @@ def main() -> None:
             at_places(np.abs(dw), place, ".3f"), at_places(away, place, "+.3f"),
             f"{away.mean():+.4f}; {np.mean(run_away):+.4f} ({np.std(run_away, ddof=1) / np.sqrt(len(run_away)):.4f})",
             band(away, offset < 0.003), band(away, offset >= 0.02),
-            f"{tripped.sum()}, {away[tripped].mean():+.3f}" if tripped.any() else "0, -",
+            f"{tripped.sum()}, {away[tripped].mean():+.3f}, frames {min(trip_frames)}-{max(trip_frames)} of "
+            f"{trip_runs} runs" if tripped.any() else "0, -",
             f"{away[steady].mean():+.4f} ({steady.sum()} frames)",
             f"{1000 * np.mean(change):+.2f} over {len(change)} bursts",
         ]
