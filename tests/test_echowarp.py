@@ -195,3 +195,25 @@ def test_outside_the_view_it_reads_the_edge_or_nothing():
     card = {"processing": None}
     init_from(zeros, "leg", trained, card, SimpleNamespace(processing=card_processing(card)))
     assert all(torch.equal(p, q) for p, q in zip(zeros.parameters(), trained.parameters()))
+
+
+def test_its_inputs_are_cast_once_to_autocasts_dtype_with_the_same_values():
+    model = _trained_like(_model())
+    frames, commands = _window(k=2)
+    captured = {}
+    features = model.features
+
+    def spy(*args):
+        captured["x"] = features(*args)
+        return captured["x"]
+
+    model.features = spy
+    with torch.no_grad():
+        plain = model.forecast(frames, commands, 2)
+        x32 = captured["x"]
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            model.forecast(frames, commands, 2)
+    assert x32.dtype == torch.float32 and captured["x"].dtype == torch.bfloat16
+    assert captured["x"].is_contiguous(memory_format=torch.channels_last)
+    assert torch.equal(captured["x"], x32.to(torch.bfloat16))  # the cast every convolution made of it before
+    assert plain.dtype == torch.float32

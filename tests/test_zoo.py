@@ -173,3 +173,33 @@ def test_a_checkpoint_answers_to_its_own_kind_only(store, tmp_path):
     # the shipped EchoPT loads as it always has, from a card that names no kind
     shipped = load_learned_predictor("pretrained", SensorGrid.default())
     assert shipped.name == "echopt" and shipped.label == "echopt-small" and "model" not in shipped.card
+
+
+def test_up_hands_its_resize_a_dense_gradient_of_the_same_values():
+    from sonarset.models.zoo.common import Up
+
+    torch.manual_seed(0)
+    up = Up(6, 4, 5).to(memory_format=torch.channels_last)
+    g = torch.Generator().manual_seed(1)
+    deep = torch.rand((2, 6, 5, 4), generator=g).contiguous(memory_format=torch.channels_last).requires_grad_()
+    skip = torch.rand((2, 4, 9, 7), generator=g).contiguous(memory_format=torch.channels_last).requires_grad_()
+    seen = []
+    resize = torch.nn.functional.interpolate
+
+    def spy(x, **kw):  # the resize's output, to see the gradient that reaches it
+        y = resize(x, **kw)
+        y.register_hook(lambda grad: seen.append(grad))
+        return y
+
+    torch.nn.functional.interpolate = spy
+    try:
+        up(deep, skip).square().sum().backward()
+    finally:
+        torch.nn.functional.interpolate = resize
+    # the function and its gradient are those of the plain resize-concatenate-convolve
+    d2, s2 = deep.detach().clone().requires_grad_(), skip.detach().clone().requires_grad_()
+    conv = up.convs(torch.cat([resize(d2, size=(9, 7), mode="bilinear", align_corners=False), s2], 1))
+    conv.square().sum().backward()
+    assert torch.allclose(deep.grad, d2.grad, atol=1e-6) and torch.allclose(skip.grad, s2.grad, atol=1e-6)
+    # and the resize's backward reads a dense channels-last gradient, not a strided slice of the concatenation's
+    assert len(seen) == 1 and seen[0].is_contiguous(memory_format=torch.channels_last)

@@ -217,7 +217,8 @@ class EchoWarp(ZooModel):
 
     def features(self, registered: torch.Tensor, ir: torch.Tensor, ia: torch.Tensor, motion: torch.Tensor,
                  steps: int) -> torch.Tensor:
-        """A slot's per-pixel inputs (N, n_features, R, A), channels-last (``n_features``)."""
+        """A slot's per-pixel inputs (N, n_features, R, A), channels-last (``n_features``), in
+        autocast's dtype where it is on."""
         cfg = self.cfg
         N, n_in, R, A = registered.shape
         outside = ((ir < -0.5) | (ir > R - 0.5) | (ia < -0.5) | (ia > A - 0.5)).float()
@@ -230,4 +231,6 @@ class EchoWarp(ZooModel):
         horizon = (torch.arange(N, device=ir.device) % steps + 1).float() / cfg.max_horizon
         planes = torch.cat([horizon[:, None], motion], 1)[:, :, None, None].expand(N, 4, R, A)
         x = torch.cat([registered, outside[:, None], shift, pos.expand(N, 2, R, A), planes], 1)
-        return x.contiguous(memory_format=torch.channels_last)
+        # in autocast's dtype once: both convolutions that read x would each cast it again
+        dtype = torch.get_autocast_dtype(x.device.type) if torch.is_autocast_enabled(x.device.type) else x.dtype
+        return x.to(dtype, memory_format=torch.channels_last)
