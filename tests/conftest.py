@@ -1,10 +1,20 @@
 from __future__ import annotations
 
-import numpy as np
-import pytest
+import os
 
-from sonarset.format.attrs import SensorGrid
-from sonarset.store.store import create_store
+# Each xdist worker gets its share of the cores. OpenMP's pool (torch's, MKL's) defaults to every
+# core, so two workers on two cores ran four spinning threads: the suite took 7 min 24 s on the
+# 2-core Xeon VM, 5 min 38 s with one thread a worker. Set before anything imports torch; a value
+# the caller chose wins, and subprocesses inherit it.
+_workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+if _workers > 1:
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // _workers)))
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from sonarset.format.attrs import SensorGrid  # noqa: E402
+from sonarset.store.store import create_store  # noqa: E402
 
 TINY = SensorGrid(range_min_m=0.5, range_max_m=2.5, n_range=8, azimuth_min_rad=-1.2, azimuth_max_rad=1.2, n_azimuth=6)
 
