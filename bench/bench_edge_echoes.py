@@ -1,0 +1,125 @@
+"""Where in the view does each model's one-shot forecast miss the target's echoes?
+    python bench/bench_edge_echoes.py --models flow,echopt:pretrained,pretrained --datasets corridor,orchard
+
+A diagnostic of protocol v1's one-shot echo F1 (BENCHMARKS.md, "Where the one-shot echo F1 is lost"):
+on each dataset's protocol windows (the benchmark's stores, the same 1000 windows, drawn with the
+protocol's seed) it forecasts one step with every model and detects the echoes of targets and
+forecasts as the echo metrics do (``sonarset.scoring.echoes``). Each target echo counts as found
+by a model where the forecast holds an echo within the matching tolerance (unpaired: recall as a
+reader of the image sees it, not the metric's one-to-one pairing). It prints, per azimuth band
+(the outer ``--edge`` degrees on each side, and the rest), the target echoes, each model's recall
+and its share of forecast echoes near no target echo; the echoes one model finds and another
+misses; and at those, the brightest forecast pixel within the tolerance (how far below the echo
+level a missed echo is drawn). "New" echoes have no echo within the tolerance in the last frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from sonarset.models.benchmark.protocol import PROTOCOL_V1
+from sonarset.models.benchmark.run import method_specs
+from sonarset.models.benchmark.stores import cache_dir, ensure_store
+from sonarset.models.eval.evaluate import baseline_rig
+from sonarset.models.registry import make_predictor
+from sonarset.scoring.echoes import EchoMatching, Peaks, find_echoes, tolerance_bins
+from sonarset.windows import FrameBank, WindowIndex, gather
+
+
+def found(peaks: Peaks, image: np.ndarray, range_m: np.ndarray, azimuth_deg: np.ndarray, m: EchoMatching) -> np.ndarray:
+    """Whether each (image, range, azimuth) point has an echo of ``peaks`` within the matching tolerance."""
+    out = np.zeros(len(image), bool)
+    for i in np.unique(image):
+        pr, pa = peaks.of(int(i))
+        if not len(pr):
+            continue
+        at = image == i
+        d = np.maximum(np.abs(pr[None] - range_m[at, None]) / m.range_tol_m,
+                       np.abs(pa[None] - azimuth_deg[at, None]) / m.azimuth_tol_deg)
+        out[at] = (d <= 1).any(1)
+    return out
+
+
+def brightest_near(images: np.ndarray, image: np.ndarray, ri: np.ndarray, ai: np.ndarray, window) -> np.ndarray:
+    """The largest pixel of each ``images[image]`` within +-``window`` bins of (ri, ai)."""
+    hr, ha = window
+    R, A = images.shape[1:]
+    return np.array([images[i, max(0, r - hr):min(R, r + hr + 1), max(0, a - ha):min(A, a + ha + 1)].max()
+                     for i, r, a in zip(image, ri, ai)])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--models", default="flow,echopt:pretrained,pretrained")
+    ap.add_argument("--datasets", default="corridor,orchard", help="protocol v1 datasets (names as in its tables)")
+    ap.add_argument("--edge", type=float, default=8.0, help="degrees at each side of the view counted as its edge")
+    ap.add_argument("--precision", default="auto")
+    args = ap.parse_args()
+    protocol, matching = PROTOCOL_V1, EchoMatching()
+    specs = method_specs(args.models.split(","), protocol.reference)
+    wanted = args.datasets.split(",")
+    folder, stores = cache_dir(protocol), {}
+    print(f"# bench_edge_echoes  {time.strftime('%Y-%m-%d')}  protocol {protocol.version}, {protocol.samples} windows, "
+          f"one-shot; outer {args.edge:g} deg of azimuth on each side as the edge")
+    for ds in (d for d in protocol.datasets if d.name in wanted):
+        if ds.store.name not in stores:
+            stores[ds.store.name] = ensure_store(ds.store, protocol, folder)[0]
+        store = stores[ds.store.name]
+        grid = store.grid
+        bank = FrameBank.from_store(store, split="test", image_dtype=np.float32, worlds=[ds.world] if ds.world else None)
+        rig, _ = baseline_rig(store, bank)
+        preds = {s: make_predictor(s, grid, rig, precision=args.precision) for s in specs}
+        n_in = next(iter(preds.values())).n_in
+        index = WindowIndex.build(bank, n_in, max(protocol.horizons)).sample(protocol.samples, protocol.eval_seed)
+        b = gather(bank, index)
+        target = b.targets[:, 0]
+        forecasts = {p.name: p.rollout(b.frames, b.commands[:, :n_in + 1], 1)[:, 0] for p in preds.values()}
+        t = find_echoes(target, grid, matching)
+        new = ~found(find_echoes(b.frames[:, -1], grid, matching), t.image, t.range_m, t.azimuth_deg, matching)
+        hit = {k: found(find_echoes(v, grid, matching), t.image, t.range_m, t.azimuth_deg, matching)
+               for k, v in forecasts.items()}
+        edge_deg = np.degrees(max(abs(grid.azimuth_min_rad), abs(grid.azimuth_max_rad))) - args.edge
+        edge = np.abs(t.azimuth_deg) >= edge_deg
+        print(f"\n## {ds.name}: {len(index)} windows, {len(t.image)} target echoes ({new.mean():.0%} new); "
+              f"edge: |azimuth| >= {edge_deg:g} deg")
+        names = list(forecasts)
+        print("| band | target echoes | " + " | ".join(f"{k} recall (new)" for k in names) + " | "
+              + " | ".join(f"{k} forecast echoes near none" for k in names) + " |")
+        print("|---" * (2 + 2 * len(names)) + "|")
+        for band, sel in (("edge", edge), ("interior", ~edge)):
+            cells = [f"{hit[k][sel].mean():.3f} ({hit[k][sel & new].mean():.3f})" if sel.any() else "-" for k in names]
+            false = []
+            for v in forecasts.values():
+                f = find_echoes(v, grid, matching)
+                at = (np.abs(f.azimuth_deg) >= edge_deg) == (band == "edge")
+                near = found(t, f.image[at], f.range_m[at], f.azimuth_deg[at], matching)
+                false.append(f"{1 - near.mean():.3f} of {at.sum()}" if at.any() else "-")
+            print(f"| {band} | {sel.sum()} | " + " | ".join(cells) + " | " + " | ".join(false) + " |")
+        # the echoes the last model misses and each other model finds: how bright the last model draws them
+        last = names[-1]
+        r_step = (grid.range_max_m - grid.range_min_m) / grid.n_range
+        a_step = np.degrees(grid.azimuth_max_rad - grid.azimuth_min_rad) / grid.n_azimuth
+        ri = np.clip(((t.range_m - grid.range_min_m) / r_step).astype(int), 0, grid.n_range - 1)
+        ai = np.clip(((t.azimuth_deg - np.degrees(grid.azimuth_min_rad)) / a_step).astype(int), 0, grid.n_azimuth - 1)
+        window = tolerance_bins(grid, matching)
+        for other in names[:-1]:
+            lost = ~hit[last] & hit[other]
+            gained = hit[last] & ~hit[other]
+            line = (f"- {last} misses and {other} finds {lost.sum()} ({(lost & edge).sum()} at the edge, "
+                    f"{(lost & new).sum()} new); the reverse {gained.sum()} ({(gained & edge).sum()} at the edge)")
+            if lost.any():
+                mine = brightest_near(forecasts[last], t.image[lost], ri[lost], ai[lost], window)
+                theirs = brightest_near(forecasts[other], t.image[lost], ri[lost], ai[lost], window)
+                dim = mine < matching.level
+                line += (f"; there {last}'s brightest pixel within the tolerance has median {np.median(mine):.2f} "
+                         f"(below the echo level {matching.level:g} at {dim.mean():.0%} of them, by a median "
+                         f"{np.median(matching.level - mine[dim]) if dim.any() else 0:.2f}), {other}'s "
+                         f"{np.median(theirs):.2f}; median range {np.median(t.range_m[lost]):.2f} m")
+            print(line)
+
+
+if __name__ == "__main__":
+    main()
