@@ -1,16 +1,19 @@
-"""Where in the view does each model's one-shot forecast miss the target's echoes?
+"""Where in the view does each model's one-shot forecast find the target's echoes, and where not?
     python bench/bench_edge_echoes.py --models flow,echopt:pretrained,pretrained --datasets corridor,orchard
 
-A diagnostic of protocol v1's one-shot echo F1 (BENCHMARKS.md, "Where the one-shot echo F1 is lost"):
-on each dataset's protocol windows (the benchmark's stores, the same 1000 windows, drawn with the
-protocol's seed) it forecasts one step with every model and detects the echoes of targets and
-forecasts as the echo metrics do (``sonarset.scoring.echoes``). Each target echo counts as found
-by a model where the forecast holds an echo within the matching tolerance (unpaired: recall as a
-reader of the image sees it, not the metric's one-to-one pairing). It prints, per azimuth band
-(the outer ``--edge`` degrees on each side, and the rest), the target echoes, each model's recall
-and its share of forecast echoes near no target echo; the echoes one model finds and another
-misses; and at those, the brightest forecast pixel within the tolerance (how far below the echo
-level a missed echo is drawn). "New" echoes have no echo within the tolerance in the last frame.
+A diagnostic of protocol v1's one-shot echo F1 (BENCHMARKS.md, "Where the one-shot echo F1 cells
+stay unresolved"): on each dataset's protocol windows (the benchmark's stores, the same 1000
+windows, drawn with the protocol's seed) it forecasts one step with every model (a one-horizon
+pass; the protocol takes the first of a ten-horizon pass: the same network, whose bf16 kernels may
+differ in the last bits) and detects the echoes of targets and forecasts as the echo metrics do
+(``sonarset.scoring.echoes``). Each target echo counts as found by a model where the forecast holds
+an echo within the matching tolerance, and each forecast echo as false where no target echo is
+(unpaired recall and precision, as a reader of the image sees them, not the metric's one-to-one
+pairing). It prints, per azimuth band (within ``--edge`` degrees of either edge of the view, and
+the rest), the target echoes, each model's recall and share of false forecast echoes; the echoes
+the last model misses and another finds; and at those at the edge, the brightest pixel of each
+forecast within the echo term's window (``tolerance_bins``): how far below the echo level a missed
+echo is drawn. "New" echoes have no echo within the tolerance in the last frame.
 """
 
 from __future__ import annotations
@@ -23,10 +26,10 @@ import numpy as np
 from sonarset.models.benchmark.protocol import PROTOCOL_V1
 from sonarset.models.benchmark.run import method_specs
 from sonarset.models.benchmark.stores import cache_dir, ensure_store
-from sonarset.models.eval.evaluate import baseline_rig
+from sonarset.models.eval.evaluate import baseline_rig, window_frames
 from sonarset.models.registry import make_predictor
 from sonarset.scoring.echoes import EchoMatching, Peaks, find_echoes, tolerance_bins
-from sonarset.windows import FrameBank, WindowIndex, gather
+from sonarset.windows import FrameBank, WindowBatcher, WindowIndex
 
 
 def found(peaks: Peaks, image: np.ndarray, range_m: np.ndarray, azimuth_deg: np.ndarray, m: EchoMatching) -> np.ndarray:
@@ -72,33 +75,38 @@ def main() -> None:
         bank = FrameBank.from_store(store, split="test", image_dtype=np.float32, worlds=[ds.world] if ds.world else None)
         rig, _ = baseline_rig(store, bank)
         preds = {s: make_predictor(s, grid, rig, precision=args.precision) for s in specs}
-        n_in = next(iter(preds.values())).n_in
+        n_in = window_frames(preds)
         index = WindowIndex.build(bank, n_in, max(protocol.horizons)).sample(protocol.samples, protocol.eval_seed)
-        b = gather(bank, index)
+        b = WindowBatcher.of(bank).gather(index, None, horizon=1)
         target = b.targets[:, 0]
         forecasts = {p.name: p.rollout(b.frames, b.commands[:, :n_in + 1], 1)[:, 0] for p in preds.values()}
         t = find_echoes(target, grid, matching)
         new = ~found(find_echoes(b.frames[:, -1], grid, matching), t.image, t.range_m, t.azimuth_deg, matching)
         hit = {k: found(find_echoes(v, grid, matching), t.image, t.range_m, t.azimuth_deg, matching)
                for k, v in forecasts.items()}
-        edge_deg = np.degrees(max(abs(grid.azimuth_min_rad), abs(grid.azimuth_max_rad))) - args.edge
-        edge = np.abs(t.azimuth_deg) >= edge_deg
+        lo, hi = np.degrees(grid.azimuth_min_rad), np.degrees(grid.azimuth_max_rad)
+
+        def at_edge(azimuth_deg: np.ndarray, lo: float = lo, hi: float = hi) -> np.ndarray:
+            return np.minimum(azimuth_deg - lo, hi - azimuth_deg) <= args.edge
+
+        edge = at_edge(t.azimuth_deg)
         print(f"\n## {ds.name}: {len(index)} windows, {len(t.image)} target echoes ({new.mean():.0%} new); "
-              f"edge: |azimuth| >= {edge_deg:g} deg")
+              f"edge: within {args.edge:g} deg of {lo:g} or {hi:g} deg")
         names = list(forecasts)
         print("| band | target echoes | " + " | ".join(f"{k} recall (new)" for k in names) + " | "
               + " | ".join(f"{k} forecast echoes near none" for k in names) + " |")
         print("|---" * (2 + 2 * len(names)) + "|")
+        echoes = {k: find_echoes(v, grid, matching) for k, v in forecasts.items()}
         for band, sel in (("edge", edge), ("interior", ~edge)):
-            cells = [f"{hit[k][sel].mean():.3f} ({hit[k][sel & new].mean():.3f})" if sel.any() else "-" for k in names]
+            cells = [(f"{hit[k][sel].mean():.3f} " + (f"({hit[k][sel & new].mean():.3f})" if (sel & new).any() else "(-)"))
+                     if sel.any() else "-" for k in names]
             false = []
-            for v in forecasts.values():
-                f = find_echoes(v, grid, matching)
-                at = (np.abs(f.azimuth_deg) >= edge_deg) == (band == "edge")
+            for f in echoes.values():
+                at = at_edge(f.azimuth_deg) == (band == "edge")
                 near = found(t, f.image[at], f.range_m[at], f.azimuth_deg[at], matching)
                 false.append(f"{1 - near.mean():.3f} of {at.sum()}" if at.any() else "-")
             print(f"| {band} | {sel.sum()} | " + " | ".join(cells) + " | " + " | ".join(false) + " |")
-        # the echoes the last model misses and each other model finds: how bright the last model draws them
+        # the echoes the last model misses and each other model finds; at those at the edge, how bright each draws them
         last = names[-1]
         r_step = (grid.range_max_m - grid.range_min_m) / grid.n_range
         a_step = np.degrees(grid.azimuth_max_rad - grid.azimuth_min_rad) / grid.n_azimuth
@@ -110,11 +118,12 @@ def main() -> None:
             gained = hit[last] & ~hit[other]
             line = (f"- {last} misses and {other} finds {lost.sum()} ({(lost & edge).sum()} at the edge, "
                     f"{(lost & new).sum()} new); the reverse {gained.sum()} ({(gained & edge).sum()} at the edge)")
+            lost &= edge
             if lost.any():
                 mine = brightest_near(forecasts[last], t.image[lost], ri[lost], ai[lost], window)
                 theirs = brightest_near(forecasts[other], t.image[lost], ri[lost], ai[lost], window)
                 dim = mine < matching.level
-                line += (f"; there {last}'s brightest pixel within the tolerance has median {np.median(mine):.2f} "
+                line += (f"; at those at the edge {last}'s brightest pixel in the window has median {np.median(mine):.2f} "
                          f"(below the echo level {matching.level:g} at {dim.mean():.0%} of them, by a median "
                          f"{np.median(matching.level - mine[dim]) if dim.any() else 0:.2f}), {other}'s "
                          f"{np.median(theirs):.2f}; median range {np.median(t.range_m[lost]):.2f} m")

@@ -2,13 +2,15 @@ from __future__ import annotations
 
 import os
 
-# Each xdist worker gets its share of the cores. OpenMP's pool (torch's, MKL's) defaults to every
-# core, so two workers on two cores ran four spinning threads: the suite took 7 min 24 s on the
-# 2-core Xeon VM, 5 min 38 s with one thread a worker. Set before anything imports torch; a value
-# the caller chose wins, and subprocesses inherit it.
+# Each xdist worker gets its share of the cores. Torch's OpenMP pool defaults to every core, so
+# two workers on two cores ran four spinning threads: the suite took 7 min 24 s on the 2-core Xeon
+# VM, 5 min 38 s with one thread a worker. Set before anything here imports torch (a plugin may have
+# imported numpy already, whose BLAS pool this does not reach); a value the caller chose wins, and
+# subprocesses inherit it.
 _workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
 if _workers > 1:
-    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // _workers)))
+    _cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, _cores // _workers)))
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402

@@ -175,7 +175,7 @@ def test_a_checkpoint_answers_to_its_own_kind_only(store, tmp_path):
     assert shipped.name == "echopt" and shipped.label == "echopt-small" and "model" not in shipped.card
 
 
-def test_up_hands_its_resize_a_dense_gradient_of_the_same_values():
+def test_up_hands_its_resize_a_dense_gradient_of_the_same_values(monkeypatch):
     from sonarset.models.zoo.common import Up
 
     torch.manual_seed(0)
@@ -191,11 +191,9 @@ def test_up_hands_its_resize_a_dense_gradient_of_the_same_values():
         y.register_hook(lambda grad: seen.append(grad))
         return y
 
-    torch.nn.functional.interpolate = spy
-    try:
-        up(deep, skip).square().sum().backward()
-    finally:
-        torch.nn.functional.interpolate = resize
+    monkeypatch.setattr(torch.nn.functional, "interpolate", spy)
+    up(deep, skip).square().sum().backward()
+    monkeypatch.undo()
     # the function and its gradient are those of the plain resize-concatenate-convolve
     d2, s2 = deep.detach().clone().requires_grad_(), skip.detach().clone().requires_grad_()
     conv = up.convs(torch.cat([resize(d2, size=(9, 7), mode="bilinear", align_corners=False), s2], 1))
