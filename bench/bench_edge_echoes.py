@@ -13,7 +13,9 @@ pairing). It prints, per azimuth band (within ``--edge`` degrees of either edge 
 the rest), the target echoes, each model's recall and share of false forecast echoes; the echoes
 the last model misses and another finds; and at those at the edge, the brightest pixel of each
 forecast within the echo term's window (``tolerance_bins``): how far below the echo level a missed
-echo is drawn. "New" echoes have no echo within the tolerance in the last frame.
+echo is drawn. "New" echoes have no echo within the tolerance in the last frame. With ``--parts``
+and EchoWarp last, it also prints the terms its forecast sums (``EchoWarp.parts``) at the target
+echoes' pixels, by band and by whether EchoWarp found them.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import argparse
 import time
 
 import numpy as np
+import torch
 
 from sonarset.models.benchmark.protocol import PROTOCOL_V1
 from sonarset.models.benchmark.run import method_specs
@@ -54,12 +57,31 @@ def brightest_near(images: np.ndarray, image: np.ndarray, ri: np.ndarray, ai: np
                      for i, r, a in zip(image, ri, ai)])
 
 
+def echowarp_parts(pred, frames: np.ndarray, commands: np.ndarray, chunk: int = 64) -> dict[str, np.ndarray]:
+    """EchoWarp's one-step terms (``EchoWarp.parts``) for every window, in the predictor's precision,
+    with ``outside``: whether each pixel's source in the last frame lies outside the view."""
+    net = pred.predictor.model
+    n_in, (R, A) = frames.shape[1], frames.shape[2:]
+    out: dict[str, list] = {}
+    for lo in range(0, len(frames), chunk):
+        f = torch.from_numpy(frames[lo:lo + chunk]).contiguous(memory_format=torch.channels_last)
+        c = torch.from_numpy(commands[lo:lo + chunk, :n_in + 1])
+        with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=pred.precision == "bf16"):
+            parts = {k: v[:, 0].float() for k, v in net.parts(f, c, 1).items()}
+            ir, ia, _ = net.sources(c, n_in, 1)
+        parts["outside"] = ((ir < -0.5) | (ir > R - 0.5) | (ia < -0.5) | (ia > A - 0.5))[:, 0, -1].float()
+        for k, v in parts.items():
+            out.setdefault(k, []).append(v.numpy())
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--models", default="flow,echopt:pretrained,pretrained")
     ap.add_argument("--datasets", default="corridor,orchard", help="protocol v1 datasets (names as in its tables)")
     ap.add_argument("--edge", type=float, default=8.0, help="degrees at each side of the view counted as its edge")
     ap.add_argument("--precision", default="auto")
+    ap.add_argument("--parts", action="store_true", help="also EchoWarp's terms at the target echoes (EchoWarp last)")
     args = ap.parse_args()
     protocol, matching = PROTOCOL_V1, EchoMatching()
     specs = method_specs(args.models.split(","), protocol.reference)
@@ -128,6 +150,20 @@ def main() -> None:
                          f"{np.median(matching.level - mine[dim]) if dim.any() else 0:.2f}), {other}'s "
                          f"{np.median(theirs):.2f}; median range {np.median(t.range_m[lost]):.2f} m")
             print(line)
+        net = getattr(getattr(preds[specs[-1]], "predictor", None), "model", None)
+        if args.parts and callable(getattr(net, "parts", None)):
+            terms = echowarp_parts(preds[specs[-1]], b.frames, b.commands)
+            at = {k: v[t.image, ri, ai] for k, v in terms.items() if v.ndim == 3}
+            at["shift"] = np.hypot(*terms["shift"][t.image, :, ri, ai].T) if "shift" in terms else np.zeros(len(ri))
+            at["target"], at["forecast"] = target[t.image, ri, ai], forecasts[last][t.image, ri, ai]
+            cols = [k for k in ("target", "composite", "warp", "older", "source", "forecast", "shift", "outside") if k in at]
+            print(f"\n{last}'s terms at the target echoes' pixels (means; shift in pixels, outside: the share whose "
+                  "source lies outside the view)\n\n| echoes | n | " + " | ".join(cols) + " |\n" + "|---" * (len(cols) + 2) + "|")
+            for band, sel in (("edge", edge), ("interior", ~edge)):
+                for state, mask in (("found", hit[last]), ("missed", ~hit[last])):
+                    if (sel & mask).any():
+                        print(f"| {band}, {state} | {(sel & mask).sum()} | "
+                              + " | ".join(f"{at[k][sel & mask].mean():+.3f}" for k in cols) + " |")
 
 
 if __name__ == "__main__":

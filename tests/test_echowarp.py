@@ -217,3 +217,21 @@ def test_its_inputs_are_cast_once_to_autocasts_dtype_with_the_same_values():
     assert captured["x"].is_contiguous(memory_format=torch.channels_last)
     assert torch.equal(captured["x"], x32.to(torch.bfloat16))  # the cast every convolution made of it before
     assert plain.dtype == torch.float32
+
+
+def test_its_forecast_is_the_sum_of_its_parts():
+    model = _trained_like(_model())
+    frames, commands = _window(k=3)
+    with torch.no_grad():
+        parts = model.parts(frames, commands, 3)
+        assert set(parts) == {"source", "warp", "older", "composite", "shift"}
+        assert parts["shift"].shape == (3, 3, 2, *GRID.shape) and parts["shift"].abs().max() <= model.cfg.max_shift
+        assert torch.equal(model.forecast(frames, commands, 3), parts["source"] + parts["warp"] + parts["older"])
+        # the composite part is the untrained model's whole forecast: the last frame warped once
+        plain = _model().forecast(frames, commands, 3)
+        torch.testing.assert_close(parts["composite"], plain, atol=1e-6, rtol=0)
+        # without the correction the warp is the composite one, and the terms still sum to the forecast
+        bare = _trained_like(_model(max_shift=0, older_frames=0))
+        p0 = bare.parts(frames, commands, 3)
+        assert set(p0) == {"source", "warp", "composite"} and torch.equal(p0["warp"], p0["composite"])
+        assert torch.equal(bare.forecast(frames, commands, 3), p0["source"] + p0["warp"])

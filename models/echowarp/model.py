@@ -124,6 +124,19 @@ class EchoWarp(ZooModel):
     def forward(self, frames: torch.Tensor, commands: torch.Tensor, k: int | None = None) -> torch.Tensor:
         """frames (B, n_in, R, A), commands (B, n_in + 1, 2) -> the next frame (B, R, A); with ``k``,
         commands (B, n_in + k, 2) -> the next k frames (B, k, R, A)."""
+        parts = self.parts(frames, commands, k)
+        pred = parts["source"] + parts["warp"]
+        if "older" in parts:
+            pred = pred + parts["older"]
+        return pred[:, 0] if k is None else pred
+
+    def parts(self, frames: torch.Tensor, commands: torch.Tensor, k: int | None = None) -> dict[str, torch.Tensor]:
+        """The terms the forecast sums, each (B, steps, R, A) in float32: ``source`` (the additive
+        source term), ``warp`` (the last frame through the corrected warp, or with ``max_shift`` 0 the
+        composite warp), ``older`` (the gated older registered frames, where ``older_frames``), and
+        for diagnosis ``composite`` (the last frame through the composite warp alone) and, where
+        the warp is corrected, ``shift`` (B, steps, 2, R, A): the correction in range and azimuth
+        pixels."""
         cfg = self.cfg
         steps, n_in = self.forecast_steps(commands, k), cfg.n_in
         self._check_frames(frames)
@@ -141,16 +154,17 @@ class EchoWarp(ZooModel):
             y = up(y, skip)
         # one plane per output, each read whole below (a channels-last slice is strided: tanh was 3x slower)
         out = self.head(self.full_resolution(y, x)).to(torch.float32, memory_format=torch.contiguous_format)
-        pred = out[:, n_in + 1]  # the source term
+        composite = registered[:, -1].float()
+        parts = {"source": out[:, n_in + 1], "composite": composite}
         if cfg.max_shift:  # the last frame through the corrected warp
             shift = torch.tanh(out[:, :2]) * cfg.max_shift
-            pred = pred + self.sample(slots[:, -1:], ir[:, -1:] + shift[:, :1], ia[:, -1:] + shift[:, 1:2])[:, 0]
+            parts["warp"] = self.sample(slots[:, -1:], ir[:, -1:] + shift[:, :1], ia[:, -1:] + shift[:, 1:2])[:, 0]
+            parts["shift"] = shift
         else:  # through the composite warp alone: the correction is an intensity residual
-            pred = pred + registered[:, -1].float()
+            parts["warp"] = composite
         if cfg.older_frames:
-            pred = pred + (out[:, 2:n_in + 1] * registered[:, :-1].float()).sum(1)
-        pred = pred.reshape(B, steps, R, A)
-        return pred[:, 0] if k is None else pred
+            parts["older"] = (out[:, 2:n_in + 1] * registered[:, :-1].float()).sum(1)
+        return {name: v.reshape(B, steps, *v.shape[1:]) for name, v in parts.items()}
 
     def full_resolution(self, y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """``self.full`` on ``y`` resized to the grid of the inputs ``x``, concatenated with them.
