@@ -15,7 +15,8 @@ the last model misses and another finds; and at those at the edge, the brightest
 forecast within the echo term's window (``tolerance_bins``): how far below the echo level a missed
 echo is drawn. "New" echoes have no echo within the tolerance in the last frame. With ``--parts``
 and EchoWarp last, it also prints the terms its forecast sums (``EchoWarp.parts``) at the target
-echoes' pixels, by band and by whether EchoWarp found them.
+echoes' pixels, by band and by whether EchoWarp found them, and the effect of a knock-out: the
+forecast with the composite warp in place of the corrected one within the edge band.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from sonarset.models.benchmark.run import method_specs
 from sonarset.models.benchmark.stores import cache_dir, ensure_store
 from sonarset.models.eval.evaluate import baseline_rig, window_frames
 from sonarset.models.registry import make_predictor
-from sonarset.scoring.echoes import EchoMatching, Peaks, find_echoes, tolerance_bins
+from sonarset.scoring.echoes import EchoMatching, Peaks, echo_scores, find_echoes, tolerance_bins
 from sonarset.windows import FrameBank, WindowBatcher, WindowIndex
 
 
@@ -164,6 +165,21 @@ def main() -> None:
                     if (sel & mask).any():
                         print(f"| {band}, {state} | {(sel & mask).sum()} | "
                               + " | ".join(f"{at[k][sel & mask].mean():+.3f}" for k in cols) + " |")
+            if "shift" in terms:  # a knock-out: the composite warp instead of the corrected one at the edge
+                azimuth = np.linspace(lo, hi, grid.n_azimuth + 1)
+                band_px = at_edge((azimuth[:-1] + azimuth[1:]) / 2)
+                ko = forecasts[last] + np.where(band_px, terms["composite"] - terms["warp"], 0)
+                f_ko = find_echoes(ko, grid, matching)
+                hit_ko = found(f_ko, t.image, t.range_m, t.azimuth_deg, matching)
+                at_e = at_edge(f_ko.azimuth_deg)
+                false_ko = 1 - found(t, f_ko.image[at_e], f_ko.range_m[at_e], f_ko.azimuth_deg[at_e], matching).mean()
+                f1 = {name: np.nanmean(echo_scores(v, target, grid, matching, t)["echo_f1"])
+                      for name, v in ((last, forecasts[last]), ("knock-out", ko))}
+                print(f"\nWith the correction knocked out within {args.edge:g} deg of the edges (the composite warp "
+                      f"there): edge recall {hit[last][edge].mean():.3f} -> {hit_ko[edge].mean():.3f}, interior "
+                      f"{hit[last][~edge].mean():.3f} -> {hit_ko[~edge].mean():.3f}; false share of the edge's forecast "
+                      f"echoes -> {false_ko:.3f} of {at_e.sum()}; the protocol's one-shot echo F1 (mean) "
+                      f"{f1[last]:.4f} -> {f1['knock-out']:.4f}")
 
 
 if __name__ == "__main__":
