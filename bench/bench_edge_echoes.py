@@ -15,8 +15,9 @@ the last model misses and another finds; and at those at the edge, the brightest
 forecast within the echo term's window (``tolerance_bins``): how far below the echo level a missed
 echo is drawn. "New" echoes have no echo within the tolerance in the last frame. With ``--parts``
 and EchoWarp last, it also prints the terms its forecast sums (``EchoWarp.parts``) at the target
-echoes' pixels, by band and by whether EchoWarp found them, and the effect of a knock-out: the
-forecast with the composite warp in place of the corrected one within the edge band.
+echoes' pixels, by band and by whether EchoWarp found them (the terms unclamped, from a pass of
+its network apart from the rollout's), and a knock-out: the forecast, clamped to [0, 1] as the
+rollout's is, with the composite warp in place of the corrected one within the edge band.
 """
 
 from __future__ import annotations
@@ -168,19 +169,23 @@ def main() -> None:
             if "shift" in terms:  # a knock-out: the composite warp instead of the corrected one at the edge
                 azimuth = np.linspace(lo, hi, grid.n_azimuth + 1)
                 band_px = at_edge((azimuth[:-1] + azimuth[1:]) / 2)
-                ko = forecasts[last] + np.where(band_px, terms["composite"] - terms["warp"], 0)
-                f_ko = find_echoes(ko, grid, matching)
-                hit_ko = found(f_ko, t.image, t.range_m, t.azimuth_deg, matching)
-                at_e = at_edge(f_ko.azimuth_deg)
-                false_ko = 1 - found(t, f_ko.image[at_e], f_ko.range_m[at_e], f_ko.azimuth_deg[at_e], matching).mean()
-                f1 = {name: np.nanmean(echo_scores(v, target, grid, matching, t)["echo_f1"])
-                      for name, v in ((last, forecasts[last]), ("knock-out", ko))}
-                print(f"\nWith the correction knocked out within {args.edge:g} deg of the edges (the composite warp "
-                      f"there): edge recall {hit[last][edge].mean():.3f} -> {hit_ko[edge].mean():.3f}, interior "
-                      f"{hit[last][~edge].mean():.3f} -> {hit_ko[~edge].mean():.3f}; false share of the edge's forecast "
-                      f"echoes -> {false_ko:.3f} of {at_e.sum()}; the protocol's one-shot echo F1 (mean) "
-                      f"{f1[last]:.4f} -> {f1['knock-out']:.4f}")
-
+                rest = terms["source"] + terms.get("older", 0)
+                variants = {"as trained": np.clip(rest + terms["warp"], 0, 1),  # clamped, as the predictor's rollout
+                            "knock-out": np.clip(rest + np.where(band_px, terms["composite"], terms["warp"]), 0, 1)}
+                print(f"\nA knock-out: the composite warp in place of the corrected one within {args.edge:g} deg of the "
+                      f"edges, from the same pass of the network (which matches the rollout's forecasts to "
+                      f"{np.abs(variants['as trained'] - forecasts[last]).max():.1e})\n\n| {last} | edge recall | interior "
+                      "recall | false share of the edge's forecast echoes | one-shot echo F1 (mean) |\n|---|---|---|---|---|")
+                for name, v in variants.items():
+                    f_v = find_echoes(v, grid, matching)
+                    hit_v = found(f_v, t.image, t.range_m, t.azimuth_deg, matching)
+                    at_e = at_edge(f_v.azimuth_deg)
+                    false_v = 1 - found(t, f_v.image[at_e], f_v.range_m[at_e], f_v.azimuth_deg[at_e], matching).mean()
+                    f1 = np.nanmean(echo_scores(v, target, grid, matching, t)["echo_f1"])
+                    print(f"| {name} | {hit_v[edge].mean():.3f} | {hit_v[~edge].mean():.3f} | {false_v:.3f} of "
+                          f"{at_e.sum()} | {f1:.4f} |")
+        elif args.parts:
+            print(f"\n--parts: the last model, {last}, has no parts (EchoWarp's)")
 
 if __name__ == "__main__":
     main()

@@ -221,12 +221,22 @@ def test_its_inputs_are_cast_once_to_autocasts_dtype_with_the_same_values():
 
 def test_its_forecast_is_the_sum_of_its_parts():
     model = _trained_like(_model())
-    frames, commands = _window(k=3)
+    frames, commands = _window(b=2, k=3)
     with torch.no_grad():
         parts = model.parts(frames, commands, 3)
         assert set(parts) == {"source", "warp", "older", "composite", "shift"}
-        assert parts["shift"].shape == (3, 3, 2, *GRID.shape) and parts["shift"].abs().max() <= model.cfg.max_shift
+        assert parts["shift"].shape == (2, 3, 2, *GRID.shape)
         assert torch.equal(model.forecast(frames, commands, 3), parts["source"] + parts["warp"] + parts["older"])
+        # each window's and horizon's terms in their place: the first horizon's are the one-step pass's
+        one = model.parts(frames, commands[:, :4], 1)
+        for name, v in parts.items():
+            torch.testing.assert_close(v[:, :1], one[name], atol=1e-5, rtol=1e-5)
+        # the corrected warp is the last frame sampled where the correction moves each source pixel
+        ir, ia, _ = model.sources(commands, 3, 3)
+        shift = parts["shift"]
+        for h in range(3):
+            expected = model.sample(frames[:, -1:], ir[:, h, -1:] + shift[:, h, :1], ia[:, h, -1:] + shift[:, h, 1:2])[:, 0]
+            torch.testing.assert_close(parts["warp"][:, h], expected, atol=1e-6, rtol=0)
         # the composite part is the untrained model's whole forecast: the last frame warped once
         plain = _model().forecast(frames, commands, 3)
         torch.testing.assert_close(parts["composite"], plain, atol=1e-6, rtol=0)
