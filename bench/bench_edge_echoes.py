@@ -63,7 +63,7 @@ def echowarp_parts(pred, frames: np.ndarray, commands: np.ndarray, chunk: int = 
     """EchoWarp's one-step terms (``EchoWarp.parts``) for every window, in the predictor's precision,
     with ``outside``: whether each pixel's source in the last frame lies outside the view."""
     net = pred.predictor.model
-    n_in, (R, A) = frames.shape[1], frames.shape[2:]
+    n_in = frames.shape[1]
     out: dict[str, list] = {}
     for lo in range(0, len(frames), chunk):
         f = torch.from_numpy(frames[lo:lo + chunk]).contiguous(memory_format=torch.channels_last)
@@ -71,7 +71,7 @@ def echowarp_parts(pred, frames: np.ndarray, commands: np.ndarray, chunk: int = 
         with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=pred.precision == "bf16"):
             parts = {k: v[:, 0].float() for k, v in net.parts(f, c, 1).items()}
             ir, ia, _ = net.sources(c, n_in, 1)
-        parts["outside"] = ((ir < -0.5) | (ir > R - 0.5) | (ia < -0.5) | (ia > A - 0.5))[:, 0, -1].float()
+        parts["outside"] = net.outside_view(ir, ia)[:, 0, -1].float()
         for k, v in parts.items():
             out.setdefault(k, []).append(v.numpy())
     return {k: np.concatenate(v) for k, v in out.items()}

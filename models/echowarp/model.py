@@ -229,13 +229,18 @@ class EchoWarp(ZooModel):
                             padding_mode=self.cfg.outside, align_corners=True)
         return out.reshape(N, C, R, A)
 
+    def outside_view(self, ir: torch.Tensor, ia: torch.Tensor) -> torch.Tensor:
+        """Whether each source pixel index (``ir``, ``ia``, as ``sources`` gives them) lies outside the view."""
+        R, A = self.cfg.n_range, self.cfg.n_azimuth
+        return (ir < -0.5) | (ir > R - 0.5) | (ia < -0.5) | (ia > A - 0.5)
+
     def features(self, registered: torch.Tensor, ir: torch.Tensor, ia: torch.Tensor, motion: torch.Tensor,
                  steps: int) -> torch.Tensor:
         """A slot's per-pixel inputs (N, n_features, R, A), channels-last (``n_features``), in
         autocast's dtype where it is on."""
         cfg = self.cfg
         N, n_in, R, A = registered.shape
-        outside = ((ir < -0.5) | (ir > R - 0.5) | (ia < -0.5) | (ia > A - 0.5)).float()
+        outside = self.outside_view(ir, ia).float()
         r_idx = torch.arange(R, device=ir.device, dtype=ir.dtype)[:, None]
         a_idx = torch.arange(A, device=ir.device, dtype=ir.dtype)[None, :]
         shift = torch.stack([ir - r_idx, ia - a_idx], 1).clamp(-2 * SHIFT_SCALE, 2 * SHIFT_SCALE) / SHIFT_SCALE
