@@ -8,7 +8,8 @@ from sonarset.errors import SonarSetError
 from sonarset.models.echopt.losses import (ECHO_MARGIN, LOSSES, brightest_near, echo_energy_loss, echo_match_loss,
                                          image_loss, nrmsd_loss, parse_loss, window_max,
                                          capped_nrmsd_loss, floored_nrmsd_loss, pooled_nrmsd_loss,
-                                         rollout_losses, step_weights, value_distribution_loss, weighted_loss)
+                                         rollout_losses, sorted_rows, step_weights, value_distribution_loss,
+                                         weighted_loss)
 from sonarset.format.attrs import SensorGrid
 from sonarset.scoring.echoes import find_echoes, tolerance_bins
 from sonarset.scoring.metrics import nrmsd
@@ -50,6 +51,26 @@ def test_value_distribution_loss_is_a_distance_per_image():
     batch = value_distribution_loss(torch.cat([a, b]), torch.cat([b, a]))
     assert batch.item() == pytest.approx(value_distribution_loss(a, b).item())  # symmetric, averaged
     assert value_distribution_loss(a, a).item() == 0.0
+
+
+def test_sorted_rows_are_torch_sort_values_with_their_gradient():
+    g = torch.Generator().manual_seed(3)
+    # negative values, exact ties (zeros, repeated values) and a signed zero, as forecasts hold them
+    x = (torch.rand((6, 500), generator=g) - 0.3) * (torch.rand((6, 500), generator=g) > 0.4)
+    x[0, :40] = 0.25
+    x[1, 7] = -0.0
+    target = torch.rand((6, 500), generator=g) * (torch.rand((6, 500), generator=g) > 0.7)
+    assert torch.equal(sorted_rows(target), target.sort(dim=1).values)
+    a, b = x.clone().requires_grad_(), x.clone().requires_grad_()
+    sa, sb = sorted_rows(a), b.sort(dim=1).values
+    assert torch.equal(sa, sb)
+    (sa - sorted_rows(target)).abs().mean().backward()
+    (sb - target.sort(dim=1).values).abs().mean().backward()
+    # a tie's members may trade places, not the gradient each value receives in all
+    assert torch.equal(a.grad.sort(dim=1).values, b.grad.sort(dim=1).values)
+    assert torch.allclose(a.grad.sum(1), b.grad.sum(1))
+    # where NumPy cannot sort it (another dtype), torch does
+    assert torch.equal(sorted_rows(x.double()), x.double().sort(dim=1).values)
 
 
 def test_echo_energy_loss_sees_fading_not_position_and_never_lifts_the_background():

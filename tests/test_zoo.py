@@ -175,6 +175,25 @@ def test_a_checkpoint_answers_to_its_own_kind_only(store, tmp_path):
     assert shipped.name == "echopt" and shipped.label == "echopt-small" and "model" not in shipped.card
 
 
+def test_cat_channels_is_torch_cat_and_keeps_channels_last():
+    from sonarset.models.zoo.common import cat_channels
+
+    g = torch.Generator().manual_seed(2)
+    a, b = (torch.rand((2, c, 5, 3), generator=g, dtype=torch.bfloat16) for c in (3, 4))
+    last = [t.contiguous(memory_format=torch.channels_last) for t in (a, b)]
+    out = cat_channels(last)
+    assert torch.equal(out, torch.cat([a, b], 1)) and out.is_contiguous(memory_format=torch.channels_last)
+    # any other layout: torch.cat as it is
+    mixed = cat_channels([last[0], b])
+    assert torch.equal(mixed, torch.cat([a, b], 1))
+    # the gradient reaches each part as through torch.cat
+    x = last[0].float().requires_grad_()
+    cat_channels([x, last[1].float()]).sum(1).square().sum().backward()
+    y = a.float().requires_grad_()
+    torch.cat([y, b.float()], 1).sum(1).square().sum().backward()
+    assert torch.equal(x.grad, y.grad)
+
+
 def test_up_hands_its_resize_a_dense_gradient_of_the_same_values(monkeypatch):
     from sonarset.models.zoo.common import Up
 

@@ -46,7 +46,30 @@ def value_distribution_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.T
     dimmer one, and so has too many middling pixels and too few bright ones. Penalising that keeps a
     rollout's peak and echo energy, which is what fades otherwise.
     """
-    return (pred.flatten(1).sort(dim=1).values - target.flatten(1).sort(dim=1).values).abs().mean()
+    return (sorted_rows(pred.flatten(1)) - sorted_rows(target.flatten(1))).abs().mean()
+
+
+def sorted_rows(x: torch.Tensor) -> torch.Tensor:
+    """Each row of ``x`` (N, n) sorted ascending; differentiable (the gradient reaches each value where
+    it came from), as ``x.sort(dim=1).values``.
+
+    On a CPU, NumPy sorts: its vectorised sort (x86-simd-sort) is 10x faster than torch's on rows
+    of an image's 18,000 pixels. A row that needs a gradient is sorted by a 64-bit key, the value's
+    order-preserving bits above its index, so that one sort gives the permutation to gather the
+    values with (ties in index order): 2x faster than ``torch.sort`` on two threads, 6x on one."""
+    if x.device.type != "cpu" or x.dtype != torch.float32 or x.dim() != 2 or x.shape[1] >= 2 ** 32:
+        return x.sort(dim=1).values
+    values = x.detach().contiguous().numpy()
+    if not x.requires_grad:
+        return torch.from_numpy(np.sort(values, axis=1))
+    bits = values.view(np.int32)
+    keys = np.empty((*values.shape, 2), np.uint32)  # (index, key) pairs: one little-endian uint64 each
+    # a float's bits as an unsigned key in the float's order: a positive one's sign bit set, a
+    # negative one's every bit flipped
+    np.bitwise_xor(bits, (bits >> 31) | np.int32(-2 ** 31), out=keys[..., 1].view(np.int32))
+    keys[..., 0] = np.arange(values.shape[1], dtype=np.uint32)
+    keys.view(np.uint64)[..., 0].sort(axis=1)
+    return x.gather(1, torch.from_numpy(keys[..., 0].astype(np.int64)))
 
 
 def echo_energy_loss(pred: torch.Tensor, target: torch.Tensor, floor: float = ECHO_FLOOR) -> torch.Tensor:
