@@ -245,3 +245,32 @@ def test_its_forecast_is_the_sum_of_its_parts():
         p0 = bare.parts(frames, commands, 3)
         assert set(p0) == {"source", "warp", "composite"} and torch.equal(p0["warp"], p0["composite"])
         assert torch.equal(bare.forecast(frames, commands, 3), p0["source"] + p0["warp"])
+
+
+def test_a_fine_tune_grows_it_wider_with_the_same_function():
+    """``init`` of a narrower EchoWarp than the run's preset widens its U-Net (Net2WiderNet): the
+    wider model forecasts what the narrow one did; the copied channels part ways in training (their
+    gradients differ); a narrower or differently deep U-Net is refused."""
+    from types import SimpleNamespace
+
+    from sonarset.errors import SonarSetError
+    from sonarset.models.echopt.card_images import card_processing
+    from sonarset.models.echopt.train_model import init_from
+
+    narrow = _trained_like(_model())
+    wide = _model(channels=(7, 13))
+    card = {"processing": None}
+    store = SimpleNamespace(processing=card_processing(card))
+    init_from(wide, "leg", narrow, card, store)
+    frames, commands = _window(k=4)
+    with torch.no_grad():
+        a, b = narrow.forecast(frames, commands, 4), wide.forecast(frames, commands, 4)
+    assert a.abs().max() > 0.1 and (a - b).abs().max() < 1e-5 * a.abs().max()
+    # channel 4 of the first layer is a copy of one of its first 4, which it no longer follows once trained
+    first = wide.down[0][0][0].weight
+    twin = next(c for c in range(4) if torch.equal(first[4], first[c]))
+    wide.forecast(frames, commands, 4).square().sum().backward()
+    assert not torch.allclose(first.grad[4], first.grad[twin])
+    for channels in ((3, 8), (4, 8, 16)):
+        with pytest.raises(SonarSetError, match="another network"):
+            init_from(_model(channels=channels), "leg", narrow, card, store)

@@ -17,16 +17,27 @@ from sonarset.models.echopt.networks import TITLES, build, preset_refusal
 from sonarset.models.echopt.train_config import TrainConfig
 
 
+def widenable(model: nn.Module) -> dict:
+    """The config fields a fine-tune of ``model``'s kind may grow, each with its test (old, new config)."""
+    if getattr(model, "kind", None) != "echowarp":
+        return {}
+    from sonarset.models.echowarp.widen import WIDENABLE_FIELDS, can_widen
+
+    return dict.fromkeys(WIDENABLE_FIELDS, can_widen)
+
+
 def init_from(model: nn.Module, spec: str, trained: nn.Module, card: dict, store: SonarStore) -> None:
     """Copy a trained model's weights into ``model``, which must be the same network on the same grid,
     trained on the same images (a fine-tune continues a model; it cannot change what it is, except
     how its inputs are prepared: ``WARM_START_FIELDS``; or add a branch it lacks, which starts at
-    zero: ``ADDABLE_FIELDS``)."""
+    zero: ``ADDABLE_FIELDS``; or, for EchoWarp, widen its U-Net, computing the same function:
+    models/echowarp/widen.py)."""
     from sonarset.models.echopt.card_images import card_processing, describe_images
 
     differ = [k for k in model.cfg.__dataclass_fields__ if getattr(trained.cfg, k) != getattr(model.cfg, k)]
     added = [k for k in differ if k in ADDABLE_FIELDS and not getattr(trained.cfg, k)]
-    if any(k not in WARM_START_FIELDS and k not in added for k in differ):
+    widened = [k for k in differ if k in widenable(model) and widenable(model)[k](trained.cfg, model.cfg)]
+    if any(k not in WARM_START_FIELDS and k not in added and k not in widened for k in differ):
         diff = ", ".join(f"{k}: {getattr(trained.cfg, k)!r} vs {getattr(model.cfg, k)!r}" for k in differ)
         raise SonarSetError(f"init {spec}: another network than this preset and prior make here ({diff})",
                             parameter="init")
@@ -38,6 +49,11 @@ def init_from(model: nn.Module, spec: str, trained: nn.Module, card: dict, store
                        "import's metadata and import them again; else train from scratch")
         raise SonarSetError(f"init {spec}: trained on {describe_images(trained_on)}, {store.location} has "
                             f"{describe_images(store.processing)}; {way_out}", parameter="init")
+    if widened:  # the same function in a wider network (models/echowarp/widen.py)
+        from sonarset.models.echowarp.widen import widen_into
+
+        widen_into(model, trained, seed=torch.initial_seed())
+        return
     missing, unexpected = model.load_state_dict(trained.state_dict(), strict=not added)
     if unexpected or any(not k.startswith(GEOMETRY_PREFIX) for k in missing):  # only the added branch may be new
         raise SonarSetError(f"init {spec}: its weights do not fit this network ({', '.join(unexpected + missing)})",

@@ -79,6 +79,9 @@ PRESETS: dict[str, dict] = {
     # 0.43 M parameters; 0.99 GFLOP per horizon forward on the default grid (bench/bench_train.py)
     "small": {},
     "tiny": dict(channels=(4, 8), full_channels=4, max_horizon=4),
+    # small with its U-Net 1.5x wider (0.96 M parameters, 2.1x the FLOPs): grown from a trained
+    # small by ``init`` (models/echowarp/widen.py), to see whether small's plateau is its capacity
+    "wide": dict(channels=(48, 96, 192)),
     # the ablation (recipes/echowarp/ablation/): small without one part each
     "small-no-correction": dict(max_shift=0),  # the network's output is an intensity residual on the warp
     "small-last-frame": dict(older_frames=0),  # the older registered frames are inputs only
