@@ -274,3 +274,10 @@ def test_a_fine_tune_grows_it_wider_with_the_same_function():
     for channels in ((3, 8), (4, 8, 16)):
         with pytest.raises(SonarSetError, match="another network"):
             init_from(_model(channels=channels), "leg", narrow, card, store)
+    # three levels: each Up reads its own level's skip
+    deep = _trained_like(_model(channels=(4, 8, 16)))
+    deeper = _model(channels=(6, 11, 20))
+    init_from(deeper, "leg", deep, card, store)
+    with torch.no_grad():
+        a, b = deep.forecast(frames, commands, 4), deeper.forecast(frames, commands, 4)
+    assert a.abs().max() > 0.1 and (a - b).abs().max() < 1e-5 * a.abs().max()

@@ -71,6 +71,12 @@ def test_sorted_rows_are_torch_sort_values_with_their_gradient():
     assert torch.allclose(a.grad.sum(1), b.grad.sum(1))
     # where NumPy cannot sort it (another dtype), torch does
     assert torch.equal(sorted_rows(x.double()), x.double().sort(dim=1).values)
+    # a NaN sorts last, whatever its sign bit (arithmetic's NaN, inf - inf, has it set on x86)
+    nan = torch.tensor([[1.0, float("inf") - float("inf"), -1.0]], requires_grad=True)
+    assert torch.equal(sorted_rows(nan)[:, :2], torch.tensor([[-1.0, 1.0]])) and sorted_rows(nan)[0, 2].isnan()
+    # a strided view sorts as its values do
+    view = x.t().contiguous().t()
+    assert torch.equal(sorted_rows(view.requires_grad_()), x.sort(dim=1).values)
 
 
 def test_echo_energy_loss_sees_fading_not_position_and_never_lifts_the_background():

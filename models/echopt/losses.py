@@ -3,6 +3,8 @@ unrolled loss over a rollout that training minimises and validation reports."""
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -56,16 +58,21 @@ def sorted_rows(x: torch.Tensor) -> torch.Tensor:
     On a CPU, NumPy sorts: its vectorised sort (x86-simd-sort) is 10x faster than torch's on rows
     of an image's 18,000 pixels. A row that needs a gradient is sorted by a 64-bit key, the value's
     order-preserving bits above its index, so that one sort gives the permutation to gather the
-    values with (ties in index order): 2x faster than ``torch.sort`` on two threads, 6x on one."""
-    if x.device.type != "cpu" or x.dtype != torch.float32 or x.dim() != 2 or x.shape[1] >= 2 ** 32:
+    values with (ties in index order): 1.6x faster than ``torch.sort`` on two threads, 5x on one.
+    NaNs (which the keys would order by their sign bit) and big-endian machines (where the key would
+    not be the high half) go to ``torch.sort``."""
+    if (x.device.type != "cpu" or x.dtype != torch.float32 or x.dim() != 2 or x.shape[1] >= 2 ** 32
+            or sys.byteorder != "little"):
         return x.sort(dim=1).values
     values = x.detach().contiguous().numpy()
     if not x.requires_grad:
         return torch.from_numpy(np.sort(values, axis=1))
+    if np.isnan(values).any():
+        return x.sort(dim=1).values
     bits = values.view(np.int32)
     keys = np.empty((*values.shape, 2), np.uint32)  # (index, key) pairs: one little-endian uint64 each
-    # a float's bits as an unsigned key in the float's order: a positive one's sign bit set, a
-    # negative one's every bit flipped
+    # unsigned integers compare as the floats do once a positive float's sign bit is set and a
+    # negative one's every bit is flipped (larger magnitudes are then smaller keys)
     np.bitwise_xor(bits, (bits >> 31) | np.int32(-2 ** 31), out=keys[..., 1].view(np.int32))
     keys[..., 0] = np.arange(values.shape[1], dtype=np.uint32)
     keys.view(np.uint64)[..., 0].sort(axis=1)

@@ -36,7 +36,8 @@ def init_from(model: nn.Module, spec: str, trained: nn.Module, card: dict, store
 
     differ = [k for k in model.cfg.__dataclass_fields__ if getattr(trained.cfg, k) != getattr(model.cfg, k)]
     added = [k for k in differ if k in ADDABLE_FIELDS and not getattr(trained.cfg, k)]
-    widened = [k for k in differ if k in widenable(model) and widenable(model)[k](trained.cfg, model.cfg)]
+    growable = widenable(model)
+    widened = [k for k in differ if k in growable and growable[k](trained.cfg, model.cfg)]
     if any(k not in WARM_START_FIELDS and k not in added and k not in widened for k in differ):
         diff = ", ".join(f"{k}: {getattr(trained.cfg, k)!r} vs {getattr(model.cfg, k)!r}" for k in differ)
         raise SonarSetError(f"init {spec}: another network than this preset and prior make here ({diff})",
@@ -49,10 +50,17 @@ def init_from(model: nn.Module, spec: str, trained: nn.Module, card: dict, store
                        "import's metadata and import them again; else train from scratch")
         raise SonarSetError(f"init {spec}: trained on {describe_images(trained_on)}, {store.location} has "
                             f"{describe_images(store.processing)}; {way_out}", parameter="init")
-    if widened:  # the same function in a wider network (models/echowarp/widen.py)
+    if widened:
         from sonarset.models.echowarp.widen import widen_into
 
-        widen_into(model, trained, seed=torch.initial_seed())
+        if set(trained.state_dict()) != set(model.state_dict()):  # widening changes shapes, never names
+            raise SonarSetError(f"init {spec}: its weights do not fit this network "
+                                f"({', '.join(sorted(set(trained.state_dict()) ^ set(model.state_dict())))})",
+                                parameter="init")
+        try:
+            widen_into(model, trained, seed=torch.initial_seed())
+        except (RuntimeError, ValueError) as exc:
+            raise SonarSetError(f"init {spec}: cannot widen it into this network ({exc})", parameter="init") from None
         return
     missing, unexpected = model.load_state_dict(trained.state_dict(), strict=not added)
     if unexpected or any(not k.startswith(GEOMETRY_PREFIX) for k in missing):  # only the added branch may be new

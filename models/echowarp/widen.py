@@ -45,6 +45,7 @@ def widen_into(wide: nn.Module, narrow: nn.Module, seed: int = 0) -> None:
     """Write ``narrow``'s weights, widened, into ``wide`` (an EchoWarp of the same config but for wider
     ``channels``), so that ``wide`` computes ``narrow``'s function."""
     g = torch.Generator().manual_seed(seed)
+    written: set[int] = set()
     n_in_features = narrow.down[0][0][0].in_channels
     identity = torch.arange(n_in_features)
 
@@ -68,6 +69,7 @@ def widen_into(wide: nn.Module, narrow: nn.Module, seed: int = 0) -> None:
         rows = out if out is not None else torch.arange(old.out_channels)
         new.weight.copy_(w[rows].to(new.weight.dtype))
         new.bias.copy_(old.bias[rows])
+        written.update((id(new.weight), id(new.bias)))
 
     plain = (identity, torch.ones(n_in_features, dtype=torch.float64))
     skips, current = [], plain
@@ -86,3 +88,8 @@ def widen_into(wide: nn.Module, narrow: nn.Module, seed: int = 0) -> None:
     copy(wide.full[0][0], narrow.full[0][0], inputs(current, plain), None)
     wide.full[1].load_state_dict(narrow.full[1].state_dict())
     wide.head.load_state_dict(narrow.head.state_dict())
+    written.update(id(p) for p in (*wide.full[1].parameters(), *wide.head.parameters()))
+    # a parameter this function does not know (a part added to EchoWarp later) would stay random
+    left = [name for name, p in wide.named_parameters() if id(p) not in written]
+    if left:
+        raise ValueError(f"widening does not know the parameters {', '.join(left)}")
