@@ -18,7 +18,7 @@ from scipy import ndimage
 from sonarset.format.attrs import RobotRig, SensorGrid
 from sonarset.windows import N_IN
 
-from sonarset.models.flow import arc_motion, source_points
+from sonarset.models.flow import arc_motion, sampling_grid, source_points
 from sonarset.models.predictor import BasePredictor, Predictor, rollout  # noqa: F401 (re-exported)
 
 
@@ -42,7 +42,7 @@ def sample_polar(images: np.ndarray, grid: SensorGrid, r_src, th_src, backend: s
         x = (2 * ia / max(A - 1, 1) - 1).expand(B, R, A)
         y = (2 * ir / max(R - 1, 1) - 1).expand(B, R, A)
         img = torch.from_numpy(np.asarray(images, dtype=np.float32))[:, None]
-        out = F.grid_sample(img, torch.stack([x, y], dim=-1), mode="bilinear", padding_mode="border", align_corners=True)
+        out = F.grid_sample(img, sampling_grid(x, y), mode="bilinear", padding_mode="border", align_corners=True)
         return out[:, 0].numpy()
     ir = np.broadcast_to((r_src - grid.range_centres()[0]) / grid.range_step, (B, R, A))
     ia = np.broadcast_to((th_src - grid.azimuth_centres()[0]) / grid.azimuth_step, (B, R, A))

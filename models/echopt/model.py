@@ -36,7 +36,7 @@ import torch.nn.functional as F
 
 from sonarset.errors import GridMismatchError
 from sonarset.models.echopt.config import EchoPTConfig
-from sonarset.models.flow import arc_motion, source_points
+from sonarset.models.flow import arc_motion, sampling_grid, source_points
 
 # Command ranges (m/s, rad/s): inputs are scaled to [-1, 1]. The simulator's limits (RobotRig's
 # defaults) when written, but fixed here, not read from a rig: trained weights expect these scales.
@@ -275,6 +275,6 @@ class EchoPT(nn.Module):
         ir = (r - r_first) / r_step
         ia = (th - th_first) / th_step
         B = image.shape[0]
-        grid = torch.stack([(2 * ia / max(A - 1, 1) - 1).expand(B, R, A), (2 * ir / max(R - 1, 1) - 1).expand(B, R, A)], -1)
+        grid = sampling_grid((2 * ia / max(A - 1, 1) - 1).expand(B, R, A), (2 * ir / max(R - 1, 1) - 1).expand(B, R, A))
         return F.grid_sample(image[:, None].float(), grid.to(image.device), mode="bilinear", padding_mode="border",
                              align_corners=True)[:, 0].to(image.dtype)

@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from sonarset.errors import GridMismatchError
 
 from sonarset.models.echopt.config import ConfigError
-from sonarset.models.flow import arc_motion, source_points
+from sonarset.models.flow import arc_motion, sampling_grid, source_points
 from sonarset.models.zoo.common import ConvAct, Up, ZooConfig, ZooModel, conv, zero_init
 
 #: The protocol's longest horizon (AR-10): a forecast of up to this many steps is one pass.
@@ -227,7 +227,7 @@ class EchoWarp(ZooModel):
         for C images at once; outside the view, the edge's values (the flow's sampling) or zeros
         (``cfg.outside``)."""
         N, C, R, A = images.shape
-        grid = torch.stack([2 * ia / max(A - 1, 1) - 1, 2 * ir / max(R - 1, 1) - 1], -1)
+        grid = sampling_grid(2 * ia / max(A - 1, 1) - 1, 2 * ir / max(R - 1, 1) - 1)
         out = F.grid_sample(images.reshape(N * C, 1, R, A).float(), grid.reshape(N * C, R, A, 2), mode="bilinear",
                             padding_mode=self.cfg.outside, align_corners=True)
         return out.reshape(N, C, R, A)
