@@ -281,3 +281,22 @@ def test_a_fine_tune_grows_it_wider_with_the_same_function():
     with torch.no_grad():
         a, b = deep.forecast(frames, commands, 4), deeper.forecast(frames, commands, 4)
     assert a.abs().max() > 0.1 and (a - b).abs().max() < 1e-5 * a.abs().max()
+
+
+def test_its_sampling_grid_is_the_stacked_grid_values_and_gradients(monkeypatch):
+    import sonarset.models.echowarp.model as echowarp_model
+    from sonarset.models.flow import sampling_grid
+
+    g = torch.Generator().manual_seed(3)
+    x, y = torch.rand((4, 5, 6), generator=g), torch.rand((1, 5, 6), generator=g).expand(4, 5, 6)
+    assert torch.equal(sampling_grid(x, y), torch.stack([x, y], -1))
+    model = _trained_like(_model())
+    frames, commands = _window(k=3)
+    runs = []
+    for grid in (sampling_grid, lambda a, b: torch.stack([a, b], -1)):
+        monkeypatch.setattr(echowarp_model, "sampling_grid", grid)
+        model.zero_grad()
+        pred = model.forecast(frames, commands, 3)
+        (pred * torch.linspace(0, 1, pred.numel()).view_as(pred)).sum().backward()
+        runs.append([pred.detach(), *(p.grad.clone() for p in model.parameters())])
+    assert all(torch.equal(a, b) for a, b in zip(*runs))
