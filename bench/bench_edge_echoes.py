@@ -70,7 +70,7 @@ def echowarp_parts(pred, frames: np.ndarray, commands: np.ndarray, chunk: int = 
         c = torch.from_numpy(commands[lo:lo + chunk, :n_in + 1])
         with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=pred.precision == "bf16"):
             parts = {k: v[:, 0].float() for k, v in net.parts(f, c, 1).items()}
-            ir, ia, _ = net.sources(c, n_in, 1)
+            ir, ia, _ = net.sources(c, n_in, (1,))
         parts["outside"] = net.outside_view(ir, ia)[:, 0, -1].float()
         for k, v in parts.items():
             out.setdefault(k, []).append(v.numpy())

@@ -8,6 +8,11 @@ input frame to the predicted one (docs/conventions.md, "Windows"). Anything with
 - ``rollout(frames, commands, horizon) -> (B, horizon, R, A)`` with n_in + horizon commands, for a
   model that forecasts several steps at once; without one, ``predict`` is chained, each prediction
   fed back as the newest input frame;
+- ``forecast_at(frames, commands, horizons) -> (B, len(horizons), R, A)``, ``horizons`` increasing
+  steps, with n_in + horizons[-1] commands: the rollout's images at those steps only, for a model
+  that forecasts each horizon directly from the measured frames and so need not compute the steps
+  between (EchoWarp); the evaluation asks for its scored horizons. Without one, the rollout's steps
+  are taken;
 - ``card``: the model card of a trained model (a dict) or None. The evaluation compares its
   ``processing`` (absent: 'raw' images), ``rig`` and ``config.dt`` with the store's and notes a
   difference (models/echopt/cards.py);
@@ -106,11 +111,11 @@ class CheckedPredictor:
     """
 
     def __init__(self, predictor, who: str, *, name: str, n_in: int, card: dict | None, precision: str | None,
-                 label: str, any_context: bool, own_rollout: Callable | None):
+                 label: str, any_context: bool, own_rollout: Callable | None, own_forecast_at: Callable | None = None):
         self.predictor, self.who = predictor, who
         self.name, self.n_in, self.card, self.precision = name, n_in, card, precision
         self.label, self.any_context = label, any_context
-        self._own_rollout = own_rollout
+        self._own_rollout, self._own_forecast_at = own_rollout, own_forecast_at
 
     def __repr__(self) -> str:
         return f"CheckedPredictor({self.name!r}, n_in={self.n_in}, of {self.who})"
@@ -130,6 +135,21 @@ class CheckedPredictor:
             return chain_rollout(self.predict, frames, commands, horizon)
         out = self._call("rollout", self._own_rollout, frames, commands, horizon)
         return self._checked(out, (frames.shape[0], horizon, *frames.shape[2:]), "rollout", "(B, horizon, R, A)")
+
+    @property
+    def forecasts_directly(self) -> bool:
+        """It forecasts chosen horizons without the steps between (its own ``forecast_at``)."""
+        return self._own_forecast_at is not None
+
+    def forecast_at(self, frames: np.ndarray, commands: np.ndarray, horizons: tuple[int, ...]) -> np.ndarray:
+        """(B, len(horizons), R, A): the forecasts ``horizons`` (increasing) steps ahead, by the
+        predictor's own ``forecast_at``, else its rollout's steps."""
+        horizons = tuple(horizons)
+        if self._own_forecast_at is None:
+            return self.rollout(frames, commands, horizons[-1])[:, [h - 1 for h in horizons]]
+        out = self._call("forecast_at", self._own_forecast_at, frames, commands, horizons)
+        return self._checked(out, (frames.shape[0], len(horizons), *frames.shape[2:]), "forecast_at",
+                             "(B, len(horizons), R, A)")
 
     def _call(self, what: str, method: Callable, *args):
         """``method(*args)``; an error inside an outside predictor is that predictor's, so it is
@@ -181,6 +201,9 @@ def as_predictor(obj, spec: str | None = None) -> CheckedPredictor:
     method = getattr(obj, "rollout", None)
     if method is not None and not callable(method):
         problems.append("its rollout is not a method rollout(frames, commands, horizon)")
+    forecast_at = getattr(obj, "forecast_at", None)
+    if forecast_at is not None and not callable(forecast_at):
+        problems.append("its forecast_at is not a method forecast_at(frames, commands, horizons)")
     card = getattr(obj, "card", None)
     if card is not None and not isinstance(card, dict):
         problems.append(f"its card is a {type(card).__name__}, not a dict or None")
@@ -200,4 +223,4 @@ def as_predictor(obj, spec: str | None = None) -> CheckedPredictor:
     inherited = getattr(method, "__func__", None) is BasePredictor.rollout
     return CheckedPredictor(obj, who, name=name, n_in=int(n_in), card=card, precision=precision,
                             label=label or name, any_context=bool(any_context),
-                            own_rollout=None if method is None or inherited else method)
+                            own_rollout=None if method is None or inherited else method, own_forecast_at=forecast_at)

@@ -50,7 +50,7 @@ def test_untrained_it_is_the_composite_flow():
                 points = model._source(points, commands[:, t])
             np.testing.assert_allclose(out[:, h - 1].numpy(), model._sample(frames[:, -1], *points).numpy(), atol=1e-4)
         # the older frames, registered to the predicted pose, are EchoPT's aligned inputs
-        ir, ia, _ = model.sources(commands[:, :4], 3, 1)
+        ir, ia, _ = model.sources(commands[:, :4], 3, (1,))
         registered = model.sample(frames, ir[:, 0], ia[:, 0])
         np.testing.assert_allclose(registered.numpy(), model.align(frames, commands[:, :4]).numpy(), atol=1e-4)
 
@@ -122,6 +122,28 @@ def test_its_predictor_forecasts_in_one_pass_and_chains_beyond_its_horizon():
     np.testing.assert_allclose(out[:, :4], first, atol=1e-5)
 
 
+def test_it_forecasts_chosen_horizons_alone_with_the_images_of_its_whole_forecast():
+    from sonarset.models.echopt.predictor import DirectForecastPredictor
+    from sonarset.models.predictor import as_predictor
+
+    model = _trained_like(_model())  # tiny: max_horizon 4
+    frames, commands = _window(b=3, k=6)
+    with torch.no_grad():  # the same images, to the rounding of a batch of another size
+        whole = model.forecast(frames, commands[:, :7], 4)
+        torch.testing.assert_close(model.forecast_at(frames, commands[:, :7], (1, 3, 4)), whole[:, [0, 2, 3]],
+                                   rtol=0, atol=1e-5)
+        torch.testing.assert_close(model.forecast_at(frames, commands[:, :5], (2,)), whole[:, [1]], rtol=0, atol=1e-5)
+        for bad in ((3, 1), (0, 2), (2, 2), (5,)):
+            with pytest.raises(ValueError):
+                model.forecast_at(frames, commands, bad)
+    checked = as_predictor(DirectForecastPredictor(model, {"model": "echowarp"}, GRID, precision="fp32"))
+    assert checked.forecasts_directly
+    f, c = frames.numpy(), commands.numpy()
+    np.testing.assert_allclose(checked.forecast_at(f, c, (1, 4)), checked.rollout(f, c, 4)[:, [0, 3]], atol=1e-5)
+    # beyond its horizon a forecast chains blocks: those steps come from the rollout
+    np.testing.assert_array_equal(checked.forecast_at(f, c, (2, 6)), checked.rollout(f, c, 6)[:, [1, 5]])
+
+
 @pytest.mark.parametrize("outside", ["border", "zeros"])
 def test_it_exports_to_onnx_and_runs_in_onnxruntime(tmp_path, outside):
     pytest.importorskip("onnxruntime")
@@ -177,7 +199,7 @@ def test_outside_the_view_it_reads_the_edge_or_nothing():
     commands = torch.tensor([[[0.0, 0.0]] * 3 + [[0.0, 1.0]] * 4])  # a turn: new azimuths enter at an edge
     with torch.no_grad():
         a, b = border.forecast(frames, commands, 4)[0].numpy(), zeros.forecast(frames, commands, 4)[0].numpy()
-    ir, ia = border.sources(commands, 3, 4)[:2]
+    ir, ia = border.sources(commands, 3, (1, 2, 3, 4))[:2]
     ir, ia = ir[0, :, -1].numpy(), ia[0, :, -1].numpy()  # (4, R, A): each pixel's source in the last frame
     outside = (ia < 0) | (ia > GRID.shape[1] - 1)
     along = outside & (ir > 11) & (ir < 18)  # sourced beyond the edge, beside the echo
@@ -232,7 +254,7 @@ def test_its_forecast_is_the_sum_of_its_parts():
         for name, v in parts.items():
             torch.testing.assert_close(v[:, :1], one[name], atol=1e-5, rtol=1e-5)
         # the corrected warp is the last frame sampled where the correction moves each source pixel
-        ir, ia, _ = model.sources(commands, 3, 3)
+        ir, ia, _ = model.sources(commands, 3, (1, 2, 3))
         shift = parts["shift"]
         for h in range(3):
             expected = model.sample(frames[:, -1:], ir[:, h, -1:] + shift[:, h, :1], ia[:, h, -1:] + shift[:, h, 1:2])[:, 0]

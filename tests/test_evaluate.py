@@ -162,3 +162,43 @@ def test_a_report_of_one_window_says_why_instead_of_printing_nan(stores, tmp_pat
     text = (tmp_path / "one" / "report.md").read_text()
     assert not re.search(r"\bnan\b", text, flags=re.I)
     assert "n/a (one window)" in text
+
+
+def test_a_predictor_that_forecasts_each_horizon_directly_is_asked_for_the_scored_ones(stores, tmp_path):
+    """A predictor with ``forecast_at`` (as EchoWarp's) is scored on the very images its rollout would
+    give at those steps, without computing the steps between; its fade check is at those steps."""
+    from sonarset.models.baselines import AcousticFlow
+
+    asked = []
+
+    class DirectFlow(AcousticFlow):  # flow's rollout, taken at the asked steps: what a direct forecaster returns
+        def forecast_at(self, frames, commands, horizons):
+            asked.append(tuple(horizons))
+            return self.rollout(frames, commands, horizons[-1])[:, [h - 1 for h in horizons]]
+
+    from sonarset.models.eval.evaluate import baseline_rig
+    from sonarset.windows import FrameBank
+
+    store = stores["mainlobe"]
+    rig, _ = baseline_rig(store, FrameBank.from_store(store, split="test"))  # the rig flow is evaluated with
+    res = evaluate(store, ["flow"], predictors={"direct": DirectFlow(GRID, rig, name="direct")}, horizons=(1, 3, 5),
+                   samples=40, seed=2)
+    assert set(asked) == {(1, 3, 5)} and res.direct == ["direct"]
+    for h in (1, 3, 5):
+        for k in ("cc", "nrmsd", "echo_f1"):
+            np.testing.assert_array_equal(res.per_window["direct"][h][k], res.per_window["flow"][h][k])
+    assert res.examples["methods"]["direct"].shape == res.examples["methods"]["flow"].shape  # every step, for the figures
+    # its own rollout of the first window alone: flow's to float32 rounding
+    np.testing.assert_allclose(res.examples["methods"]["direct"], res.examples["methods"]["flow"], atol=1e-6)
+    fade = metrics_document(res)["fade"]
+    assert fade["direct"]["steps"] == [1, 3, 5] and fade["flow"]["steps"] == [1, 2, 3, 4, 5]
+    assert fade["direct"]["peak_ratio"] == [fade["flow"]["peak_ratio"][h - 1] for h in (1, 3, 5)]
+    write_report(res, tmp_path)
+    assert "direct: " in (report := (tmp_path / "report.md").read_text()) and "forecast at 1, 3, 5 steps ahead" in report
+
+    class Wrong(DirectFlow):
+        def forecast_at(self, frames, commands, horizons):
+            return np.zeros((frames.shape[0], *frames.shape[2:]), np.float32)
+
+    with pytest.raises(SonarSetError, match=r"forecast_at returned shape .* not \(B, len\(horizons\), R, A\)"):
+        evaluate(store, [], predictors={"wrong": Wrong(GRID, rig, name="wrong")}, horizons=(1, 3), samples=5)

@@ -121,6 +121,24 @@ class ForecastPredictor(LearnedPredictor):
         return buf[:, n_in:]
 
 
+class DirectForecastPredictor(ForecastPredictor):
+    """A network that forecasts each horizon from the measured frames, each its own slot of the pass
+    (EchoWarp: a ``forecast_at`` method): asked for some horizons, it computes those alone."""
+
+    def forecast_at(self, frames: np.ndarray, commands: np.ndarray, horizons: tuple[int, ...]) -> np.ndarray:
+        """(B, len(horizons), R, A): the rollout's frames at ``horizons`` (increasing), with
+        commands (B, n_in + horizons[-1], 2), in chunks of as many images as ``rollout``'s; beyond
+        ``max_horizon``, whose forecasts chain blocks, the rollout's steps are taken."""
+        horizons = tuple(horizons)
+        if horizons[-1] > self.model.max_horizon:
+            return self.rollout(frames, commands, horizons[-1])[:, [h - 1 for h in horizons]]
+        out = np.empty((frames.shape[0], len(horizons), *frames.shape[2:]), dtype=np.float32)
+        per_chunk = max(1, round(self.forecast_batch * self.model.max_horizon / len(horizons)))
+        self._chunked(frames, commands[:, :self.n_in + horizons[-1]],
+                      lambda f, c: self.model.forecast_at(f, c, horizons), out, per_chunk)
+        return out
+
+
 def load_learned_predictor(spec: str, grid: SensorGrid, device: str = "cpu", precision: str = "auto",
                            kind: str | None = None) -> LearnedPredictor:
     """The predictor of a checkpoint spec of any kind (``pretrained``, a run directory or a
@@ -128,7 +146,8 @@ def load_learned_predictor(spec: str, grid: SensorGrid, device: str = "cpu", pre
     refused (ONNX exports: the registry routes them to onnx_runtime, without torch)."""
     dev = resolve_device(device)
     model, card = load_checkpoint(spec or "pretrained", grid, dev, kind=kind)
-    cls = ForecastPredictor if forecaster(model) is not None else LearnedPredictor
+    cls = LearnedPredictor if forecaster(model) is None else (
+        DirectForecastPredictor if callable(getattr(model, "forecast_at", None)) else ForecastPredictor)
     p = cls(model, card, grid, dev, precision=precision)
     path = resolve(spec or "pretrained", kind)
     p.label = path.stem if path.stem.startswith(p.name) else f"{p.name} {path.parent.name}/{path.stem}"

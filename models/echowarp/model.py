@@ -124,31 +124,40 @@ class EchoWarp(ZooModel):
         (B, k, R, A), 1 <= k <= max_horizon, from one forward pass."""
         return self(frames, commands, k)
 
+    def forecast_at(self, frames: torch.Tensor, commands: torch.Tensor, horizons: tuple[int, ...]) -> torch.Tensor:
+        """The frames ``horizons`` steps ahead (B, len(horizons), R, A), increasing horizons up to
+        ``max_horizon``, commands (B, n_in + horizons[-1], 2): ``forecast``'s images at those steps
+        (each horizon is its own slot of the pass; equal to the rounding of another batch size),
+        without computing the others."""
+        parts = self.parts(frames, commands, horizons=horizons)
+        pred = parts["source"] + parts["warp"]
+        return pred + parts["older"] if "older" in parts else pred
+
     def forward(self, frames: torch.Tensor, commands: torch.Tensor, k: int | None = None) -> torch.Tensor:
         """frames (B, n_in, R, A), commands (B, n_in + 1, 2) -> the next frame (B, R, A); with ``k``,
         commands (B, n_in + k, 2) -> the next k frames (B, k, R, A)."""
-        parts = self.parts(frames, commands, k)
-        pred = parts["source"] + parts["warp"]
-        if "older" in parts:
-            pred = pred + parts["older"]
+        pred = self.forecast_at(frames, commands, tuple(range(1, self.forecast_steps(commands, k) + 1)))
         return pred[:, 0] if k is None else pred
 
-    def parts(self, frames: torch.Tensor, commands: torch.Tensor, k: int | None = None) -> dict[str, torch.Tensor]:
-        """The terms the forecast sums, each (B, steps, R, A) in float32: ``source`` (the additive
+    def parts(self, frames: torch.Tensor, commands: torch.Tensor, k: int | None = None,
+              horizons: tuple[int, ...] | None = None) -> dict[str, torch.Tensor]:
+        """The terms of the forecast of steps 1..k (or of ``horizons``), each (B, steps, R, A) in
+        float32, steps = k (len(horizons)): ``source`` (the additive
         source term), ``warp`` (the last frame through the corrected warp, or with ``max_shift`` 0 the
         composite warp), ``older`` (the gated older registered frames, where ``older_frames``), and
         for diagnosis ``composite`` (the last frame through the composite warp alone) and, where
         the warp is corrected, ``shift`` (B, steps, 2, R, A): the correction in range and azimuth
         pixels."""
         cfg = self.cfg
-        steps, n_in = self.forecast_steps(commands, k), cfg.n_in
+        horizons = self.checked_horizons(commands, k, horizons)
+        steps, n_in = len(horizons), cfg.n_in
         self._check_frames(frames)
         B, _, R, A = frames.shape
-        ir, ia, motion = self.sources(commands[:, :n_in + steps], n_in, steps)  # (B, steps, n_in, R, A) each
+        ir, ia, motion = self.sources(commands[:, :n_in + horizons[-1]], n_in, horizons)  # (B, steps, n_in, R, A) each
         slots = frames[:, None].expand(B, steps, n_in, R, A).reshape(B * steps, n_in, R, A)
         ir, ia = ir.reshape(B * steps, n_in, R, A), ia.reshape(B * steps, n_in, R, A)
         registered = self.sample(slots, ir, ia)  # every frame at the target's pose
-        x = self.features(registered, ir[:, -1], ia[:, -1], motion.reshape(B * steps, 3), steps)
+        x = self.features(registered, ir[:, -1], ia[:, -1], motion.reshape(B * steps, 3), horizons)
         skips, y = [], x
         for level in self.down:
             y = level(y)
@@ -190,8 +199,19 @@ class EchoWarp(ZooModel):
             raise GridMismatchError(f"{self.title} was built for {cfg.n_in} frames of {cfg.n_range}x{cfg.n_azimuth}, "
                                     f"got {n_in} of {R}x{A}")
 
-    def sources(self, commands: torch.Tensor, n_in: int, steps: int):
-        """Where each pixel of the frame ``h`` steps ahead (h = 1..steps) lies in each input frame, in
+    def checked_horizons(self, commands: torch.Tensor, k: int | None, horizons: tuple[int, ...] | None) -> tuple[int, ...]:
+        """The steps a pass forecasts: 1..k (1 without ``k``), or ``horizons``, increasing, each
+        1..max_horizon, with the commands they need (ValueError naming what is wrong)."""
+        if horizons is None:
+            return tuple(range(1, self.forecast_steps(commands, k) + 1))
+        horizons = tuple(int(h) for h in horizons)
+        if not horizons or list(horizons) != sorted(set(horizons)) or horizons[0] < 1:
+            raise ValueError(f"horizons must be increasing steps >= 1, got {horizons}")
+        self.forecast_steps(commands, horizons[-1])
+        return horizons
+
+    def sources(self, commands: torch.Tensor, n_in: int, horizons: tuple[int, ...]):
+        """Where each pixel of the frame ``h`` steps ahead (h in ``horizons``) lies in each input frame, in
         (fractional) pixel indices ``ir``, ``ia`` (B, steps, n_in, R, A), and the composed motion from
         the last input frame's pose to it (heading change, x, y; B, steps, 3). ``commands[:, t]`` moves
         the robot from frame t - 1 to frame t; the poses are composed exactly in float64, then each
@@ -207,7 +227,7 @@ class EchoWarp(ZooModel):
             py.append(py[-1] + torch.sin(h0) * dx[:, t] + torch.cos(h0) * dy[:, t])
             heading.append(h0 + phi[:, t])
         heading, px, py = (torch.stack(v, 1) for v in (heading, px, py))  # (B, T)
-        tgt = slice(n_in, n_in + steps)
+        tgt = [n_in + h - 1 for h in horizons]
         # the target's pose in each input frame's robot frame: (B, steps, n_in)
         d_h = heading[:, tgt, None] - heading[:, None, :n_in]
         ex, ey = px[:, tgt, None] - px[:, None, :n_in], py[:, tgt, None] - py[:, None, :n_in]
@@ -238,7 +258,7 @@ class EchoWarp(ZooModel):
         return (ir < -0.5) | (ir > R - 0.5) | (ia < -0.5) | (ia > A - 0.5)
 
     def features(self, registered: torch.Tensor, ir: torch.Tensor, ia: torch.Tensor, motion: torch.Tensor,
-                 steps: int) -> torch.Tensor:
+                 horizons: tuple[int, ...]) -> torch.Tensor:
         """A slot's per-pixel inputs (N, n_features, R, A), channels-last (``n_features``), in
         autocast's dtype where it is on."""
         cfg = self.cfg
@@ -250,7 +270,7 @@ class EchoWarp(ZooModel):
         r, th = self._centres()
         r0, r1 = cfg.range_edges
         pos = torch.stack([torch.sin(th).expand(1, R, A), ((r - r0) / (r1 - r0) * 2 - 1).expand(1, R, A)], 1)
-        horizon = (torch.arange(N, device=ir.device) % steps + 1).float() / cfg.max_horizon
+        horizon = torch.tensor(horizons, device=ir.device, dtype=torch.float32).repeat(N // len(horizons)) / cfg.max_horizon
         planes = torch.cat([horizon[:, None], motion], 1)[:, :, None, None].expand(N, 4, R, A)
         x = torch.cat([registered, outside[:, None], shift, pos.expand(N, 2, R, A), planes], 1)
         # in autocast's dtype once: both convolutions that read x would each cast it again

@@ -135,7 +135,8 @@ def evaluate(
                         ceiling_skipped=skipped, step_peak=scores.step_peak, step_energy=scores.step_energy,
                         target_peak=scores.target_peak, target_energy=scores.target_energy, n_in=index.n_in,
                         precision={m: p.precision for m, p in preds.items() if p.precision is not None},
-                        echo_matching=echo_matching, worlds=list(worlds) if worlds else None)
+                        echo_matching=echo_matching, worlds=list(worlds) if worlds else None,
+                        direct=[m for m, p in preds.items() if p.forecasts_directly])
     result.notes += undefined_notes(result)
     result.comparisons = _compare_all(result, seed)
     return result

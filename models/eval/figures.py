@@ -158,7 +158,8 @@ def horizon_figure(res, path: Path) -> Path:
 
 def fade_figure(res, path: Path, fade: dict | None = None) -> Path | None:
     """The "no fade" figure: peak-pixel and echo-energy ratios (prediction / target) against the
-    rollout step, one line per method, the +-15% band shaded. None when there is nothing to draw."""
+    rollout step (a direct forecaster's: its scored horizons), one line per method, the +-15% band
+    shaded. None when there is nothing to draw."""
     fade = fade_summary(res) if fade is None else fade
     if not fade:
         return None
@@ -166,12 +167,12 @@ def fade_figure(res, path: Path, fade: dict | None = None) -> Path | None:
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), constrained_layout=True)
     for key, ax, title in (("peak_ratio", axes[0], "peak pixel"),
                            ("energy_ratio", axes[1], f"echo energy (sum of pixels > {ECHO_FLOOR:g})")):
-        steps = np.arange(1, len(next(iter(fade.values()))[key]) + 1)
+        steps = np.arange(1, max(res.horizons) + 1)
         ax.axhspan(1 - FADE_TOLERANCE, 1 + FADE_TOLERANCE, color="0.85", zorder=0,
                    label=f"within {FADE_TOLERANCE:.0%}")
         ax.axhline(1.0, color="0.5", lw=0.8, zorder=1)
         for m, f in fade.items():
-            ax.plot(steps, np.asarray(f[key], float), marker="o", ms=3, label=m)
+            ax.plot(f["steps"], np.asarray(f[key], float), marker="o", ms=3, label=m)
         ax.set_xlabel("rollout step (frames ahead)")
         ax.set_ylabel("prediction / target (mean over windows)")
         ax.set_title(title)

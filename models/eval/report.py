@@ -30,13 +30,14 @@ LOWER_IS_BETTER = {"cc": False, "nrmsd": True, "echo_f1": False, "echo_precision
                    "echo_range_cm": True, "echo_azimuth_deg": True}
 ECHO_LABELS = {"echo_f1": "F1", "echo_precision": "precision", "echo_recall": "recall",
                "echo_range_cm": "range error cm", "echo_azimuth_deg": "azimuth error deg"}
-FADE_MEANING = (f"Per rollout step h (1 .. longest horizon), for each method: peak = the brightest pixel "
+FADE_MEANING = (f"Per rollout step h (1 .. longest horizon; a method that forecasts each horizon directly: "
+                "the scored horizons, its 'steps'), for each method: peak = the brightest pixel "
                 f"of the image, echo energy = the sum of the pixels above {ECHO_FLOOR} (ECHO_FLOOR), for "
                 "the prediction and for the target of each window. Ratio = mean over windows of the "
                 "prediction's value / mean over the same windows of the target's (a ratio of means, "
                 "not a mean of per-window ratios, so that windows with little echo cannot dominate); "
                 "windows whose target has no echo energy at that step are left out. 'within_15pct': "
-                f"both ratios stay within {FADE_TOLERANCE:.0%} of 1 at every step (no fade, no "
+                f"both ratios stay within {FADE_TOLERANCE:.0%} of 1 at each of its steps (no fade, no "
                 "brightening). The noise ceiling is not a predictor and has no entry.")
 CEILING_MEANING = ("noise ceiling: each target frame re-rendered from its run's recorded world and poses "
                    "with an independent noise draw, scored against the recorded frame; it shows how much "
@@ -87,7 +88,7 @@ def metrics_document(res: EvalResult) -> dict:
            if CEILING in res.methods or res.ceiling_skipped else {}),
         **({"fade": finite_or_none(fade),
             "fade_definition": {"echo_floor": ECHO_FLOOR, "tolerance": FADE_TOLERANCE,
-                                "steps": list(range(1, len(next(iter(fade.values()))["peak_ratio"]) + 1)),
+                                "steps": list(range(1, max(res.horizons) + 1)),
                                 "meaning": FADE_MEANING}} if fade else {}),
         "paper": {m: {k: {str(h): v for h, v in d.items()} for k, d in t.items()} for m, t in PAPER.items()},
     }
@@ -109,7 +110,7 @@ def write_per_window(res: EvalResult, path: str | os.PathLike) -> None:
 
 def fade_table(res: EvalResult, fade: dict | None = None) -> str:
     """The "no fade" table: per method, the range of its peak and echo-energy ratios over the
-    rollout steps, and the verdict."""
+    steps it forecast, and the verdict."""
     fade = fade_summary(res) if fade is None else fade
     lines = ["| method | peak ratio min | peak ratio max | energy ratio min | energy ratio max | verdict |",
              "|---|---|---|---|---|---|"]
@@ -124,7 +125,7 @@ def fade_table(res: EvalResult, fade: dict | None = None) -> str:
             verdict = f"no fade (within {FADE_TOLERANCE:.0%} at every step)"
         else:
             h = f["first_out"]
-            p, e = f["peak_ratio"][h - 1], f["energy_ratio"][h - 1]
+            p, e = (f[key][f["steps"].index(h)] for key in ("peak_ratio", "energy_ratio"))
             if np.isfinite(p) and np.isfinite(e):
                 kind = "fades" if max((p, e), key=lambda r: abs(r - 1)) < 1 else "brightens"
             else:
@@ -205,7 +206,9 @@ def render_report(res: EvalResult, figures: list[str]) -> str:
         *fade_section(res, figures),
         "", "## Timing", "",
         *[f"- {m}: {t:.2f} s to re-render the target frames" if m in CEILINGS else
-          f"- {m}: {t:.2f} s for {n} windows rolled out to {max(res.horizons)} steps"
+          (f"- {m}: {t:.2f} s for {n} windows forecast at {', '.join(map(str, res.horizons))} steps ahead "
+           "(each horizon directly)" if m in res.direct else
+           f"- {m}: {t:.2f} s for {n} windows rolled out to {max(res.horizons)} steps")
           + (f" ({res.precision[m]})" if m in res.precision else "") for m, t in res.seconds.items()],
     ]
     if figures:
@@ -272,12 +275,12 @@ def fade_section(res: EvalResult, figures: list[str]) -> list[str]:
     fade = fade_summary(res)
     if not fade:
         return []
-    steps = len(next(iter(fade.values()))["peak_ratio"])
     drawn = any(Path(f).name == "fade.png" for f in figures)
     return ["", "## No fade", "",
-            f"Over the rollouts to {steps} steps: mean prediction / target ratio of the peak pixel "
-            f"and of the echo energy (the sum of the pixels above {ECHO_FLOOR}), a ratio of means over "
-            "the windows whose target has echo energy at that step; min and max over the steps. "
+            f"Over the rollouts to {max(res.horizons)} steps (a method that forecasts each horizon directly: "
+            "at the scored horizons): mean prediction / target ratio of the peak pixel and of the echo energy "
+            f"(the sum of the pixels above {ECHO_FLOOR}), a ratio of means over the windows whose target has echo "
+            "energy at that step; min and max over the steps. "
             f"No fade: both ratios within {FADE_TOLERANCE:.0%} of 1 at every step "
             "(per step in metrics.json, `fade`" + ("; the figure `fade.png`)." if drawn else ")."),
             "", fade_table(res, fade)]

@@ -42,8 +42,9 @@ class EvalResult:
     notes: list[str] = field(default_factory=list)  # one line each: what makes scores less comparable
     # ceiling=True: run -> one-line reason, for each run of the split it could not re-render
     ceiling_skipped: dict[str, str] = field(default_factory=dict)
-    # the "no fade" data, at every rollout step 1..max(horizons), per window: (N, max horizon)
-    # arrays of the peak pixel and the echo energy, per predicting method and for the targets
+    # the "no fade" data, per window: (N, max horizon) arrays of the peak pixel and the echo energy at
+    # every rollout step, per predicting method and for the targets (a method in ``direct`` computes
+    # only the scored horizons, column h - 1: its other columns are NaN)
     step_peak: dict[str, np.ndarray] = field(default_factory=dict)
     step_energy: dict[str, np.ndarray] = field(default_factory=dict)
     target_peak: np.ndarray | None = None
@@ -52,6 +53,7 @@ class EvalResult:
     precision: dict[str, str] = field(default_factory=dict)  # learned method -> fp32 | bf16, as it ran
     echo_matching: EchoMatching = field(default_factory=EchoMatching)
     worlds: list[str] | None = None  # the world families the runs were restricted to
+    direct: list[str] = field(default_factory=list)  # methods that forecast the scored horizons alone
 
     @property
     def predictors(self) -> list[str]:
@@ -112,14 +114,16 @@ def _ratio_of_means(pred: np.ndarray, target: np.ndarray, keep: np.ndarray) -> f
 
 
 def fade_summary(res: EvalResult, tolerance: float = FADE_TOLERANCE) -> dict:
-    """The "no fade" check of every predicting method (the noise ceiling is none).
+    """The "no fade" check of every predicting method (the noise ceiling is none), at every step it
+    forecast: each step 1..max horizon of a rollout, the scored horizons of a method that forecasts
+    each horizon directly (``res.direct``).
 
-    Returns {method: {"peak_ratio": [...], "energy_ratio": [...], "n_windows": [...],
-    "within_15pct": bool, "first_out": step or None}}, lists over rollout steps 1..max horizon.
-    Each ratio is a ratio of means over the windows whose target has echo energy at that step
-    (``FADE_MEANING``); ``within_15pct`` is True when both ratios are within ``tolerance`` of 1
-    at every step (a step with no usable window fails it); ``first_out`` is the first step where
-    one is not. Empty when the result carries no step data.
+    Returns {method: {"steps": [...], "peak_ratio": [...], "energy_ratio": [...], "n_windows": [...],
+    "within_15pct": bool, "first_out": step or None}}, lists over its steps. Each ratio is a ratio
+    of means over the windows whose target has echo energy at that step (``FADE_MEANING``);
+    ``within_15pct`` is True when both ratios are within ``tolerance`` of 1 at each of its steps (a
+    step with no usable window fails it); ``first_out`` is the first step where one is not. Empty
+    when the result carries no step data.
     """
     if res.target_peak is None or res.target_energy is None:
         return {}
@@ -128,13 +132,15 @@ def fade_summary(res: EvalResult, tolerance: float = FADE_TOLERANCE) -> dict:
     for m in res.predictors:
         if m not in res.step_peak:
             continue
-        H = keep.shape[1]
-        peak = [_ratio_of_means(res.step_peak[m][:, h], res.target_peak[:, h], keep[:, h]) for h in range(H)]
-        energy = [_ratio_of_means(res.step_energy[m][:, h], res.target_energy[:, h], keep[:, h]) for h in range(H)]
+        steps = list(res.horizons) if m in res.direct else list(range(1, keep.shape[1] + 1))
+        peak = [_ratio_of_means(res.step_peak[m][:, h - 1], res.target_peak[:, h - 1], keep[:, h - 1]) for h in steps]
+        energy = [_ratio_of_means(res.step_energy[m][:, h - 1], res.target_energy[:, h - 1], keep[:, h - 1])
+                  for h in steps]
         ok = [bool(np.isfinite(p) and np.isfinite(e) and abs(p - 1) <= tolerance and abs(e - 1) <= tolerance)
               for p, e in zip(peak, energy)]
-        out[m] = {"peak_ratio": peak, "energy_ratio": energy, "n_windows": [int(k) for k in keep.sum(axis=0)],
-                  "within_15pct": all(ok), "first_out": next((h + 1 for h, g in enumerate(ok) if not g), None)}
+        out[m] = {"steps": steps, "peak_ratio": peak, "energy_ratio": energy,
+                  "n_windows": [int(keep[:, h - 1].sum()) for h in steps], "within_15pct": all(ok),
+                  "first_out": next((h for h, g in zip(steps, ok) if not g), None)}
     return out
 
 

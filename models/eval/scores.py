@@ -27,7 +27,7 @@ class Scores:
 
     per_window: dict[str, dict[int, dict[str, np.ndarray]]]  # method -> horizon -> metric -> (N,)
     seconds: dict[str, float]
-    step_peak: dict[str, np.ndarray]  # method -> (N, H)
+    step_peak: dict[str, np.ndarray]  # method -> (N, H); a direct forecaster's at the scored horizons, NaN between
     step_energy: dict[str, np.ndarray]
     target_peak: np.ndarray  # (N, H)
     target_energy: np.ndarray
@@ -39,15 +39,19 @@ class Scores:
            matching: EchoMatching) -> "Scores":
         H = horizons[-1]
         return cls({m: {h: {k: np.empty(n) for k in METRICS} for h in horizons} for m in preds},
-                   dict.fromkeys(preds, 0.0), {m: np.empty((n, H)) for m in preds}, {m: np.empty((n, H)) for m in preds},
-                   np.empty((n, H)), np.empty((n, H)), grid, matching)
+                   dict.fromkeys(preds, 0.0), {m: np.full((n, H), np.nan) for m in preds},
+                   {m: np.full((n, H), np.nan) for m in preds}, np.empty((n, H)), np.empty((n, H)), grid, matching)
 
     def roll_out(self, batcher: WindowBatcher, index: WindowIndex, preds: dict[str, CheckedPredictor], batch_size: int,
                  progress: Callable[[str, int, int], None] | None) -> dict:
-        """Roll every method (a checked predictor, models/predictor.py) out over every window, batch by
-        batch, and score it; returns the first window's frames, targets and predictions (the figures'
-        example)."""
+        """Forecast every window's scored horizons by every method (a checked predictor,
+        models/predictor.py), batch by batch, and score them; returns the first window's frames,
+        targets and predictions at every step (the figures' example). A method that forecasts each
+        horizon directly (``forecast_at``) computes the scored horizons alone; any other is rolled
+        out step by step to the longest."""
         H = index.horizon
+        horizons = tuple(next(iter(self.per_window.values())))
+        steps = [h - 1 for h in horizons]
         examples: dict = {"methods": {}}
         for lo in range(0, len(index), batch_size):
             sl = slice(lo, min(len(index), lo + batch_size))
@@ -56,19 +60,27 @@ class Scores:
                 # copies: a view would pin the whole first batch for the rest of the evaluation
                 examples["frames"], examples["targets"] = batch.frames[0].copy(), batch.targets[0].copy()
             self.target_peak[sl], self.target_energy[sl] = peak_and_energy(batch.targets[:, :H])
-            horizons = list(next(iter(self.per_window.values())))
             target_echoes = {h: find_echoes(batch.targets[:, h - 1], self.grid, self.matching) for h in horizons}
             for name, predictor in preds.items():
                 t0 = time.perf_counter()
-                pred = predictor.rollout(batch.frames, batch.commands, H)
-                self.seconds[name] += time.perf_counter() - t0  # the prediction's time, not the scoring's
-                for h, metrics in self.per_window[name].items():
-                    for k, v in score_images(pred[:, h - 1], batch.targets[:, h - 1], self.grid, self.matching,
+                if predictor.forecasts_directly:
+                    pred = predictor.forecast_at(batch.frames, batch.commands, horizons)
+                    self.seconds[name] += time.perf_counter() - t0  # the prediction's time, not the scoring's
+                    if lo == 0:
+                        examples["methods"][name] = predictor.rollout(batch.frames[:1], batch.commands[:1], H)[0]
+                else:
+                    rolled = predictor.rollout(batch.frames, batch.commands, H)
+                    self.seconds[name] += time.perf_counter() - t0
+                    pred = rolled[:, steps]
+                    self.step_peak[name][sl], self.step_energy[name][sl] = peak_and_energy(rolled)
+                    if lo == 0:
+                        examples["methods"][name] = rolled[0].copy()  # not a view of the whole batch's rollout
+                if predictor.forecasts_directly:
+                    self.step_peak[name][sl, steps], self.step_energy[name][sl, steps] = peak_and_energy(pred)
+                for i, (h, metrics) in enumerate(self.per_window[name].items()):
+                    for k, v in score_images(pred[:, i], batch.targets[:, h - 1], self.grid, self.matching,
                                              target_echoes[h]).items():
                         metrics[k][sl] = v
-                self.step_peak[name][sl], self.step_energy[name][sl] = peak_and_energy(pred)
-                if lo == 0:
-                    examples["methods"][name] = pred[0].copy()  # not a view of the whole batch's rollout
                 if progress:
                     progress(name, sl.stop, len(index))
         return examples
