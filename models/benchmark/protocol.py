@@ -65,7 +65,8 @@ class Protocol:
 
     Every dataset is evaluated once with all models together (``evaluate``): ``samples`` windows
     drawn with ``eval_seed`` (which also seeds the bootstraps and the ceilings' noise), each method
-    rolled out to the longest of ``horizons``; with ``ceiling``, the noise and observable ceilings
+    rolled out to the longest of ``horizons`` (or, one that forecasts each horizon directly, asked
+    for ``horizons`` alone); with ``ceiling``, the noise and observable ceilings
     beside them. ``reference`` is always scored, and every other model is tested against it.
     """
 

@@ -183,7 +183,8 @@ def compare_results(paths: list[str | os.PathLike]) -> str:
     names = [d["name"] for d in docs[0][1]["protocol"]["definition"]["datasets"]]
     longest = str(max(docs[0][1]["protocol"]["definition"]["horizons"]))
     lines = [f"# {version}: CC at {horizon_name(int(longest))} (`*`: differs from flow, Holm p < {ALPHA} within "
-             "its file); seconds: the method's rollouts over every dataset", "",
+             "its file); seconds: the method's forecasts over every dataset (a direct forecaster's, of "
+             "the scored horizons alone since 2026-12-07)", "",
              "| results | method | " + " | ".join(names) + " | seconds |", "|---" * (3 + len(names)) + "|"]
     for path, doc in docs:
         for m in doc["datasets"][names[0]]["horizons"][longest]["methods"]:

@@ -79,7 +79,8 @@ def evaluate(
 
     Windows are drawn once (seeded) among those with room for the longest horizon, so every
     method and horizon sees the same starting points; each method is rolled out once to the
-    longest horizon and scored at every requested one. ``worlds`` keeps only the runs of those
+    longest horizon and scored at every requested one (a method that forecasts each horizon
+    directly, ``forecast_at``, forecasts the requested ones alone). ``worlds`` keeps only the runs of those
     world families (``source.world``).
 
     With ``ceiling``, the target frames of simulated runs are also re-rendered from their recorded

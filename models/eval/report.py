@@ -121,8 +121,9 @@ def fade_table(res: EvalResult, fade: dict | None = None) -> str:
         return (f"{v.min():.3f}", f"{v.max():.3f}") if len(v) else ("n/a", "n/a")
 
     for m, f in fade.items():
+        checked = "scored horizon" if m in res.direct else "step"
         if f["within_15pct"]:
-            verdict = f"no fade (within {FADE_TOLERANCE:.0%} at every step)"
+            verdict = f"no fade (within {FADE_TOLERANCE:.0%} at every {checked})"
         else:
             h = f["first_out"]
             p, e = (f[key][f["steps"].index(h)] for key in ("peak_ratio", "energy_ratio"))
@@ -130,7 +131,8 @@ def fade_table(res: EvalResult, fade: dict | None = None) -> str:
                 kind = "fades" if max((p, e), key=lambda r: abs(r - 1)) < 1 else "brightens"
             else:
                 kind = "no window with echo energy"
-            verdict = f"{kind} from step {h}"
+            verdict = f"{kind} from step {h}" + (f" (steps checked: {', '.join(map(str, f['steps']))})"
+                                                  if m in res.direct else "")
         lines.append(f"| {m} | " + " | ".join([*rng(f["peak_ratio"]), *rng(f["energy_ratio"])]) + f" | {verdict} |")
     return "\n".join(lines)
 
@@ -206,8 +208,8 @@ def render_report(res: EvalResult, figures: list[str]) -> str:
         *fade_section(res, figures),
         "", "## Timing", "",
         *[f"- {m}: {t:.2f} s to re-render the target frames" if m in CEILINGS else
-          (f"- {m}: {t:.2f} s for {n} windows forecast at {', '.join(map(str, res.horizons))} steps ahead "
-           "(each horizon directly)" if m in res.direct else
+          (f"- {m}: {t:.2f} s for {n} windows forecast at {', '.join(map(str, res.horizons))} steps ahead"
+           if m in res.direct else
            f"- {m}: {t:.2f} s for {n} windows rolled out to {max(res.horizons)} steps")
           + (f" ({res.precision[m]})" if m in res.precision else "") for m, t in res.seconds.items()],
     ]
@@ -281,7 +283,7 @@ def fade_section(res: EvalResult, figures: list[str]) -> list[str]:
             "at the scored horizons): mean prediction / target ratio of the peak pixel and of the echo energy "
             f"(the sum of the pixels above {ECHO_FLOOR}), a ratio of means over the windows whose target has echo "
             "energy at that step; min and max over the steps. "
-            f"No fade: both ratios within {FADE_TOLERANCE:.0%} of 1 at every step "
+            f"No fade: both ratios within {FADE_TOLERANCE:.0%} of 1 at every step checked "
             "(per step in metrics.json, `fade`" + ("; the figure `fade.png`)." if drawn else ")."),
             "", fade_table(res, fade)]
 

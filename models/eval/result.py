@@ -1,6 +1,6 @@
 """What an evaluation returns (:class:`EvalResult`) and what is read off it: the per-metric means,
 the windows where a metric is undefined, and the "no fade" check, whether the rollouts keep the
-targets' peak pixel and echo energy at every step (``fade_summary``).
+targets' peak pixel and echo energy at every step forecast (``fade_summary``).
 """
 
 from __future__ import annotations
