@@ -14,6 +14,7 @@ from sonarset.models.echopt.checkpoint import save_checkpoint
 from sonarset.models.echopt.config import make_config
 from sonarset.models.echopt.model import EchoPT
 from sonarset.models.experiments.common import predictor
+from sonarset.models.predictor import as_predictor
 from sonarset.models.experiments.control import BurstSchedule, Episode, run_control_experiment, run_episode
 from sonarset.models.experiments.slip import (
     DETECTORS,
@@ -97,6 +98,23 @@ def test_one_rollout_serves_every_horizon():
         ref = rollout(flow, images[i[:, None] + np.arange(3)], commands[i[:, None] + np.arange(3 + h)], h)[:, -1]
         assert np.isnan(got[h][:2 + h]).all()
         np.testing.assert_allclose(got[h][t], slip_error(ref, images[t]), rtol=1e-5)
+    # a predictor that forecasts each horizon directly is asked for those alone, with the same result
+    asked = []
+
+    class Direct:
+        name, n_in = "direct", 3
+
+        def predict(self, frames, commands):
+            return flow.predict(frames, commands)
+
+        def forecast_at(self, frames, commands, horizons):
+            asked.append(tuple(horizons))
+            return flow.rollout(frames, commands, horizons[-1])[:, [h - 1 for h in horizons]]
+
+    direct = slip_signals(as_predictor(Direct()), images, commands, (4, 1, 2), batch=5)
+    assert set(asked) == {(1, 2, 4)}
+    for h in (1, 2, 4):
+        np.testing.assert_array_equal(direct[h], got[h])
 
 
 def test_slip_signals_take_the_window_from_the_model(tmp_path):

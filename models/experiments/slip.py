@@ -114,9 +114,11 @@ def slip_signals(pred: CheckedPredictor, images: np.ndarray, commands: np.ndarra
 
     Step h of an auto-regressive rollout from window i (``pred.n_in`` frames) is the horizon-h
     forecast of frame i + n_in - 1 + h, so one rollout to the largest horizon serves every horizon: 5 model steps per
-    window instead of 1 + 3 + 5. Rollouts that run past the last frame are fed zero commands there;
+    window instead of 1 + 3 + 5 (a model that forecasts each horizon directly, ``forecast_at``,
+    computes those alone). Rollouts that run past the last frame are fed zero commands there;
     a step reads only the commands up to its own, so the forecasts that are kept never see them.
     """
+    horizons = tuple(sorted(set(horizons)))
     T, H, n_in = len(images), max(horizons), pred.n_in
     eps = {h: np.full(T, np.nan) for h in horizons}
     starts = np.arange(0, T - n_in)  # every window with at least one target
@@ -125,12 +127,12 @@ def slip_signals(pred: CheckedPredictor, images: np.ndarray, commands: np.ndarra
         i = starts[lo:lo + batch]
         frames = images[i[:, None] + np.arange(n_in)]
         cmds = padded[i[:, None] + np.arange(n_in + H)]
-        steps = pred.rollout(frames, cmds, H)
-        for h in horizons:
+        forecasts = pred.forecast_at(frames, cmds, horizons)
+        for j, h in enumerate(horizons):
             t = i + n_in - 1 + h
             ok = t < T
             if ok.any():
-                eps[h][t[ok]] = slip_error(steps[ok, h - 1], images[t[ok]])
+                eps[h][t[ok]] = slip_error(forecasts[ok, j], images[t[ok]])
     return eps
 
 
