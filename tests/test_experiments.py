@@ -306,6 +306,21 @@ def test_a_burst_is_forecast_from_the_frames_before_it_k_steps_ahead(monkeypatch
     assert predictor("flow", GRID).chains and not as_predictor(FlowFromTheAnchor()).chains
     monkeypatch.setattr(control, "predictor", lambda *a, **k: as_predictor(FlowFromTheAnchor()))
     anchored = run_episode(Episode(0, 7, "bursts+flow", GRID, max_time_s=40))
+
+    class DirectFlow(FlowFromTheAnchor):  # a direct forecaster: asked for the k-th step alone
+        def __init__(self):
+            super().__init__()
+            self.asked = []
+
+        def forecast_at(self, frames, commands, horizons):
+            self.asked.append(tuple(horizons))
+            return self.flow.rollout(frames, commands, horizons[-1])[:, [h - 1 for h in horizons]]
+
+    direct = DirectFlow()
+    monkeypatch.setattr(control, "predictor", lambda *a, **k: as_predictor(direct))
+    directed = run_episode(Episode(0, 7, "bursts+flow", GRID, max_time_s=40))
+    assert {len(h) for h in direct.asked} == {1} and max(h[0] for h in direct.asked) > 1
+    np.testing.assert_array_equal(directed["pose"], anchored["pose"])
     monkeypatch.undo()
     chained = run_episode(Episode(0, 7, "bursts+flow", GRID, max_time_s=40))
     assert chained["predicted"].sum() > 6  # a chained model steps frame by frame: the same run

@@ -116,7 +116,7 @@ def run_episode(ep: Episode, world: World | None = None) -> dict:
                 used = pred.predict(np.stack(frames[-n_in:])[None], np.stack(commands[-(n_in + 1):])[None])[0]
             else:
                 anchor = np.stack(frames[len(frames) - (ahead - 1) - n_in:len(frames) - (ahead - 1)])[None]
-                used = pred.rollout(anchor, np.stack(commands[-(n_in + ahead):])[None], ahead)[0, -1]
+                used = pred.forecast_at(anchor, np.stack(commands[-(n_in + ahead):])[None], (ahead,))[0, 0]
         else:
             ahead = 0
         frames.append(np.asarray(used, np.float32))
