@@ -276,3 +276,48 @@ def test_step_weights_share_a_rollout_loss():
     assert steps[0].grad / sum(s.grad for s in steps) == pytest.approx(1 / sum(1 / h for h in range(1, 11)))
     with pytest.raises(SonarSetError, match="step_weights must be one of"):
         step_weights("cubic", 3)
+
+
+def test_a_rollout_trained_on_chosen_horizons_has_the_losses_and_weights_of_those_steps():
+    """``horizons`` keeps the losses at those steps: a chained model's as its whole rollout's, and a
+    model that forecasts each horizon directly (EchoWarp) from one pass of those alone, through the
+    forward that DistributedDataParallel wraps; harmonic weights go by the step, 1/h."""
+    from sonarset.models.echopt.config import grid_and_rig
+    from sonarset.models.echopt.networks import build
+    from sonarset.models.echopt.train_config import TrainConfig
+    from sonarset.format.attrs import RobotRig
+
+    grid = SensorGrid(range_min_m=0.5, range_max_m=3.0, n_range=40, azimuth_min_rad=-1.4, azimuth_max_rad=1.4,
+                      n_azimuth=18)
+    torch.manual_seed(0)
+    warp = build("echowarp", "tiny", *grid.shape, **grid_and_rig(grid, RobotRig()))  # max_horizon 4
+    for p in warp.parameters():
+        torch.nn.init.normal_(p, std=0.3)
+    frames, targets = torch.rand(3, 3, *grid.shape), torch.rand(3, 4, *grid.shape)
+    cmds = (torch.rand(3, 7, 2) * 2 - 1) * torch.tensor([0.3, 1.0])
+    terms = {"cc": 1.0, "nrmsd_capped": 1.0}
+    calls = []
+    forward = warp.forward
+    warp.forward = lambda *a, **kw: calls.append(kw) or forward(*a, **kw)
+    whole = rollout_losses(warp, frames, cmds, targets, terms, flow=warp.flow_prior)
+    some = rollout_losses(warp, frames, cmds, targets, terms, flow=warp.flow_prior, horizons=(2, 4))
+    assert calls[-1] == {"horizons": (2, 4)} and len(some) == 2
+    torch.testing.assert_close(torch.stack(some), torch.stack([whole[1], whole[3]]), rtol=0, atol=1e-5)
+
+    def chained(ctx, c):
+        return ctx[:, -1] * 0.9
+
+    every = rollout_losses(chained, frames, cmds, targets, terms, flow=warp.flow_prior)
+    assert rollout_losses(chained, frames, cmds, targets, terms, flow=warp.flow_prior, horizons=(1, 3)) == \
+        [every[0], every[2]]
+    losses = [torch.tensor(1.0), torch.tensor(4.0)]
+    assert float(weighted_loss(losses, "harmonic", (1, 4))) == pytest.approx((1 + 4 / 4) / (1 + 1 / 4))
+    assert float(weighted_loss(losses, "uniform", (1, 4))) == pytest.approx(2.5)
+    # the setting: steps up to the curriculum's k; refused in one line where no run can have it
+    assert TrainConfig(horizons="1,3,5,10").loss_horizons(4) == (1, 3)
+    assert TrainConfig().loss_horizons(10) is None
+    for bad, message in (("3,1", "increasing"), ("0,2", "increasing"), ("a", "increasing"), ("5", "none within")):
+        with pytest.raises(SonarSetError, match=message):
+            TrainConfig(horizons=bad, curriculum="4").check()
+    with pytest.raises(SonarSetError, match="pushforward"):
+        TrainConfig(horizons="1,2", pushforward=True).check()

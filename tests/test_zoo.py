@@ -220,3 +220,15 @@ def test_up_hands_its_resize_a_dense_gradient_of_the_same_values(monkeypatch):
     assert torch.allclose(deep.grad, d2.grad, atol=1e-6) and torch.allclose(skip.grad, s2.grad, atol=1e-6)
     # and the resize's backward reads a dense channels-last gradient, not a strided slice of the concatenation's
     assert len(seen) == 1 and seen[0].is_contiguous(memory_format=torch.channels_last)
+
+
+def test_a_run_trained_on_chosen_horizons_resumes_with_them_only(store, tmp_path):
+    """``horizons``: EchoWarp trains on those steps of its rollout alone; the card records the
+    setting and a resume with another is refused in one line."""
+    cfg = _cfg("echowarp", max_steps=2, curriculum="4", horizons="1,3,5")  # 5 is beyond k: left out
+    res = train(store, tmp_path / "run", cfg)
+    assert res.steps == 2 and all(np.isfinite(r["val_loss"]) for r in res.history)
+    _, card = load_checkpoint(tmp_path / "run", GRID)
+    assert card["training"]["config"]["horizons"] == "1,3,5"
+    with pytest.raises(SonarSetError, match="horizons"):
+        train(store, tmp_path / "run", _cfg("echowarp", max_steps=2, curriculum="4"), resume=True)

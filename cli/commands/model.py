@@ -243,6 +243,9 @@ def train(
     step_weights: StepWeights = typer.Option(TRAIN.step_weights, "--step-weights",
                                              help="The rollout steps' shares of the loss: uniform (1/k each) or "
                                                   "harmonic (step h by 1/h: more weight on the first forecasts)."),
+    horizons: str = typer.Option(TRAIN.horizons, "--horizons",
+                                 help="The rollout steps that carry the loss, e.g. 1,3,5,10 (default: every step); a "
+                                      "model that forecasts each horizon directly (EchoWarp) computes those alone."),
     context_noise: float = typer.Option(TRAIN.context_noise, "--context-noise", min=0.0,
                                         help="Std of Gaussian noise on the context frames."),
     val_horizon: int = typer.Option(TRAIN.val_horizon, "--val-horizon", min=0,

@@ -265,20 +265,25 @@ def image_loss(pred: torch.Tensor, target: torch.Tensor, terms: dict[str, float]
     return total
 
 
-def step_weights(kind: str, k: int) -> list[float]:
+def step_weights(kind: str, k: int, horizons: tuple[int, ...] | None = None) -> list[float]:
     """The shares of a ``k``-step rollout's losses in the training loss, summing to 1: ``uniform``
     (1/k each) or ``harmonic`` (step h in proportion to 1/h; k = 10: the one-step forecast 34 %, the
-    tenth 3 %)."""
+    tenth 3 %); with ``horizons``, of the losses at those steps alone (k of them)."""
     if kind not in STEP_WEIGHTS:
         raise SonarSetError(f"step_weights must be one of {', '.join(STEP_WEIGHTS)}, got {kind!r}",
                             parameter="step_weights")
-    w = [1.0] * k if kind == "uniform" else [1.0 / (h + 1) for h in range(k)]
+    steps = horizons or range(1, k + 1)
+    w = [1.0] * k if kind == "uniform" else [1.0 / h for h in steps]
     return [x / sum(w) for x in w]
 
 
-def weighted_loss(losses: list[torch.Tensor], kind: str = "uniform") -> torch.Tensor:
-    """The rollout's loss: its steps' losses by their ``step_weights`` (one loss, as pushforward's, is itself)."""
-    return sum(w * v for w, v in zip(step_weights(kind, len(losses)), losses))
+def weighted_loss(losses: list[torch.Tensor], kind: str = "uniform",
+                  horizons: tuple[int, ...] | None = None) -> torch.Tensor:
+    """The rollout's loss: its steps' losses (at ``horizons``, when given) by their ``step_weights``
+    (one loss, as pushforward's, is itself)."""
+    if horizons is not None and len(losses) != len(horizons):
+        horizons = None  # pushforward's single loss
+    return sum(w * v for w, v in zip(step_weights(kind, len(losses), horizons), losses))
 
 
 def forecaster(fwd) -> torch.nn.Module | None:
@@ -292,7 +297,8 @@ def forecaster(fwd) -> torch.nn.Module | None:
 
 def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch.Tensor, terms: dict[str, float],
                    pushforward: bool = False, precision: str = "fp32", flow=None,
-                   echo_window: tuple[int, int] | None = None) -> list[torch.Tensor]:
+                   echo_window: tuple[int, int] | None = None,
+                   horizons: tuple[int, ...] | None = None) -> list[torch.Tensor]:
     """One loss per rollout step: step h predicts target h from the last n_in frames, measured or
     the model's own (clamped to [0, 1], as in evaluation) predictions. With ``pushforward`` all
     steps but the last run without gradient, and only the last step's loss is returned. A
@@ -304,8 +310,15 @@ def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch
     of up to its ``max_horizon`` steps (once, for every protocol horizon), through ``fwd`` with the
     block's length as a third argument, each block's context the measured frames or the previous
     block's predictions; with ``pushforward`` only the last block carries gradient, and its steps'
-    losses are returned (one block: the same as without). ``echo_window`` is the ``echo`` term's."""
+    losses are returned (one block: the same as without). ``echo_window`` is the ``echo`` term's.
+
+    With ``horizons`` (increasing steps up to k) only the losses at those steps are returned; a
+    model whose forward takes ``horizons`` (EchoWarp: each horizon its own slot) forecasts those
+    alone when they fit one block."""
     n_in, k = frames.shape[1], targets.shape[1]
+    if horizons is not None and not pushforward and forecaster(fwd) is not None \
+            and horizons[-1] <= forecaster(fwd).max_horizon and hasattr(forecaster(fwd), "forecast_at"):
+        return _direct_losses(fwd, frames, cmds, targets, terms, precision, flow, echo_window, horizons)
     buf = list(frames.unbind(1))
     if not any(t in REFERENCE_TERMS for t in terms):
         flow = None
@@ -333,16 +346,37 @@ def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch
                 losses.append(image_loss(pred, targets[:, h + j], terms, reference, echo_window))
             buf.append(pred.clamp(0, 1))
         h += m
-    return losses
+    return losses if horizons is None else [losses[h - 1] for h in horizons]
+
+
+def _direct_losses(fwd, frames, cmds, targets, terms, precision, flow, echo_window, horizons) -> list[torch.Tensor]:
+    """rollout_losses at ``horizons`` from one pass that forecasts those alone (through ``fwd``, so
+    that DistributedDataParallel sees the pass)."""
+    n_in = frames.shape[1]
+    ctx = frames.contiguous(memory_format=torch.channels_last)
+    with autocast(ctx.device, precision):
+        preds = fwd(ctx, cmds[:, :n_in + horizons[-1]], horizons=horizons).float()
+    references = {}
+    if any(t in REFERENCE_TERMS for t in terms):
+        if flow is None:
+            raise ValueError(f"the loss terms {', '.join(REFERENCE_TERMS)} need the flow baseline's warp")
+        reference = frames[:, -1]
+        with torch.no_grad():
+            for j in range(horizons[-1]):
+                reference = flow(reference.float(), cmds[:, j + n_in])
+                references[j + 1] = reference
+    return [image_loss(preds[:, i], targets[:, h - 1], terms, references.get(h), echo_window)
+            for i, h in enumerate(horizons)]
 
 
 @torch.no_grad()
 def validation_loss(model: torch.nn.Module, batcher: WindowBatcher, index: WindowIndex, horizon: int = 1,
                     batch_size: int = 128, dist: Dist = Dist(), terms: dict[str, float] | None = None,
                     precision: str = "fp32", weights: str = "uniform",
-                    echo_window: tuple[int, int] | None = None) -> float:
+                    echo_window: tuple[int, int] | None = None, horizons: tuple[int, ...] | None = None) -> float:
     """The training loss (``terms``, default MSE) per pixel over ``index``, over a rollout of
-    ``horizon`` steps shared by ``weights`` (``step_weights``); each process takes every world-th
+    ``horizon`` steps (the losses at ``horizons`` alone, where given) shared by ``weights``
+    (``step_weights``); each process takes every world-th
     batch. The kept model is the best by the objective it was trained for: with a sharpness term,
     the MSE alone would prefer the blurrier weights. The training steps' freed memory goes back to
     the OS first, and validation's after (``release_free_memory``): its batches are twice a training
@@ -354,8 +388,8 @@ def validation_loss(model: torch.nn.Module, batcher: WindowBatcher, index: Windo
     for lo in list(starts)[dist.rank::dist.world]:
         b = batcher.gather(index, np.arange(lo, min(len(index), lo + batch_size)), horizon)
         losses = rollout_losses(model, b.frames, b.commands, b.targets, terms or {"mse": 1.0}, precision=precision,
-                                flow=model.flow_prior, echo_window=echo_window)
-        total += float(weighted_loss(losses, weights)) * len(b)
+                                flow=model.flow_prior, echo_window=echo_window, horizons=horizons)
+        total += float(weighted_loss(losses, weights, horizons)) * len(b)
         n += len(b)
         del b, losses
         release_free_memory()

@@ -272,9 +272,10 @@ class _Run:
         frames, cmds, targets = self.batch(step, windows, k)
         for g in self.opt.param_groups:
             g["lr"] = self.cfg.lr_at(step, self.plan.total_steps)
+        horizons = self.cfg.loss_horizons(k)
         losses = rollout_losses(self.fwd, frames, cmds, targets, self.terms, self.cfg.pushforward, self.precision,
-                                flow=self.model.flow_prior, echo_window=self.echo_window)
-        loss = weighted_loss(losses, self.cfg.step_weights)
+                                flow=self.model.flow_prior, echo_window=self.echo_window, horizons=horizons)
+        loss = weighted_loss(losses, self.cfg.step_weights, horizons)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
@@ -294,7 +295,8 @@ class _Run:
         # horizons at once, so memory goes with windows x horizons (BENCHMARKS, "EchoWarp")
         val = validation_loss(self.model, self.data.val_batcher, self.data.val_idx, self.val_horizon, dist=dist,
                               batch_size=2 * self.cfg.batch_size, terms=self.terms, precision=self.precision,
-                              weights=self.cfg.step_weights, echo_window=self.echo_window)
+                              weights=self.cfg.step_weights, echo_window=self.echo_window,
+                              horizons=self.cfg.loss_horizons(self.val_horizon))
         run_loss, run_n = dist.all_sum(tally.loss, tally.n)
         rate = tally.samples / (time.perf_counter() - tally.t0)
         rec = {"step": step, "epoch": step / self.plan.steps_per_epoch, "train_loss": run_loss / max(run_n, 1),

@@ -58,6 +58,7 @@ class TrainConfig:
     curriculum: str = "1"  # rollout length k: "k", or "step:k,step:k,..." from those steps on
     pushforward: bool = False  # only the last of the k steps carries gradient
     step_weights: str = "uniform"  # STEP_WEIGHTS: the rollout steps' shares of the loss
+    horizons: str = ""  # the rollout steps that carry the loss ("1,3,5,10"; "" = every step up to k)
     context_noise: float = 0.0  # std of Gaussian noise added to the measured context frames
     val_horizon: int = 0  # rollout steps of the validation loss (0 = the curriculum's longest)
     init: str = ""  # fine-tune: start from this checkpoint's weights (same preset, prior, grid, images)
@@ -89,9 +90,30 @@ class TrainConfig:
                                 parameter="curriculum")
         return out
 
+    def loss_horizons(self, k: int) -> tuple[int, ...] | None:
+        """The steps of a ``k``-step rollout that carry the loss: ``horizons`` up to k, or None for
+        every step (SonarSetError when none of them is a step of it)."""
+        if not self.horizons:
+            return None
+        try:
+            hs = [int(h) for h in self.horizons.split(",")]
+        except ValueError:
+            hs = []
+        if not hs or hs != sorted(set(hs)) or hs[0] < 1:
+            raise SonarSetError(f"horizons {self.horizons!r}: expected increasing steps >= 1 (e.g. 1,3,5,10)",
+                                parameter="horizons")
+        if self.pushforward:
+            raise SonarSetError("horizons and pushforward do not go together: pushforward trains the last step alone",
+                                parameter="horizons")
+        inside = tuple(h for h in hs if h <= k)
+        if not inside:
+            raise SonarSetError(f"horizons {self.horizons!r}: none within a {k}-step rollout", parameter="horizons")
+        return inside
+
     def check(self) -> None:
         """SonarSetError naming the first setting no run can have (the loss terms: losses.parse_loss)."""
-        self.stages()
+        for _, k in self.stages():
+            self.loss_horizons(k)
         if self.shuffle_buffer < 1 or self.loader_workers < 0:
             bad = "shuffle_buffer" if self.shuffle_buffer < 1 else "loader_workers"
             raise SonarSetError(f"shuffle_buffer must be >= 1 and loader_workers >= 0, got {self.shuffle_buffer} "
@@ -128,7 +150,8 @@ class TrainConfig:
 
 #: Settings that must not change when a run is resumed.
 RESUME_KEYS = ("model", "preset", "batch_size", "seed", "n_val", "lr", "schedule", "epochs", "max_steps", "prior", "loss",
-               "curriculum", "pushforward", "step_weights", "context_noise", "val_horizon", "optimizer", "weight_decay",
-               "init", "worlds", "n_in", "inputs", "geometry_channels", "trainable", "stream", "shuffle_buffer", "loader_workers")
+               "curriculum", "pushforward", "step_weights", "horizons", "context_noise", "val_horizon", "optimizer",
+               "weight_decay", "init", "worlds", "n_in", "inputs", "geometry_channels", "trainable", "stream",
+               "shuffle_buffer", "loader_workers")
 #: Of those, the ones that matter only when the windows are streamed.
 STREAM_KEYS = ("shuffle_buffer", "loader_workers")

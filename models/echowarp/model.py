@@ -133,9 +133,13 @@ class EchoWarp(ZooModel):
         pred = parts["source"] + parts["warp"]
         return pred + parts["older"] if "older" in parts else pred
 
-    def forward(self, frames: torch.Tensor, commands: torch.Tensor, k: int | None = None) -> torch.Tensor:
+    def forward(self, frames: torch.Tensor, commands: torch.Tensor, k: int | None = None,
+                horizons: tuple[int, ...] | None = None) -> torch.Tensor:
         """frames (B, n_in, R, A), commands (B, n_in + 1, 2) -> the next frame (B, R, A); with ``k``,
-        commands (B, n_in + k, 2) -> the next k frames (B, k, R, A)."""
+        commands (B, n_in + k, 2) -> the next k frames (B, k, R, A); with ``horizons`` instead, the
+        frames those steps ahead (``forecast_at``: training on chosen horizons goes through here)."""
+        if horizons is not None:
+            return self.forecast_at(frames, commands, horizons)
         pred = self.forecast_at(frames, commands, tuple(range(1, self.forecast_steps(commands, k) + 1)))
         return pred[:, 0] if k is None else pred
 
