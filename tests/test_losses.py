@@ -321,3 +321,7 @@ def test_a_rollout_trained_on_chosen_horizons_has_the_losses_and_weights_of_thos
             TrainConfig(horizons=bad, curriculum="4").check()
     with pytest.raises(SonarSetError, match="pushforward"):
         TrainConfig(horizons="1,2", pushforward=True).check()
+    with pytest.raises(SonarSetError, match="none within a 1-step rollout"):  # refused before training, not at validation
+        TrainConfig(horizons="3,5", curriculum="10", val_horizon=1).check()
+    with pytest.raises(ValueError, match="2 losses for the 3 horizons"):
+        weighted_loss(losses, "harmonic", (1, 2, 4))

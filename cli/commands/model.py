@@ -245,7 +245,8 @@ def train(
                                                   "harmonic (step h by 1/h: more weight on the first forecasts)."),
     horizons: str = typer.Option(TRAIN.horizons, "--horizons",
                                  help="The rollout steps that carry the loss, e.g. 1,3,5,10 (default: every step); a "
-                                      "model that forecasts each horizon directly (EchoWarp) computes those alone."),
+                                      "model that forecasts each horizon directly (EchoWarp) computes those alone, "
+                                      "within its max horizon."),
     context_noise: float = typer.Option(TRAIN.context_noise, "--context-noise", min=0.0,
                                         help="Std of Gaussian noise on the context frames."),
     val_horizon: int = typer.Option(TRAIN.val_horizon, "--val-horizon", min=0,

@@ -282,7 +282,7 @@ def weighted_loss(losses: list[torch.Tensor], kind: str = "uniform",
     """The rollout's loss: its steps' losses (at ``horizons``, when given) by their ``step_weights``
     (one loss, as pushforward's, is itself)."""
     if horizons is not None and len(losses) != len(horizons):
-        horizons = None  # pushforward's single loss
+        raise ValueError(f"{len(losses)} losses for the {len(horizons)} horizons {horizons}")
     return sum(w * v for w, v in zip(step_weights(kind, len(losses), horizons), losses))
 
 
@@ -316,7 +316,9 @@ def rollout_losses(fwd, frames: torch.Tensor, cmds: torch.Tensor, targets: torch
     model whose forward takes ``horizons`` (EchoWarp: each horizon its own slot) forecasts those
     alone when they fit one block."""
     n_in, k = frames.shape[1], targets.shape[1]
-    if horizons is not None and not pushforward and forecaster(fwd) is not None \
+    if horizons is not None and pushforward:
+        raise ValueError("horizons and pushforward do not go together: pushforward trains the last step alone")
+    if horizons is not None and forecaster(fwd) is not None \
             and horizons[-1] <= forecaster(fwd).max_horizon and hasattr(forecaster(fwd), "forecast_at"):
         return _direct_losses(fwd, frames, cmds, targets, terms, precision, flow, echo_window, horizons)
     buf = list(frames.unbind(1))

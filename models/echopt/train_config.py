@@ -112,7 +112,7 @@ class TrainConfig:
 
     def check(self) -> None:
         """SonarSetError naming the first setting no run can have (the loss terms: losses.parse_loss)."""
-        for _, k in self.stages():
+        for k in {k for _, k in self.stages()} | {self.val_horizon or self.k_max}:
             self.loss_horizons(k)
         if self.shuffle_buffer < 1 or self.loader_workers < 0:
             bad = "shuffle_buffer" if self.shuffle_buffer < 1 else "loader_workers"
