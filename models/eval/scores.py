@@ -66,6 +66,7 @@ class Scores:
                 if predictor.forecasts_directly:
                     pred = predictor.forecast_at(batch.frames, batch.commands, horizons)
                     self.seconds[name] += time.perf_counter() - t0  # the prediction's time, not the scoring's
+                    self.step_peak[name][sl, steps], self.step_energy[name][sl, steps] = peak_and_energy(pred)
                     if lo == 0:
                         examples["methods"][name] = predictor.rollout(batch.frames[:1], batch.commands[:1], H)[0]
                 else:
@@ -75,8 +76,6 @@ class Scores:
                     self.step_peak[name][sl], self.step_energy[name][sl] = peak_and_energy(rolled)
                     if lo == 0:
                         examples["methods"][name] = rolled[0].copy()  # not a view of the whole batch's rollout
-                if predictor.forecasts_directly:
-                    self.step_peak[name][sl, steps], self.step_energy[name][sl, steps] = peak_and_energy(pred)
                 for i, (h, metrics) in enumerate(self.per_window[name].items()):
                     for k, v in score_images(pred[:, i], batch.targets[:, h - 1], self.grid, self.matching,
                                              target_echoes[h]).items():
