@@ -57,9 +57,11 @@ def onnx_engine(path: Path, threads: int):
     opts = ort.SessionOptions()
     opts.intra_op_num_threads, opts.inter_op_num_threads = threads, 1
     sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    # a direct forecaster's graph (EchoWarp) takes the horizons: the next frame's, as torch's forward
+    extra = {"horizons": np.array([1], np.int64)} if len(sess.get_inputs()) == 3 else {}
 
     def run(frames: torch.Tensor, commands: torch.Tensor) -> None:
-        sess.run(None, {"frames": frames.numpy(), "commands": commands.numpy()})
+        sess.run(None, {"frames": frames.numpy(), "commands": commands.numpy(), **extra})
 
     return run
 

@@ -69,6 +69,22 @@ def chain_rollout(predict: Callable[[np.ndarray, np.ndarray], np.ndarray], frame
     return buf[:, n_in:]
 
 
+def block_rollout(forecast: Callable[[np.ndarray, np.ndarray, int], np.ndarray], frames: np.ndarray,
+                  commands: np.ndarray, horizon: int, block: int) -> np.ndarray:
+    """``horizon`` frames ahead (B, horizon, R, A) from a model that forecasts up to ``block`` steps
+    in one call, ``forecast(frames, commands, m) -> (B, m, R, A)`` with n_in + m commands: blocks
+    of ``block`` steps, each block's context the previous block's last forecasts."""
+    n_in = frames.shape[1]
+    if commands.shape[1] < n_in + horizon:
+        raise ValueError(f"need {n_in + horizon} commands for horizon {horizon}, got {commands.shape[1]}")
+    buf = np.empty((frames.shape[0], n_in + horizon, *frames.shape[2:]), dtype=np.float32)
+    buf[:, :n_in] = frames
+    for h in range(0, horizon, block):
+        m = min(block, horizon - h)
+        buf[:, n_in + h:n_in + h + m] = forecast(buf[:, h:h + n_in], commands[:, h:h + n_in + m], m)
+    return buf[:, n_in:]
+
+
 def rollout(predictor: Predictor, frames: np.ndarray, commands: np.ndarray, horizon: int) -> np.ndarray:
     """``horizon`` frames ahead: the predictor's own ``rollout`` where it has one, else its
     ``predict`` chained (:func:`chain_rollout`)."""

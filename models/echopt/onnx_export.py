@@ -1,10 +1,19 @@
-"""Export an EchoPT checkpoint to ONNX (``sonarset export-onnx MODEL OUT.onnx``).
+"""Export an EchoPT or EchoWarp checkpoint to ONNX (``sonarset export-onnx MODEL OUT.onnx``).
 
-The graph is the predictor a robot runs: ``frames`` (batch, n_in, R, A) in [0, 1] and
-``commands`` (batch, n_in + 1, 2) in m/s and rad/s give ``next_frame`` (batch, R, A), clamped to
-[0, 1] as in evaluation, with the acoustic-flow prior computed inside the graph. The batch axis is
-dynamic. The checkpoint's card goes into the ONNX metadata (models/echopt/onnx_runtime.py reads it), and
-the export is checked against torch on random sparse windows before it is written.
+The graph is the predictor a robot runs, clamped to [0, 1] as in evaluation, with the acoustic-flow
+geometry computed inside it:
+
+- EchoPT: ``frames`` (batch, n_in, R, A) in [0, 1] and ``commands`` (batch, n_in + 1, 2) in m/s
+  and rad/s give ``next_frame`` (batch, R, A);
+- EchoWarp, which forecasts each horizon directly from the measured frames: ``frames``,
+  ``commands`` (batch, n_in + the largest horizon, 2) and ``horizons`` (int64, increasing steps
+  ahead, 1 to its ``max_horizon``) give ``forecast`` (batch, len(horizons), R, A): a robot asks
+  for ``[1]``, the evaluation for the horizons it scores, and an AR-10 forecast is the model's own,
+  not ten chained next frames.
+
+The batch, command and horizon axes are dynamic. The checkpoint's card goes into the ONNX metadata
+(models/echopt/onnx_runtime.py reads it), and the export is checked against torch on random sparse
+windows before it is written.
 """
 
 from __future__ import annotations
@@ -29,14 +38,18 @@ from sonarset.errors import SonarSetError
 from sonarset.models.echopt.checkpoint import load_checkpoint
 from sonarset.models.echopt.model import EchoPT
 from sonarset.models.echopt.networks import A_TITLE, TITLES, kind_of
-from sonarset.models.echopt.onnx_runtime import CARD_KEY, INPUTS, OUTPUT
+from sonarset.models.echopt.onnx_runtime import CARD_KEY, FORECAST_INPUTS, FORECAST_OUTPUT, INPUTS, OUTPUT
 from sonarset.models.registry import PRETRAINED, RECOMMENDED_KIND
 
 #: The kinds whose one-step predictor exports as a graph: the reference methods are not shipped to
 #: robots, and ConvLSTM's recurrence and SimVP's slots were never checked against onnxruntime.
 ONNX_KINDS = ("echopt", "echowarp")
-#: The largest torch-vs-onnxruntime difference an export may have (images are in [0, 1]).
-PARITY_TOLERANCE = 1e-4
+#: The largest torch-vs-onnxruntime difference an export may have (images are in [0, 1]). The two
+#: round the warp's fp32 sampling coordinates differently by a few ulp (up to 8e-5 of a pixel at
+#: range bin 200), which moves a sampled value by that times the image's steepest pixel step, 1 in
+#: the sparse check windows: the shipped EchoWarp differs by up to 1.4e-4 (mean 7e-7) over ten
+#: horizons; a wrong graph differs by 1e-2 and more.
+PARITY_TOLERANCE = 1e-3
 OPSET = 18
 
 
@@ -51,6 +64,24 @@ class DeployedEchoPT(nn.Module):
         return self.model(frames, commands).clamp(0, 1)
 
 
+class DeployedForecast(nn.Module):
+    """A direct forecaster (EchoWarp) as a predictor runs it: the frames ``horizons`` steps ahead
+    (a 1-D int64 tensor), clamped to [0, 1]; the checks of ``forecast_at`` are the runtime's
+    (models/echopt/onnx_runtime.py), where the horizons are numbers, not a graph's input."""
+
+    def __init__(self, model: nn.Module):
+        super().__init__()
+        self.model = model
+
+    def forward(self, frames: torch.Tensor, commands: torch.Tensor, horizons: torch.Tensor) -> torch.Tensor:
+        return self.model.composed(self.model.slot_parts(frames, commands, horizons)).clamp(0, 1)
+
+
+def forecasts_directly(model: nn.Module) -> bool:
+    """Whether ``model`` forecasts each horizon from the measured frames (and exports as DeployedForecast)."""
+    return callable(getattr(model, "slot_parts", None))
+
+
 @dataclass
 class Export:
     path: Path
@@ -60,14 +91,14 @@ class Export:
     kind: str = "echopt"  # the exported network's
 
 
-def random_windows(model: EchoPT, n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+def random_windows(model: EchoPT, n: int, seed: int = 0, steps: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
     """``n`` windows shaped like sonar data: sparse frames (about 12% of pixels lit, as in the
-    default 'ertis' images) and commands within the simulator's limits."""
+    default 'ertis' images) and commands within the simulator's limits, for ``steps`` steps ahead."""
     cfg = model.cfg
     g = torch.Generator().manual_seed(seed)
     shape = (n, cfg.n_in, cfg.n_range, cfg.n_azimuth)
     frames = torch.rand(shape, generator=g) * (torch.rand(shape, generator=g) > 0.88)
-    commands = (torch.rand((n, cfg.n_in + 1, 2), generator=g) * 2 - 1) * torch.tensor([0.3, 1.0])
+    commands = (torch.rand((n, cfg.n_in + steps, 2), generator=g) * 2 - 1) * torch.tensor([0.3, 1.0])
     return frames, commands
 
 
@@ -90,6 +121,15 @@ def metadata(card: dict, model: EchoPT) -> dict[str, str]:
         "echopt.output": f"next_frame: float32 (batch, {cfg.n_range}, {cfg.n_azimuth}) in [0, 1]",
         "sonarset.version": __version__,
     }
+    if forecasts_directly(model):
+        h = model.max_horizon
+        flat["echopt.inputs"] = (
+            f"frames: float32 (batch, {cfg.n_in}, {cfg.n_range}, {cfg.n_azimuth}) energyscapes in [0, 1], oldest "
+            f"first; commands: float32 (batch, {cfg.n_in} + H, 2) (v m/s, omega rad/s), commands[:, {cfg.n_in} + t - 1] "
+            f"moves the robot from frame t - 1 to frame t ahead, H the largest horizon; horizons: int64 (k,), "
+            f"increasing steps ahead, 1 to {h}")
+        flat["echopt.output"] = f"forecast: float32 (batch, k, {cfg.n_range}, {cfg.n_azimuth}) in [0, 1]"
+        flat["echopt.max_horizon"] = str(h)
     return flat
 
 
@@ -132,9 +172,16 @@ def export_onnx(spec: str | os.PathLike, out: str | os.PathLike, *, check_window
         raise SonarSetError(f"{spec}: {A_TITLE[kind_of(model)]} checkpoint; ONNX export is for "
                             f"{' and '.join(TITLES[k] for k in ONNX_KINDS)} only")
     model = model.float().eval()
-    deployed = DeployedEchoPT(model).eval()
-    example = random_windows(model, 2, seed=1)
     batch = torch.export.Dim("batch", min=1, max=1 << 16)
+    if forecasts_directly(model):
+        deployed, names, output = DeployedForecast(model).eval(), list(FORECAST_INPUTS), FORECAST_OUTPUT
+        n_in, most = model.cfg.n_in, model.max_horizon
+        example = (*random_windows(model, 2, seed=1, steps=min(3, most)), torch.arange(1, min(3, most) + 1))
+        dims = ({0: batch}, {0: batch, 1: torch.export.Dim("commands", min=n_in + 1, max=n_in + most)},
+                {0: torch.export.Dim("horizons", min=1, max=most)})
+    else:
+        deployed, names, output = DeployedEchoPT(model).eval(), list(INPUTS), OUTPUT
+        example, dims = random_windows(model, 2, seed=1), ({0: batch}, {0: batch})
     log = io.StringIO()
     exporter_log = logging.getLogger("torch.onnx")
     level = exporter_log.level
@@ -143,8 +190,8 @@ def export_onnx(spec: str | os.PathLike, out: str | os.PathLike, *, check_window
         exporter_log.setLevel(logging.ERROR)
         with warnings.catch_warnings(), contextlib.redirect_stdout(log):
             warnings.simplefilter("ignore")
-            program = torch.onnx.export(deployed, example, input_names=list(INPUTS), output_names=[OUTPUT],
-                                        dynamic_shapes=({0: batch}, {0: batch}), opset_version=opset,
+            program = torch.onnx.export(deployed, example, input_names=names, output_names=[output],
+                                        dynamic_shapes=dims, opset_version=opset,
                                         dynamo=True, optimize=True, verbose=False, external_data=False,
                                         custom_translation_table={torch.ops.aten.hypot.default: _hypot})
     except Exception as exc:  # the exporter's own error types; the log says which op
@@ -171,19 +218,31 @@ def export_onnx(spec: str | os.PathLike, out: str | os.PathLike, *, check_window
 
 
 @torch.no_grad()
-def _parity(data: bytes, deployed: DeployedEchoPT, n: int) -> float | None:
-    """Max |torch - onnxruntime| on ``n`` random windows of a few batch sizes; None without onnxruntime."""
+def _parity(data: bytes, deployed: nn.Module, n: int) -> float | None:
+    """Max |torch - onnxruntime| on ``n`` random windows of a few batch sizes (and, for a forecast,
+    of a few sets of horizons); None without onnxruntime."""
     try:
         import onnxruntime as ort
     except ImportError:
         return None
     sess = ort.InferenceSession(data, providers=["CPUExecutionProvider"])
-    frames, commands = random_windows(deployed.model, n, seed=2)
+    model = deployed.model
+    direct = isinstance(deployed, DeployedForecast)
+    most = model.max_horizon if direct else 1
+    frames, commands = random_windows(model, n, seed=2, steps=most)
+    # batch 1 and the rest: the batch axis is dynamic; a forecast's horizons and commands are too
+    cases = [(0, 1, (1,)), (1, n, tuple(range(1, most + 1))), (1, n, tuple(range(most, 0, -2))[::-1])]
     worst = 0.0
-    for lo, hi in ((0, 1), (1, n)):  # batch 1 and the rest: the batch axis is dynamic
+    for lo, hi, horizons in cases if direct else cases[:2]:
         if hi <= lo:
             continue
-        ref = deployed(frames[lo:hi], commands[lo:hi]).numpy()
-        got = sess.run([OUTPUT], {"frames": frames[lo:hi].numpy(), "commands": commands[lo:hi].numpy()})[0]
+        f, c = frames[lo:hi], commands[lo:hi, :model.cfg.n_in + horizons[-1]]
+        if direct:
+            h = torch.tensor(horizons)
+            ref = deployed(f, c, h).numpy()
+            got = sess.run([FORECAST_OUTPUT], {"frames": f.numpy(), "commands": c.numpy(), "horizons": h.numpy()})[0]
+        else:
+            ref = deployed(f, c).numpy()
+            got = sess.run([OUTPUT], {"frames": f.numpy(), "commands": c.numpy()})[0]
         worst = max(worst, float(np.abs(ref - got).max()))
     return worst

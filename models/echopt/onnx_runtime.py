@@ -18,12 +18,16 @@ import numpy as np
 from sonarset.errors import GridMismatchError, SonarSetError
 from sonarset.format.attrs import SensorGrid
 
-from sonarset.models.predictor import BasePredictor
+from sonarset.models.predictor import BasePredictor, block_rollout
 
 #: The metadata key of the model card (the JSON card of the exported checkpoint).
 CARD_KEY = "echopt.card"
 INPUTS = ("frames", "commands")
 OUTPUT = "next_frame"
+#: A direct forecaster's graph (EchoWarp): the frames ``horizons`` steps ahead, each from the
+#: measured frames (models/echopt/onnx_export.py).
+FORECAST_INPUTS = ("frames", "commands", "horizons")
+FORECAST_OUTPUT = "forecast"
 #: Windows per session run: onnxruntime's samples/s on 2 CPU cores peak near 16 windows and fall
 #: by ~10% at 128 (bench/bench_infer.py, BENCHMARKS.md).
 ONNX_BATCH = 16
@@ -76,10 +80,15 @@ def session_card(session, path: str | os.PathLike) -> dict:
     if not isinstance(card, dict) or not isinstance(card.get("config"), dict):
         raise SonarSetError(f"{path}: its EchoPT card (metadata {CARD_KEY!r}) has no model config")
     names = [i.name for i in session.get_inputs()], [o.name for o in session.get_outputs()]
-    if tuple(names[0]) != INPUTS or names[1][:1] != [OUTPUT]:
-        raise SonarSetError(f"{path}: inputs {names[0]} and outputs {names[1]}, not an EchoPT export "
-                            f"({', '.join(INPUTS)} -> {OUTPUT})")
+    if (tuple(names[0]), names[1][:1]) not in ((INPUTS, [OUTPUT]), (FORECAST_INPUTS, [FORECAST_OUTPUT])):
+        raise SonarSetError(f"{path}: inputs {names[0]} and outputs {names[1]}, not an EchoPT or EchoWarp export "
+                            f"({', '.join(INPUTS)} -> {OUTPUT}, or {', '.join(FORECAST_INPUTS)} -> {FORECAST_OUTPUT})")
     return card
+
+
+def forecasts_directly(session) -> bool:
+    """Whether a checked session's graph is a direct forecast (FORECAST_INPUTS), not one next frame."""
+    return tuple(i.name for i in session.get_inputs()) == FORECAST_INPUTS
 
 
 def read_onnx_card(path: str | os.PathLike) -> dict:
@@ -88,15 +97,20 @@ def read_onnx_card(path: str | os.PathLike) -> dict:
 
 
 class OnnxEchoPTPredictor(BasePredictor):
-    """An exported EchoPT under onnxruntime: the predictor interface of ``EchoPTPredictor``."""
+    """An exported EchoPT (or an EchoWarp exported before its graph forecast every horizon) under
+    onnxruntime: the predictor interface of ``EchoPTPredictor``, a next frame per window."""
 
     precision = "fp32"  # the exported graph's; onnxruntime runs it as written
+    output, layout = OUTPUT, ("batch", "range", "azimuth")
 
     def __init__(self, path: str | os.PathLike, grid: SensorGrid | None = None, batch_size: int = ONNX_BATCH,
-                 threads: int | None = None):
+                 threads: int | None = None, session=None):
         self.path = Path(path)
-        self.session = open_session(self.path, threads)
+        self.session = session or open_session(self.path, threads)
         self.card = session_card(self.session, self.path)
+        if forecasts_directly(self.session) != (self.output == FORECAST_OUTPUT):
+            raise SonarSetError(f"{self.path}: a graph of {', '.join(i.name for i in self.session.get_inputs())}, "
+                                f"not {type(self).__name__}'s; load it with load_onnx_predictor")
         cfg = self.card["config"]
         try:
             self.n_in = int(cfg["n_in"])
@@ -110,11 +124,11 @@ class OnnxEchoPTPredictor(BasePredictor):
         if grid is not None and grid.shape != self.shape:
             raise GridMismatchError(f"{self.path}: the model takes {self.shape[0]}x{self.shape[1]} images, "
                                     f"the data has {grid.shape[0]}x{grid.shape[1]}")
-        declared = self.session.get_outputs()[0].shape
+        declared, rank, axes = self.session.get_outputs()[0].shape, len(self.layout), ", ".join(self.layout)
         fixed = [d for d in declared[-2:] if isinstance(d, int)] if declared else []
-        if declared and (len(declared) != 3 or len(fixed) == 2 and tuple(fixed) != self.shape):
-            raise SonarSetError(f"{self.path}: the graph's {OUTPUT} has shape {_shape_text(declared)}, its card "
-                                f"says {self.shape[0]}x{self.shape[1]} images (batch, range, azimuth): "
+        if declared and (len(declared) != rank or len(fixed) == 2 and tuple(fixed) != self.shape):
+            raise SonarSetError(f"{self.path}: the graph's {self.output} has shape {_shape_text(declared)}, its card "
+                                f"says {self.shape[0]}x{self.shape[1]} images ({axes}): "
                                 "a graph that does not match its card; export it again")
         self.grid = grid
         self.batch_size = batch_size
@@ -135,14 +149,70 @@ class OnnxEchoPTPredictor(BasePredictor):
         return out
 
 
+class OnnxForecastPredictor(OnnxEchoPTPredictor):
+    """An exported direct forecaster (EchoWarp) under onnxruntime: ``DirectForecastPredictor``'s
+    interface, each horizon forecast from the measured frames in the graph (its ``horizons``
+    input), so that an AR-10 forecast is the model's own, not ten chained next frames."""
+
+    output, layout = FORECAST_OUTPUT, ("batch", "horizon", "range", "azimuth")
+
+    def __init__(self, path: str | os.PathLike, grid: SensorGrid | None = None, batch_size: int = ONNX_BATCH,
+                 threads: int | None = None, session=None):
+        super().__init__(path, grid, batch_size, threads, session)
+        try:
+            self.max_horizon = int(self.card["config"]["max_horizon"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise SonarSetError(f"{self.path}: its card's config lacks the forecast's max_horizon ({exc})") from None
+
+    def predict(self, frames: np.ndarray, commands: np.ndarray) -> np.ndarray:
+        return self.forecast_at(frames, commands[:, :self.n_in + 1], (1,))[:, 0]
+
+    def rollout(self, frames: np.ndarray, commands: np.ndarray, horizon: int) -> np.ndarray:
+        """(B, horizon, R, A): blocks of up to ``max_horizon`` steps, as ``ForecastPredictor``'s."""
+        return block_rollout(lambda f, c, m: self.forecast_at(f, c, tuple(range(1, m + 1))), frames, commands,
+                             horizon, self.max_horizon)
+
+    def forecast_at(self, frames: np.ndarray, commands: np.ndarray, horizons: tuple[int, ...]) -> np.ndarray:
+        """(B, len(horizons), R, A): the frames ``horizons`` (increasing) steps ahead, with commands
+        (B, n_in + horizons[-1], 2), each from the measured frames; beyond ``max_horizon``, whose
+        forecasts chain blocks, the rollout's steps are taken."""
+        horizons = tuple(int(h) for h in horizons)
+        if not horizons or list(horizons) != sorted(set(horizons)) or horizons[0] < 1:
+            raise ValueError(f"horizons must be increasing steps >= 1, got {horizons}")
+        if commands.shape[1] < self.n_in + horizons[-1]:
+            raise ValueError(f"need {self.n_in + horizons[-1]} commands for horizon {horizons[-1]}, "
+                             f"got {commands.shape[1]}")
+        if horizons[-1] > self.max_horizon:
+            return self.rollout(frames, commands, horizons[-1])[:, [h - 1 for h in horizons]]
+        out = np.empty((frames.shape[0], len(horizons), *self.shape), dtype=np.float32)
+        steps = np.asarray(horizons, dtype=np.int64)
+        per_run = max(1, round(self.batch_size / len(horizons)))  # images per run, as the one-step graph's
+        for lo in range(0, len(frames), per_run):
+            feed = {"frames": np.ascontiguousarray(frames[lo:lo + per_run], dtype=np.float32),
+                    "commands": np.ascontiguousarray(commands[lo:lo + per_run, :self.n_in + horizons[-1]],
+                                                     dtype=np.float32),
+                    "horizons": steps}
+            got = self.session.run([FORECAST_OUTPUT], feed)[0]  # clamped in the graph
+            if got.shape != (len(feed["frames"]), len(horizons), *self.shape):
+                raise SonarSetError(f"{self.path}: the graph's {FORECAST_OUTPUT} came out {_shape_text(got.shape)} "
+                                    f"for {len(feed['frames'])} windows and {len(horizons)} horizons, its card says "
+                                    f"{self.shape[0]}x{self.shape[1]} images: a graph that does not match its "
+                                    "card; export it again")
+            out[lo:lo + len(feed["frames"])] = got
+        return out
+
+
 def _shape_text(shape) -> str:
     return "x".join(str(d) if isinstance(d, int) else str(d or "?") for d in shape)
 
 
 def load_onnx_predictor(path: str | os.PathLike, grid: SensorGrid | None = None,
-                        kind: str = "echopt") -> OnnxEchoPTPredictor:
-    """The export at ``path``, which must be of ``kind`` (its card's model)."""
-    p = OnnxEchoPTPredictor(path, grid)
+                        kind: str = "echopt") -> OnnxEchoPTPredictor | OnnxForecastPredictor:
+    """The export at ``path``, which must be of ``kind`` (its card's model): a direct forecast's graph
+    as an OnnxForecastPredictor, a next frame's as an OnnxEchoPTPredictor."""
+    session = open_session(path)
+    cls = OnnxForecastPredictor if forecasts_directly(session) else OnnxEchoPTPredictor
+    p = cls(path, grid, session=session)
     if p.name != kind:
         raise SonarSetError(f"{path}: an ONNX export of {p.name}, not of {kind}; name it {p.name}:{path}")
     return p

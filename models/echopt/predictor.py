@@ -17,7 +17,7 @@ from sonarset.models.echopt.checkpoint import load_checkpoint, resolve
 from sonarset.models.echopt.losses import forecaster
 from sonarset.models.echopt.networks import kind_of
 from sonarset.models.echopt.precision import autocast, resolve_device, resolve_precision
-from sonarset.models.predictor import BasePredictor
+from sonarset.models.predictor import BasePredictor, block_rollout
 
 #: Windows per forward pass, by device. Measured (bench/bench_infer.py, BENCHMARKS.md): on a CPU
 #: samples/s peak at 8-32 windows in fp32 and bf16 and fall for larger batches, whose activations
@@ -106,19 +106,12 @@ class ForecastPredictor(LearnedPredictor):
     def rollout(self, frames: np.ndarray, commands: np.ndarray, horizon: int) -> np.ndarray:
         """(B, horizon, R, A) from frames (B, n_in, R, A) and commands (B, n_in + horizon, 2), as
         models.baselines.rollout's contract."""
-        n_in = frames.shape[1]
-        if commands.shape[1] < n_in + horizon:
-            raise ValueError(f"need {n_in + horizon} commands for horizon {horizon}, got {commands.shape[1]}")
-        buf = np.empty((frames.shape[0], n_in + horizon, *frames.shape[2:]), dtype=np.float32)
-        buf[:, :n_in] = frames
-        h, block = 0, self.model.max_horizon
-        while h < horizon:
-            m = min(block, horizon - h)
-            self._chunked(buf[:, h:h + n_in], commands[:, h:h + n_in + m],
-                          lambda f, c, m=m: self.model.forecast(f, c, m), buf[:, n_in + h:n_in + h + m],
-                          self.forecast_batch)
-            h += m
-        return buf[:, n_in:]
+        return block_rollout(self._forecast, frames, commands, horizon, self.model.max_horizon)
+
+    def _forecast(self, frames: np.ndarray, commands: np.ndarray, m: int) -> np.ndarray:
+        out = np.empty((frames.shape[0], m, *frames.shape[2:]), dtype=np.float32)
+        self._chunked(frames, commands, lambda f, c: self.model.forecast(f, c, m), out, self.forecast_batch)
+        return out
 
 
 class DirectForecastPredictor(ForecastPredictor):

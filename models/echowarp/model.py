@@ -129,7 +129,11 @@ class EchoWarp(ZooModel):
         ``max_horizon``, commands (B, n_in + horizons[-1], 2): ``forecast``'s images at those steps
         (each horizon is its own slot of the pass; equal to the rounding of another batch size),
         without computing the others."""
-        parts = self.parts(frames, commands, horizons=horizons)
+        return self.composed(self.parts(frames, commands, horizons=horizons))
+
+    @staticmethod
+    def composed(parts: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The forecast the terms of ``parts`` (or ``slot_parts``) sum to."""
         pred = parts["source"] + parts["warp"]
         return pred + parts["older"] if "older" in parts else pred
 
@@ -152,12 +156,18 @@ class EchoWarp(ZooModel):
         for diagnosis ``composite`` (the last frame through the composite warp alone) and, where
         the warp is corrected, ``shift`` (B, steps, 2, R, A): the correction in range and azimuth
         pixels."""
-        cfg = self.cfg
         horizons = self.checked_horizons(commands, k, horizons)
-        steps, n_in = len(horizons), cfg.n_in
         self._check_frames(frames)
+        steps = torch.tensor(horizons, device=commands.device)
+        return self.slot_parts(frames, commands[:, :self.cfg.n_in + horizons[-1]], steps)
+
+    def slot_parts(self, frames: torch.Tensor, commands: torch.Tensor, horizons: torch.Tensor) -> dict[str, torch.Tensor]:
+        """``parts`` for ``horizons`` given as a 1-D integer tensor, unchecked: the traceable core
+        (an ONNX export takes the horizons as an input; ``parts`` checks them and calls this)."""
+        cfg = self.cfg
+        steps, n_in = horizons.shape[0], cfg.n_in
         B, _, R, A = frames.shape
-        ir, ia, motion = self.sources(commands[:, :n_in + horizons[-1]], n_in, horizons)  # (B, steps, n_in, R, A) each
+        ir, ia, motion = self.sources(commands, n_in, horizons)  # (B, steps, n_in, R, A) each
         slots = frames[:, None].expand(B, steps, n_in, R, A).reshape(B * steps, n_in, R, A)
         ir, ia = ir.reshape(B * steps, n_in, R, A), ia.reshape(B * steps, n_in, R, A)
         registered = self.sample(slots, ir, ia)  # every frame at the target's pose
@@ -214,24 +224,24 @@ class EchoWarp(ZooModel):
         self.forecast_steps(commands, horizons[-1])
         return horizons
 
-    def sources(self, commands: torch.Tensor, n_in: int, horizons: tuple[int, ...]):
-        """Where each pixel of the frame ``h`` steps ahead (h in ``horizons``) lies in each input frame, in
-        (fractional) pixel indices ``ir``, ``ia`` (B, steps, n_in, R, A), and the composed motion from
-        the last input frame's pose to it (heading change, x, y; B, steps, 3). ``commands[:, t]`` moves
-        the robot from frame t - 1 to frame t; the poses are composed exactly in float64, then each
+    def sources(self, commands: torch.Tensor, n_in: int, horizons: torch.Tensor | tuple[int, ...]):
+        """Where each pixel of the frame ``h`` steps ahead (h in ``horizons``, a 1-D integer tensor or a tuple)
+        lies in each input frame, in (fractional) pixel indices ``ir``, ``ia`` (B, steps, n_in, R, A),
+        and the composed motion from the last input frame's pose to it (heading change, x, y; B,
+        steps, 3). ``commands[:, t]`` moves the robot from frame t - 1 to frame t; the poses are
+        composed exactly in float64 (cumulative sums over the commands, in their order), then each
         pixel's source is computed once (no chain of resamplings)."""
+        horizons = torch.as_tensor(horizons, device=commands.device)
         cmd = commands.double()
         _, _, dx, dy = arc_motion(torch, cmd[..., 0], cmd[..., 1], self.cfg.dt)  # (B, T): frame t-1 -> t
-        phi = cmd[..., 1] * self.cfg.dt  # the heading change, as arc_motion's
-        # poses of every frame in frame 0's robot frame
-        heading, px, py = [torch.zeros_like(phi[:, 0])], [torch.zeros_like(phi[:, 0])], [torch.zeros_like(phi[:, 0])]
-        for t in range(1, commands.shape[1]):
-            h0 = heading[-1]
-            px.append(px[-1] + torch.cos(h0) * dx[:, t] - torch.sin(h0) * dy[:, t])
-            py.append(py[-1] + torch.sin(h0) * dx[:, t] + torch.cos(h0) * dy[:, t])
-            heading.append(h0 + phi[:, t])
-        heading, px, py = (torch.stack(v, 1) for v in (heading, px, py))  # (B, T)
-        tgt = [n_in + h - 1 for h in horizons]
+        # poses of every frame in frame 0's robot frame (commands[:, 0] leads into frame 0: not used)
+        phi = F.pad(cmd[:, 1:, 1] * self.cfg.dt, (1, 0))  # the heading change, as arc_motion's
+        heading = torch.cumsum(phi, 1)
+        before = F.pad(heading[:, :-1], (1, 0))  # the heading each step starts from
+        c0, s0 = torch.cos(before), torch.sin(before)
+        px = torch.cumsum(F.pad((c0 * dx - s0 * dy)[:, 1:], (1, 0)), 1)
+        py = torch.cumsum(F.pad((s0 * dx + c0 * dy)[:, 1:], (1, 0)), 1)
+        tgt = horizons + (n_in - 1)
         # the target's pose in each input frame's robot frame: (B, steps, n_in)
         d_h = heading[:, tgt, None] - heading[:, None, :n_in]
         ex, ey = px[:, tgt, None] - px[:, None, :n_in], py[:, tgt, None] - py[:, None, :n_in]
@@ -262,7 +272,7 @@ class EchoWarp(ZooModel):
         return (ir < -0.5) | (ir > R - 0.5) | (ia < -0.5) | (ia > A - 0.5)
 
     def features(self, registered: torch.Tensor, ir: torch.Tensor, ia: torch.Tensor, motion: torch.Tensor,
-                 horizons: tuple[int, ...]) -> torch.Tensor:
+                 horizons: torch.Tensor) -> torch.Tensor:
         """A slot's per-pixel inputs (N, n_features, R, A), channels-last (``n_features``), in
         autocast's dtype where it is on."""
         cfg = self.cfg
@@ -274,7 +284,7 @@ class EchoWarp(ZooModel):
         r, th = self._centres()
         r0, r1 = cfg.range_edges
         pos = torch.stack([torch.sin(th).expand(1, R, A), ((r - r0) / (r1 - r0) * 2 - 1).expand(1, R, A)], 1)
-        horizon = torch.tensor(horizons, device=ir.device, dtype=torch.float32).repeat(N // len(horizons)) / cfg.max_horizon
+        horizon = horizons.to(torch.float32)[None].expand(N // horizons.shape[0], -1).reshape(N) / cfg.max_horizon
         planes = torch.cat([horizon[:, None], motion], 1)[:, :, None, None].expand(N, 4, R, A)
         x = torch.cat([registered, outside[:, None], shift, pos.expand(N, 2, R, A), planes], 1)
         # in autocast's dtype once: both convolutions that read x would each cast it again
