@@ -365,8 +365,9 @@ def export_onnx_(
                                                           "path, or EchoWarp's as echowarp:RUN."),
     out_path: Path = typer.Argument(..., metavar="OUT.onnx", help="The ONNX file to write."),
 ) -> None:
-    """Export EchoPT or EchoWarp to ONNX for onnxruntime: a dynamic batch axis, the flow prior inside the graph,
-    the model card in the metadata; checked against torch before it is written."""
+    """Export EchoPT or EchoWarp to ONNX for onnxruntime: a dynamic batch axis (EchoWarp's graph forecasts the
+    horizons it is given), the flow geometry inside the graph, the model card in the metadata; checked against
+    torch before it is written."""
     from sonarset.models.echopt.onnx_export import export_onnx
 
     e = export_onnx(model, out_path)
