@@ -47,8 +47,8 @@ ONNX_KINDS = ("echopt", "echowarp")
 #: The largest torch-vs-onnxruntime difference an export may have (images are in [0, 1]). The two
 #: round the warp's fp32 sampling coordinates differently by a few ulp (up to 8e-5 of a pixel at
 #: range bin 200), which moves a sampled value by that times the image's steepest pixel step, 1 in
-#: the sparse check windows: the shipped EchoWarp differs by up to 1.4e-4 (mean 7e-7) over ten
-#: horizons; a wrong graph differs by 1e-2 and more.
+#: sparse random windows: the shipped EchoWarp differs by up to 1.4e-4 (mean 7e-7) on eight
+#: windows at all ten horizons; the graph of a wrong horizon differs by 0.97.
 PARITY_TOLERANCE = 1e-3
 OPSET = 18
 
@@ -231,7 +231,8 @@ def _parity(data: bytes, deployed: nn.Module, n: int) -> float | None:
     most = model.max_horizon if direct else 1
     frames, commands = random_windows(model, n, seed=2, steps=most)
     # batch 1 and the rest: the batch axis is dynamic; a forecast's horizons and commands are too
-    cases = [(0, 1, (1,)), (1, n, tuple(range(1, most + 1))), (1, n, tuple(range(most, 0, -2))[::-1])]
+    # (every horizon on two windows: each is a slot of the pass, so this is 20 images, not 10 n)
+    cases = [(0, 1, (1,)), (1, n, (1,)), (1, n, (most,)), (1, 3, tuple(range(1, most + 1)))]
     worst = 0.0
     for lo, hi, horizons in cases if direct else cases[:2]:
         if hi <= lo:
