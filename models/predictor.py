@@ -69,6 +69,22 @@ def chain_rollout(predict: Callable[[np.ndarray, np.ndarray], np.ndarray], frame
     return buf[:, n_in:]
 
 
+def checked_horizons(horizons) -> tuple[int, ...]:
+    """``horizons`` as a tuple of increasing steps >= 1 (ValueError otherwise): what ``forecast_at``
+    takes."""
+    horizons = tuple(int(h) for h in horizons)
+    if not horizons or list(horizons) != sorted(set(horizons)) or horizons[0] < 1:
+        raise ValueError(f"horizons must be increasing steps >= 1, got {horizons}")
+    return horizons
+
+
+def rollout_steps(rollout: Callable[[np.ndarray, np.ndarray, int], np.ndarray], frames: np.ndarray,
+                  commands: np.ndarray, horizons: tuple[int, ...]) -> np.ndarray:
+    """(B, len(horizons), R, A): ``rollout``'s forecasts at ``horizons`` (increasing), for a model
+    that cannot forecast them alone (or not that far ahead)."""
+    return rollout(frames, commands, horizons[-1])[:, [h - 1 for h in horizons]]
+
+
 def block_rollout(forecast: Callable[[np.ndarray, np.ndarray, int], np.ndarray], frames: np.ndarray,
                   commands: np.ndarray, horizon: int, block: int) -> np.ndarray:
     """``horizon`` frames ahead (B, horizon, R, A) from a model that forecasts up to ``block`` steps
@@ -162,7 +178,7 @@ class CheckedPredictor:
         predictor's own ``forecast_at``, else its rollout's steps."""
         horizons = tuple(horizons)
         if self._own_forecast_at is None:
-            return self.rollout(frames, commands, horizons[-1])[:, [h - 1 for h in horizons]]
+            return rollout_steps(self.rollout, frames, commands, horizons)
         out = self._call("forecast_at", self._own_forecast_at, frames, commands, horizons)
         return self._checked(out, (frames.shape[0], len(horizons), *frames.shape[2:]), "forecast_at",
                              "(B, len(horizons), R, A)")

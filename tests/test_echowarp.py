@@ -178,16 +178,44 @@ def test_it_exports_to_onnx_and_runs_in_onnxruntime(tmp_path, outside):
     assert onnx_pred.forecasts_directly and not onnx_pred.chains
     for horizon in (most, most + 2):  # beyond max_horizon both chain blocks
         direct = onnx_pred.rollout(frames, commands, horizon)
-        np.testing.assert_allclose(direct, torch_pred.rollout(frames, commands, horizon), atol=1e-4)
+        np.testing.assert_allclose(direct, torch_pred.rollout(frames, commands, horizon), atol=PARITY_TOLERANCE)
     chained = chain_rollout(onnx_pred.predict, frames, commands, most)
     assert np.abs(chained - direct[:, :most]).max() > 1e-2
-    np.testing.assert_allclose(onnx_pred.forecast_at(frames, commands, (2, most)), direct[:, [1, most - 1]], atol=1e-4)
+    np.testing.assert_allclose(onnx_pred.forecast_at(frames, commands, (2, most)), direct[:, [1, most - 1]],
+                               atol=PARITY_TOLERANCE)
+    np.testing.assert_array_equal(onnx_pred.forecast_at(frames, commands, (1, most + 2)), direct[:, [0, most + 1]])
     with pytest.raises(SonarSetError, match="horizons must be increasing"):
         onnx_pred.forecast_at(frames, commands, (3, 1))
+    with pytest.raises(SonarSetError, match="need 5 commands for horizon 2"):
+        onnx_pred.forecast_at(frames, commands[:, :4], (2,))
     with pytest.raises(SonarSetError, match="an ONNX export of echowarp, not of echopt"):
         make_predictor(f"echopt:{e.path}", GRID, RIG)
     with pytest.raises(SonarSetError, match="load it with load_onnx_predictor"):
         OnnxEchoPTPredictor(e.path)
+
+
+def test_a_next_frame_graph_of_echowarp_loads_and_says_it_chains(tmp_path, monkeypatch):
+    """An EchoWarp exported as a next frame's graph (before its graph took the horizons, or the
+    ablation's max_horizon 1, whose rollout chains anyway) runs as one, and a multi-horizon one's
+    label says its forecasts chain."""
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxscript")
+    import sonarset.models.echopt.onnx_export as onnx_export
+    from sonarset.models.echopt.checkpoint import save_checkpoint
+    from sonarset.models.echopt.onnx_runtime import OnnxEchoPTPredictor
+    from sonarset.models.registry import make_predictor
+
+    assert not onnx_export.exports_a_forecast(_model(max_horizon=1))
+    model = _trained_like(_model())
+    ckpt = save_checkpoint(tmp_path / "run" / "model.safetensors", model, {"preset": "tiny", "grid": GRID.model_dump()})
+    monkeypatch.setattr(onnx_export, "exports_a_forecast", lambda m: False)  # as exported before
+    e = onnx_export.export_onnx(f"echowarp:{ckpt}", tmp_path / "old.onnx")
+    old = make_predictor(f"echowarp:{e.path}", GRID, RIG)
+    assert isinstance(old.predictor, OnnxEchoPTPredictor) and old.chains and "chained: export it again" in old.label
+    frames, commands = (t.numpy() for t in onnx_export.random_windows(model, 3, seed=4))
+    torch_pred = make_predictor(f"echowarp:{ckpt}", GRID, RIG, precision="fp32")
+    np.testing.assert_allclose(old.predict(frames, commands), torch_pred.predict(frames, commands),
+                               atol=onnx_export.PARITY_TOLERANCE)
 
 
 @pytest.mark.parametrize("switch", ["max_shift", "older_frames"])

@@ -18,7 +18,7 @@ import numpy as np
 from sonarset.errors import GridMismatchError, SonarSetError
 from sonarset.format.attrs import SensorGrid
 
-from sonarset.models.predictor import BasePredictor, block_rollout
+from sonarset.models.predictor import BasePredictor, block_rollout, checked_horizons, rollout_steps
 
 #: The metadata key of the model card (the JSON card of the exported checkpoint).
 CARD_KEY = "echopt.card"
@@ -86,7 +86,7 @@ def session_card(session, path: str | os.PathLike) -> dict:
     return card
 
 
-def forecasts_directly(session) -> bool:
+def graph_forecasts(session) -> bool:
     """Whether a checked session's graph is a direct forecast (FORECAST_INPUTS), not one next frame."""
     return tuple(i.name for i in session.get_inputs()) == FORECAST_INPUTS
 
@@ -108,7 +108,7 @@ class OnnxEchoPTPredictor(BasePredictor):
         self.path = Path(path)
         self.session = session or open_session(self.path, threads)
         self.card = session_card(self.session, self.path)
-        if forecasts_directly(self.session) != (self.output == FORECAST_OUTPUT):
+        if graph_forecasts(self.session) != (self.output == FORECAST_OUTPUT):
             raise SonarSetError(f"{self.path}: a graph of {', '.join(i.name for i in self.session.get_inputs())}, "
                                 f"not {type(self).__name__}'s; load it with load_onnx_predictor")
         cfg = self.card["config"]
@@ -176,14 +176,12 @@ class OnnxForecastPredictor(OnnxEchoPTPredictor):
         """(B, len(horizons), R, A): the frames ``horizons`` (increasing) steps ahead, with commands
         (B, n_in + horizons[-1], 2), each from the measured frames; beyond ``max_horizon``, whose
         forecasts chain blocks, the rollout's steps are taken."""
-        horizons = tuple(int(h) for h in horizons)
-        if not horizons or list(horizons) != sorted(set(horizons)) or horizons[0] < 1:
-            raise ValueError(f"horizons must be increasing steps >= 1, got {horizons}")
+        horizons = checked_horizons(horizons)
         if commands.shape[1] < self.n_in + horizons[-1]:
             raise ValueError(f"need {self.n_in + horizons[-1]} commands for horizon {horizons[-1]}, "
                              f"got {commands.shape[1]}")
         if horizons[-1] > self.max_horizon:
-            return self.rollout(frames, commands, horizons[-1])[:, [h - 1 for h in horizons]]
+            return rollout_steps(self.rollout, frames, commands, horizons)
         out = np.empty((frames.shape[0], len(horizons), *self.shape), dtype=np.float32)
         steps = np.asarray(horizons, dtype=np.int64)
         per_run = max(1, round(self.batch_size / len(horizons)))  # images per run, as the one-step graph's
@@ -211,8 +209,10 @@ def load_onnx_predictor(path: str | os.PathLike, grid: SensorGrid | None = None,
     """The export at ``path``, which must be of ``kind`` (its card's model): a direct forecast's graph
     as an OnnxForecastPredictor, a next frame's as an OnnxEchoPTPredictor."""
     session = open_session(path)
-    cls = OnnxForecastPredictor if forecasts_directly(session) else OnnxEchoPTPredictor
+    cls = OnnxForecastPredictor if graph_forecasts(session) else OnnxEchoPTPredictor
     p = cls(path, grid, session=session)
+    if p.name == "echowarp" and cls is OnnxEchoPTPredictor and int(p.card["config"].get("max_horizon", 1)) > 1:
+        p.label += " (a next-frame graph, chained: export it again)"  # exported before its graph forecast
     if p.name != kind:
         raise SonarSetError(f"{path}: an ONNX export of {p.name}, not of {kind}; name it {p.name}:{path}")
     return p

@@ -17,7 +17,7 @@ from sonarset.models.echopt.checkpoint import load_checkpoint, resolve
 from sonarset.models.echopt.losses import forecaster
 from sonarset.models.echopt.networks import kind_of
 from sonarset.models.echopt.precision import autocast, resolve_device, resolve_precision
-from sonarset.models.predictor import BasePredictor, block_rollout
+from sonarset.models.predictor import BasePredictor, block_rollout, checked_horizons, rollout_steps
 
 #: Windows per forward pass, by device. Measured (bench/bench_infer.py, BENCHMARKS.md): on a CPU
 #: samples/s peak at 8-32 windows in fp32 and bf16 and fall for larger batches, whose activations
@@ -122,9 +122,9 @@ class DirectForecastPredictor(ForecastPredictor):
         """(B, len(horizons), R, A): the rollout's frames at ``horizons`` (increasing), with
         commands (B, n_in + horizons[-1], 2), in chunks of as many images as ``rollout``'s; beyond
         ``max_horizon``, whose forecasts chain blocks, the rollout's steps are taken."""
-        horizons = tuple(horizons)
+        horizons = checked_horizons(horizons)
         if horizons[-1] > self.model.max_horizon:
-            return self.rollout(frames, commands, horizons[-1])[:, [h - 1 for h in horizons]]
+            return rollout_steps(self.rollout, frames, commands, horizons)
         out = np.empty((frames.shape[0], len(horizons), *frames.shape[2:]), dtype=np.float32)
         per_chunk = max(1, round(self.forecast_batch * self.model.max_horizon / len(horizons)))
         self._chunked(frames, commands[:, :self.n_in + horizons[-1]],

@@ -36,6 +36,7 @@ from sonarset.errors import GridMismatchError
 
 from sonarset.models.echopt.config import ConfigError
 from sonarset.models.flow import arc_motion, sampling_grid, source_points
+from sonarset.models.predictor import checked_horizons
 from sonarset.models.zoo.common import ConvAct, Up, ZooConfig, ZooModel, conv, zero_init
 
 #: The protocol's longest horizon (AR-10): a forecast of up to this many steps is one pass.
@@ -218,9 +219,7 @@ class EchoWarp(ZooModel):
         1..max_horizon, with the commands they need (ValueError naming what is wrong)."""
         if horizons is None:
             return tuple(range(1, self.forecast_steps(commands, k) + 1))
-        horizons = tuple(int(h) for h in horizons)
-        if not horizons or list(horizons) != sorted(set(horizons)) or horizons[0] < 1:
-            raise ValueError(f"horizons must be increasing steps >= 1, got {horizons}")
+        horizons = checked_horizons(horizons)
         self.forecast_steps(commands, horizons[-1])
         return horizons
 
