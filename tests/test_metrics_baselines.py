@@ -8,7 +8,8 @@ from scipy import stats
 
 from sonarset.scoring.metrics import cc, cc_and_nrmsd, nrmsd, slip_error
 from sonarset.format.attrs import RobotRig, SensorGrid
-from sonarset.scoring.stats import WindowPlaces, auc, compare, hac_t_p, hac_variance, holm, mcnemar_p, wilson_interval
+from sonarset.scoring.stats import (WindowPlaces, auc, compare, hac_t_p, hac_variance, holm, mcnemar_p, wilson_interval,
+                                    windows_to_pass)
 from sonarset.windows import N_IN
 from sonarset.models.baselines import AcousticFlow, NaiveShift, Persistence, rollout
 from sonarset.models.registry import make_predictor
@@ -99,6 +100,22 @@ def test_serial_robust_test_holds_its_level_where_the_paired_t_test_does_not():
     naive = np.mean([stats.ttest_1samp(x, 0).pvalue < 0.05 for x in d])  # compare's paired t-test
     robust = np.mean([hac_t_p(x, frames, runs, bandwidth=20) < 0.05 for x in d])
     assert naive > 0.25 and robust < 0.12, (naive, robust)
+
+
+def test_windows_to_pass_is_where_the_same_effect_reaches_the_level():
+    from scipy import stats
+
+    def sample(n):  # an effect of 0.1 standard deviations, exactly, on n windows
+        z = np.random.default_rng(n).standard_normal(n)
+        return 0.1 + (z - z.mean()) / z.std(ddof=1)
+
+    p = stats.ttest_1samp(sample(400), 0).pvalue  # t = 2: p 0.046
+    need = windows_to_pass(p, 400, 1e-5)
+    assert 1900 < need < 2000
+    assert stats.ttest_1samp(sample(round(need)), 0).pvalue == pytest.approx(1e-5, rel=0.05)
+    assert windows_to_pass(1e-9, 400, 1e-5) < 400  # already past the level: fewer would do
+    assert windows_to_pass(1.0, 400, 1e-5) == math.inf
+    assert math.isnan(windows_to_pass(float("nan"), 400, 1e-5)) and math.isnan(windows_to_pass(0.5, 2, 1e-5))
 
 
 def test_persistence_copies_the_last_frame():

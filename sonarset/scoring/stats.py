@@ -183,3 +183,22 @@ def hac_t_p(d: np.ndarray, positions: np.ndarray, groups: np.ndarray, bandwidth:
         return float("nan")
     t = float(np.mean(d)) / np.sqrt(var)
     return float(2.0 * stats.t.sf(abs(t), len(d) - 1))
+
+
+def windows_to_pass(p: float, n: int, alpha: float) -> float:
+    """The windows at which a two-sided t-test that gave ``p`` on ``n`` windows would give ``alpha``,
+    the mean difference and its spread (or, for :func:`hac_t_p`'s p, its serial correlation)
+    staying as they are: the t statistic grows with the root of the windows, to Student's t
+    quantile of ``alpha`` at the new degrees of freedom (a fixed point, from the normal quantile).
+    A power question, not a test: where a cell of a benchmark is unresolved, it says whether a
+    larger sample would resolve it at the observed effect. NaN for an undefined p or fewer than 3
+    windows; inf for p 1."""
+    if not (np.isfinite(p) and 0 < p <= 1 and n >= 3 and 0 < alpha < 1):
+        return float("nan")
+    t = stats.t.isf(p / 2, n - 1)
+    if t <= 0:
+        return float("inf")
+    need = n * (stats.norm.isf(alpha / 2) / t) ** 2
+    for _ in range(20):
+        need = n * (stats.t.isf(alpha / 2, max(need, 3.0) - 1) / t) ** 2
+    return float(need)

@@ -1,0 +1,192 @@
+"""Are protocol v1's unresolved cells a question of its power? A projection, and a replication on fresh runs.
+
+    python bench/bench_replicate.py --models flow,echopt:pretrained,pretrained
+                                    [--results docs/results/benchmark-v1.json] [--seed-offset 1] [--samples 1000]
+
+A cell (dataset x horizon x CC, NRMSD, echo F1) is unresolved where a model is not better than an
+earlier one at Holm p < 0.001. Two questions tell a real tie from a sample too small:
+
+1. **Projection** (from the results file alone): at the observed mean difference and its spread,
+   how many windows would the paired t-test (and the serial-robust one, with its variance
+   inflation at the file's windows) need to pass the Bonferroni bound of the cell's Holm family,
+   p < 0.001 / m (Holm's bound for the cell tested last; conservative)?
+2. **Replication**: the protocol's datasets simulated afresh from other master seeds (the same
+   worlds, minutes, images, windows and horizons; each seed + ``--seed-offset``), every model
+   evaluated as ``sonarset benchmark`` does (ceilings aside), and the cells counted in v1, in the
+   replication and with both sets of windows pooled (independent runs: twice the windows per
+   dataset), each with the file's Holm families, by the paired and by the serial-robust test.
+
+Protocol v1 is not changed: its verdicts are its own; this measures how far each unresolved cell
+is from resolving, and whether a fresh sample agrees.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import platform
+import time
+
+import numpy as np
+
+from bench_serial import METRICS, passes
+
+from sonarset.models.benchmark.protocol import PROTOCOL_V1, Protocol
+from sonarset.report.numbers import finite_or_none
+from sonarset.models.benchmark.run import correct_over_file, dataset_entry, evaluate_dataset, method_specs
+from sonarset.models.benchmark.stores import cache_dir, ensure_store
+from sonarset.scoring.stats import WindowPlaces, compare, windows_to_pass
+
+BAR = 1e-3
+
+
+def replication(protocol: Protocol, offset: int) -> Protocol:
+    """The protocol with every store simulated from its master seed + ``offset`` (a new cache folder)."""
+    stores = {name: dataclasses.replace(r, name=f"{r.name}-seed{r.seed + offset}", seed=r.seed + offset)
+              for name, r in protocol.stores().items()}
+    datasets = tuple(dataclasses.replace(d, store=stores[d.store.name],
+                                         about=f"{d.about}, replicated from master seed {d.store.seed + offset}")
+                     for d in protocol.datasets)
+    return dataclasses.replace(protocol, version=f"{protocol.version}-replication", datasets=datasets, ceiling=False)
+
+
+def evaluate_all(protocol: Protocol, specs: list[str], precision: str) -> dict:
+    folder, stores, results = cache_dir(protocol), {}, {}
+    for ds in protocol.datasets:
+        if ds.store.name not in stores:
+            stores[ds.store.name] = ensure_store(ds.store, protocol, folder)[0]
+        results[ds.name] = evaluate_dataset(stores[ds.store.name], ds, specs, protocol, "cpu", precision, None)
+    return results
+
+
+def pooled_entry(parts: list, protocol: Protocol) -> dict:
+    """A dataset entry (``vs_reference``, ``vs_models``, as results.json has them) from the windows of
+    several evaluations of the same models pooled; each evaluation's runs kept apart."""
+    first = parts[0]
+    order = {m: i for i, m in enumerate(first.predictors)}
+    ids = [(f"{i}:{run}", k) for i, res in enumerate(parts) for run, k in res.window_ids]
+    places = WindowPlaces.of(ids, first.n_in + max(first.horizons))
+    horizons = {}
+    for h in first.horizons:
+        methods = {}
+        for model in first.predictors:
+            if order[model] == 0:
+                continue
+            entry = {"vs_reference": {}, "vs_models": {}}
+            for other in first.predictors[:order[model]]:
+                tests = {}
+                for k in protocol.metrics:
+                    a, b = (np.concatenate([res.per_window[m][h][k] for res in parts]) for m in (model, other))
+                    # the CIs are not reported here: a short bootstrap
+                    c = compare(a, b, metric=k, horizon=h, names=(model, other), n_resamples=200, windows=places)
+                    tests[k] = {**{f: getattr(c, f) for f in ("n", "mean_diff", "t_paired_p", "t_hac_p")},
+                                "p_holm": None, "p_hac_holm": None}
+                if other == protocol.reference:
+                    entry["vs_reference"] = tests
+                else:
+                    entry["vs_models"][other] = tests
+            methods[model] = entry
+        horizons[str(h)] = {"methods": methods}
+    return {"horizons": horizons}
+
+
+def test_of(datasets: dict, reference: str, model: str, other: str, cell: str) -> dict:
+    """The test of ``model`` against ``other`` in ``cell`` (dataset/horizon/metric) of a file's datasets."""
+    ds, h, k = cell.split("/")
+    v = datasets[ds]["horizons"][h]["methods"][model]
+    return (v["vs_reference"] if other == reference else v["vs_models"][other])[k]
+
+
+def unresolved(datasets: dict, reference: str) -> list[tuple]:
+    """(model, other, dataset, horizon, metric, test) of every cell not passed in a results file."""
+    return [(model, other, *cell.split("/"), test_of(datasets, reference, model, other, cell))
+            for (model, other), cells in passes(datasets, reference, "p_holm").items() for cell in cells]
+
+
+def projection(results: dict) -> None:
+    datasets, st = results["datasets"], results["statistics"]
+    ref = st["reference"]
+    rows = unresolved(datasets, ref)
+    print(f"\n## Projection from {len(rows)} unresolved cells of the results file (Bonferroni bound "
+          f"{BAR:g} / {st['tests']} against {ref}, / {st['head_to_head_tests']} head to head)\n")
+    print("| model vs other | cell | mean difference | windows | paired p | Holm | windows needed: paired | "
+          "serial-robust | Wilcoxon p |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for model, other, ds, h, k, t in rows:
+        family = st["tests"] if other == ref else st["head_to_head_tests"]
+        need = [windows_to_pass(np.nan if t[key] is None else t[key], t["n"], BAR / family)
+                for key in ("t_paired_p", "t_hac_p")]
+        sign = "better" if (t["mean_diff"] < 0 if k == "nrmsd" else t["mean_diff"] > 0) else "worse"
+        print(f"| {model} vs {other} | {ds}/{h}/{k} | {t['mean_diff']:+.4f} ({sign}) | {t['n']} | "
+              f"{t['t_paired_p']:.2g} | {t['p_holm']:.2g} | "
+              + " | ".join("-" if not np.isfinite(x) or sign == "worse" else f"{x:,.0f} ({x / t['n']:.1f}x)"
+                           for x in need)
+              + f" | {t['wilcoxon_p']:.2g} |")
+
+
+def counts(datasets: dict, protocol: Protocol, key: str) -> dict:
+    cells = len(protocol.datasets) * len(protocol.horizons) * len(METRICS)
+    return {pair: (cells - len(fails), fails) for pair, fails in passes(datasets, protocol.reference, key).items()}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--models", default="flow,echopt:pretrained,pretrained")
+    ap.add_argument("--results", default="docs/results/benchmark-v1.json", help="protocol v1 results file to project from")
+    ap.add_argument("--seed-offset", type=int, default=1)
+    ap.add_argument("--precision", default="auto")
+    ap.add_argument("--samples", type=int, default=PROTOCOL_V1.samples, help="windows per dataset (fewer: a quick look)")
+    ap.add_argument("--projection-only", action="store_true")
+    ap.add_argument("--out", help="a JSON file for the three samples' tests (v1, replication, pooled)")
+    args = ap.parse_args()
+    t0 = time.perf_counter()
+    projection(json.loads(open(args.results).read()))
+    if args.projection_only:
+        return
+    v1 = dataclasses.replace(PROTOCOL_V1, samples=args.samples, ceiling=False)
+    fresh = replication(v1, args.seed_offset)
+    specs = method_specs(args.models.split(","), v1.reference)
+    runs = {"v1": evaluate_all(v1, specs, args.precision), "replication": evaluate_all(fresh, specs, args.precision)}
+    files = {}
+    for name, results in runs.items():
+        files[name] = {ds: dataset_entry(res, d, v1, seconds)
+                       for d, (ds, (res, seconds)) in zip(v1.datasets, results.items())}
+        correct_over_file(files[name], v1)
+    files["pooled"] = {ds: pooled_entry([runs["v1"][ds][0], runs["replication"][ds][0]], v1) for ds in runs["v1"]}
+    correct_over_file(files["pooled"], v1)
+    print(f"\n# bench_replicate  {platform.node()}  {time.strftime('%Y-%m-%d')}  {time.perf_counter() - t0:.0f} s  "
+          f"{args.samples} windows per dataset and sample; replication seeds +{args.seed_offset}")
+    table = {(name, key): counts(datasets, v1, key) for name, datasets in files.items()
+             for key in ("p_holm", "p_hac_holm")}
+    pairs = list(next(iter(table.values())))
+    labels = {"v1": "protocol v1's", "replication": "the replication's", "pooled": "both, pooled"}
+    cells = len(v1.datasets) * len(v1.horizons) * len(METRICS)
+    print(f"\n## Cells (of {cells}) in which the model is better at Holm p < {BAR:g}\n")
+    print("| windows | test | " + " | ".join(f"{m} vs {o}" for m, o in pairs) + " |")
+    print("|---|---|" + "---|" * len(pairs))
+    for (name, key), per_pair in table.items():
+        print(f"| {labels[name]} | {'paired' if key == 'p_holm' else 'serial-robust'} | "
+              + " | ".join(str(per_pair[p][0]) for p in pairs) + " |")
+    print("\n## The cells protocol v1 leaves unresolved, in each sample (mean difference, Holm p paired / "
+          "serial-robust)\n")
+    print("| model vs other | cell | " + " | ".join(labels.values()) + " |")
+    print("|---|---|" + "---|" * len(labels))
+    for (model, other), cells in passes(files["v1"], v1.reference, "p_holm").items():
+        for cell in cells:
+            tests = [test_of(files[name], v1.reference, model, other, cell) for name in labels]
+            print(f"| {model} vs {other} | {cell} | " + " | ".join(
+                f"{t['mean_diff']:+.4f} (n {t['n']}), {t['p_holm']:.2g} / {t['p_hac_holm']:.2g}" for t in tests) + " |")
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump({"seed_offset": args.seed_offset, "samples": args.samples, "models": specs,
+                       "files": finite_or_none(files)}, f, indent=1)
+    print("\n## The cells not passed\n")
+    for (name, key), per_pair in table.items():
+        for pair, (_, fails) in per_pair.items():
+            print(f"- {name}, {'paired' if key == 'p_holm' else 'serial-robust'}, {pair[0]} vs {pair[1]}: "
+                  f"{', '.join(fails) or 'none'}")
+
+
+if __name__ == "__main__":
+    main()
