@@ -34,9 +34,10 @@ from bench_serial import METRICS, passes
 
 from sonarset.models.benchmark.protocol import PROTOCOL_V1, Protocol
 from sonarset.report.numbers import finite_or_none
+from sonarset.models.benchmark.tables import unresolved_table
 from sonarset.models.benchmark.run import correct_over_file, dataset_entry, evaluate_dataset, method_specs
 from sonarset.models.benchmark.stores import cache_dir, ensure_store
-from sonarset.scoring.stats import WindowPlaces, compare, windows_to_pass
+from sonarset.scoring.stats import WindowPlaces, compare
 
 BAR = 1e-3
 
@@ -98,34 +99,11 @@ def cell_test(datasets: dict, reference: str, model: str, other: str, cell: str)
     return (v["vs_reference"] if other == reference else v["vs_models"][other])[k]
 
 
-def unresolved(datasets: dict, reference: str) -> list[tuple]:
-    """(model, other, dataset, horizon, metric, test) of every cell not passed in a results file."""
-    return [(model, other, *cell.split("/"), cell_test(datasets, reference, model, other, cell))
-            for (model, other), cells in passes(datasets, reference, "p_holm").items() for cell in cells]
-
-
 def projection(results: dict) -> None:
-    datasets, st = results["datasets"], results["statistics"]
-    ref = st["reference"]
-    rows = unresolved(datasets, ref)
-    print(f"\n## Projection from {len(rows)} unresolved cells of the results file (Bonferroni bound "
-          f"{BAR:g} / {st['tests']} against {ref}, / {st['head_to_head_tests']} head to head)\n")
-    print("| model vs other | cell | mean difference | windows | paired p | Holm | windows needed: paired | "
-          "serial-robust | Wilcoxon p |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    for model, other, ds, h, k, t in rows:
-        if t is None:  # not tested in the file (too few windows where the metric is defined)
-            print(f"| {model} vs {other} | {ds}/{h}/{k} | untested | | | | | | |")
-            continue
-        family = st["tests"] if other == ref else st["head_to_head_tests"]
-        need = [windows_to_pass(np.nan if t[key] is None else t[key], t["n"], BAR / family)
-                for key in ("t_paired_p", "t_hac_p")]
-        sign = "better" if (t["mean_diff"] < 0 if k == "nrmsd" else t["mean_diff"] > 0) else "worse"
-        print(f"| {model} vs {other} | {ds}/{h}/{k} | {t['mean_diff']:+.4f} ({sign}) | {t['n']} | "
-              f"{t['t_paired_p']:.2g} | {t['p_holm']:.2g} | "
-              + " | ".join("-" if not np.isfinite(x) or sign == "worse" else f"{x:,.0f} ({x / t['n']:.1f}x)"
-                           for x in need)
-              + f" | {t['wilcoxon_p']:.2g} |")
+    st = results["statistics"]
+    print(f"\n## Projection from the results file (Bonferroni bound {BAR:g} / {st['tests']} against "
+          f"{st['reference']}, / {st['head_to_head_tests']} head to head)\n")
+    print(unresolved_table(results, BAR))
 
 
 def counts(datasets: dict, protocol: Protocol, key: str) -> dict:

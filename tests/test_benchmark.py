@@ -80,6 +80,7 @@ def test_quick_end_to_end_through_the_cli(tmp_path):
     rows = [line.split(" | ")[0] for line in md.splitlines()]
     assert rows.count("| flow") == 4 and rows.count("| persistence") == 4 and rows.count("| naive") == 4
     assert "## demo-lab" in md and "| *observable ceiling* |" in md
+    assert "## Cells not resolved" in md and "- persistence vs flow: better at Holm p < 0.05 in " in md
 
     stamp = (cache / "families-quick.zarr" / "zarr.json").stat().st_mtime_ns
     r = runner.invoke(app, [*args, "--out", str(second)])
@@ -157,3 +158,27 @@ def test_cached_store_is_completed_after_a_kill_and_regenerated_when_stale(tmp_p
     with pytest.raises(SonarSetError, match="not a store the benchmark made"):
         ensure_store(RECIPE, TINY, tmp_path)
     assert (path / "zarr.json").exists()
+
+
+def test_unresolved_cells_say_how_many_windows_a_difference_needs():
+    from sonarset.models.benchmark.tables import unresolved_cells, unresolved_table
+    from sonarset.scoring.stats import windows_to_pass
+
+    def test(diff, p):
+        return {"n": 100, "mean_diff": diff, "t_paired_p": p, "t_hac_p": 2 * p, "p_holm": min(1.0, 3 * p)}
+
+    results = {"statistics": {"reference": "flow", "tests": 3, "head_to_head_tests": 3},
+               "datasets": {"lab": {"horizons": {"1": {"methods": {
+                   "flow": {},
+                   "m": {"vs_reference": {"cc": test(+0.1, 1e-6), "nrmsd": test(-0.01, 0.1), "echo_f1": test(-0.02, 0.5)}},
+               }}}}}}
+    cells = unresolved_cells(results)[("m", "flow")]
+    assert cells["resolved"] == 1 and cells["worse"] == 1  # CC passes; echo F1 is lower on the mean
+    [nrmsd] = cells["open"]  # lower NRMSD is better: not significant
+    assert nrmsd["metric"] == "nrmsd" and nrmsd["windows_to_pass"] == [windows_to_pass(0.1, 100, 0.05 / 3),
+                                                                       windows_to_pass(0.2, 100, 0.05 / 3)]
+    assert 200 < nrmsd["windows_to_pass"][0] < nrmsd["windows_to_pass"][1]  # the robust test's p is the larger
+    table = unresolved_table(results)
+    assert "- m vs flow: better at Holm p < 0.05 in 1 cells, better on the mean but not significantly in 1, " \
+           "worse on the mean in 1" in table and "| m vs flow | lab | one-shot | NRMSD | -0.0100 | 100 |" in table
+    assert unresolved_cells(results, alpha=1e-7)[("m", "flow")]["resolved"] == 0  # CC's Holm p 3e-6 is above it

@@ -10,7 +10,8 @@ import os
 from pathlib import Path
 
 from sonarset.errors import SonarSetError
-from sonarset.report.numbers import horizon_name
+from sonarset.report.numbers import format_p, horizon_name
+from sonarset.scoring.stats import windows_to_pass
 
 from sonarset.models.benchmark.machine import describe
 
@@ -132,6 +133,62 @@ def zoo_table(results: dict, costs: dict) -> str:
     return "\n".join(lines)
 
 
+def _better(metric: str, diff: float | None) -> bool:
+    return diff is not None and (diff < 0 if metric == "nrmsd" else diff > 0)
+
+
+def unresolved_cells(results: dict, alpha: float = ALPHA) -> dict[tuple[str, str], dict]:
+    """Per (model, other) of a results file (each model against the reference and against every model
+    before it), over every dataset, horizon and table metric: the cells in which ``model`` is
+    better at Holm p < ``alpha`` (``resolved``, a count), better on the mean but not significantly
+    (``open``: dataset, horizon, metric, the test, and the windows at which the same difference
+    would pass the Bonferroni bound of its Holm family, alpha / its size, by the paired and by the
+    serial-robust test: ``stats.windows_to_pass``), and worse on the mean (``worse``, a count)."""
+    st = results["statistics"]
+    reference = st["reference"]
+    out: dict[tuple[str, str], dict] = {}
+    for ds, d in results["datasets"].items():
+        for h, per_h in sorted(d["horizons"].items(), key=lambda kv: int(kv[0])):
+            for model, entry in per_h["methods"].items():
+                others = {reference: entry["vs_reference"]} if entry.get("vs_reference") else {}
+                others.update(entry.get("vs_models") or {})
+                for other, tests in others.items():
+                    family = st["tests"] if other == reference else st["head_to_head_tests"]
+                    cells = out.setdefault((model, other), {"resolved": 0, "open": [], "worse": 0})
+                    for k, _ in TABLE_METRICS:
+                        t = tests.get(k)
+                        if t is None or not _better(k, t.get("mean_diff")):
+                            cells["worse"] += t is not None
+                            continue
+                        if t.get("p_holm") is not None and t["p_holm"] < alpha:
+                            cells["resolved"] += 1
+                            continue
+                        need = [windows_to_pass(math.nan if t.get(key) is None else t[key], t["n"], alpha / family)
+                                for key in ("t_paired_p", "t_hac_p")]
+                        cells["open"].append({"dataset": ds, "horizon": int(h), "metric": k, "test": t,
+                                              "windows_to_pass": need})
+    return out
+
+
+def unresolved_table(results: dict, alpha: float = ALPHA) -> str:
+    """``unresolved_cells`` as Markdown: a line per pair of models, then a row per open cell."""
+    labels = dict(TABLE_METRICS)
+    lines, rows = [], []
+    for (model, other), cells in unresolved_cells(results, alpha).items():
+        lines.append(f"- {model} vs {other}: better at Holm p < {alpha:g} in {cells['resolved']} cells, better on the "
+                     f"mean but not significantly in {len(cells['open'])}, worse on the mean in {cells['worse']}")
+        for c in cells["open"]:
+            t = c["test"]
+            need = " | ".join("-" if not math.isfinite(x) else f"{x:,.0f} ({x / t['n']:.1f}x)"
+                              for x in c["windows_to_pass"])
+            rows.append(f"| {model} vs {other} | {c['dataset']} | {horizon_name(c['horizon'])} | {labels[c['metric']]} | "
+                        f"{t['mean_diff']:+.4f} | {t['n']} | {format_p(t['p_holm'])} | {need} |")
+    if rows:
+        lines += ["", "| model vs other | dataset | horizon | metric | mean difference | windows | Holm p | "
+                      "windows to pass: paired | serial-robust |", "|---" * 9 + "|", *rows]
+    return "\n".join(lines)
+
+
 def results_markdown(results: dict) -> str:
     """results.md: the summary, a table per dataset, the statistics' meaning and the timings."""
     p = results["protocol"]["definition"]
@@ -155,6 +212,11 @@ def results_markdown(results: dict) -> str:
         parts += ["", f"## {name}", "", f"{d['about']}: runs {', '.join(d['runs'])}, {d['windows']} windows, "
                   f"{d['seconds']['evaluate']:.0f} s.", "", dataset_table(results, name)]
         parts += [f"\n> {note}" for note in d["notes"]]
+    parts += ["", "## Cells not resolved", "",
+              f"Where a model is better than another on the mean but not at Holm p < {ALPHA}: how many windows "
+              "the same difference, with its spread, would need to pass the Bonferroni bound of its Holm family "
+              "(a power estimate, not a test; `sonarset.scoring.stats.windows_to_pass`). Many times the windows "
+              "say a tie; a few, a sample too small.", "", unresolved_table(results)]
     t = results["timings"]
     methods = list(t["per_method"])
     parts += ["", "## Timing (seconds)", "",
