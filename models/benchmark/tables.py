@@ -153,7 +153,7 @@ def unresolved_cells(results: dict, alpha: float = ALPHA) -> dict[tuple[str, str
                 others = {reference: entry["vs_reference"]} if entry.get("vs_reference") else {}
                 others.update(entry.get("vs_models") or {})
                 for other, tests in others.items():
-                    family = st["tests"] if other == reference else st["head_to_head_tests"]
+                    family = st["tests"] if other == reference else st.get("head_to_head_tests", st["tests"])
                     cells = out.setdefault((model, other), {"resolved": 0, "open": [], "worse": 0})
                     for k, _ in TABLE_METRICS:
                         t = tests.get(k)
