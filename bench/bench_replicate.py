@@ -8,8 +8,9 @@ earlier one at Holm p < 0.001. Two questions tell a real tie from a sample too s
 
 1. **Projection** (from the results file alone): at the observed mean difference and its spread,
    how many windows would the paired t-test (and the serial-robust one, with its variance
-   inflation at the file's windows) need to pass the Bonferroni bound of the cell's Holm family,
-   p < 0.001 / m (Holm's bound for the cell tested last; conservative)?
+   inflation at the file's windows, more runs of the same length) need to pass the Bonferroni
+   bound of the cell's Holm family, p < 0.001 / m (which passes Holm whatever the cell's rank: a
+   sufficient, conservative target)? The observed effect is itself uncertain: a fresh sample decides.
 2. **Replication**: the protocol's datasets simulated afresh from other master seeds (the same
    worlds, minutes, images, windows and horizons; each seed + ``--seed-offset``), every model
    evaluated as ``sonarset benchmark`` does (ceilings aside), and the cells counted in v1, in the
@@ -27,13 +28,14 @@ import dataclasses
 import json
 import platform
 import time
+from pathlib import Path
 
 import numpy as np
 
 from bench_serial import METRICS, passes
 
 from sonarset.models.benchmark.protocol import PROTOCOL_V1, Protocol
-from sonarset.report.numbers import finite_or_none
+from sonarset.report.numbers import finite_or_none, format_p, format_value
 from sonarset.models.benchmark.tables import unresolved_table
 from sonarset.models.benchmark.run import correct_over_file, dataset_entry, evaluate_dataset, method_specs
 from sonarset.models.benchmark.stores import cache_dir, ensure_store
@@ -102,7 +104,7 @@ def cell_test(datasets: dict, reference: str, model: str, other: str, cell: str)
 def projection(results: dict) -> None:
     st = results["statistics"]
     print(f"\n## Projection from the results file (Bonferroni bound {BAR:g} / {st['tests']} against "
-          f"{st['reference']}, / {st['head_to_head_tests']} head to head)\n")
+          f"{st['reference']}, / {st.get('head_to_head_tests', st['tests'])} head to head)\n")
     print(unresolved_table(results, BAR))
 
 
@@ -122,20 +124,23 @@ def main() -> None:
     ap.add_argument("--out", help="a JSON file for the three samples' tests (v1, replication, pooled)")
     args = ap.parse_args()
     t0 = time.perf_counter()
-    projection(json.loads(open(args.results).read()))
+    projection(json.loads(Path(args.results).read_text()))
     if args.projection_only:
         return
     v1 = dataclasses.replace(PROTOCOL_V1, samples=args.samples, ceiling=False)
     fresh = replication(v1, args.seed_offset)
     specs = method_specs(args.models.split(","), v1.reference)
     runs = {"v1": evaluate_all(v1, specs, args.precision), "replication": evaluate_all(fresh, specs, args.precision)}
-    files = {}
+    files, statistics = {}, {}
     for name, results in runs.items():
         files[name] = {ds: dataset_entry(res, d, v1, seconds)
                        for d, (ds, (res, seconds)) in zip(v1.datasets, results.items())}
-        correct_over_file(files[name], v1)
+        statistics[name] = correct_over_file(files[name], v1)
     files["pooled"] = {ds: pooled_entry([runs["v1"][ds][0], runs["replication"][ds][0]], v1) for ds in runs["v1"]}
-    correct_over_file(files["pooled"], v1)
+    statistics["pooled"] = correct_over_file(files["pooled"], v1)
+    if args.out:  # first: what follows only prints
+        Path(args.out).write_text(json.dumps({"seed_offset": args.seed_offset, "samples": args.samples, "models": specs,
+                                              "statistics": statistics, "files": finite_or_none(files)}, indent=1))
     print(f"\n# bench_replicate  {platform.node()}  {time.strftime('%Y-%m-%d')}  {time.perf_counter() - t0:.0f} s  "
           f"{args.samples} windows per dataset and sample; replication seeds +{args.seed_offset}")
     table = {(name, key): counts(datasets, v1, key) for name, datasets in files.items()
@@ -153,15 +158,12 @@ def main() -> None:
           "serial-robust)\n")
     print("| model vs other | cell | " + " | ".join(labels.values()) + " |")
     print("|---|---|" + "---|" * len(labels))
-    for (model, other), cells in passes(files["v1"], v1.reference, "p_holm").items():
-        for cell in cells:
-            tests = [cell_test(files[name], v1.reference, model, other, cell) for name in labels]
+    for (model, other), open_cells in passes(files["v1"], v1.reference, "p_holm").items():
+        for cell in open_cells:
+            tests = [cell_test(files[name], v1.reference, model, other, cell) or {} for name in labels]
             print(f"| {model} vs {other} | {cell} | " + " | ".join(
-                f"{t['mean_diff']:+.4f} (n {t['n']}), {t['p_holm']:.2g} / {t['p_hac_holm']:.2g}" for t in tests) + " |")
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump({"seed_offset": args.seed_offset, "samples": args.samples, "models": specs,
-                       "files": finite_or_none(files)}, f, indent=1)
+                f"{format_value(t.get('mean_diff'), '+.4f', 'untested')} (n {t.get('n', 0)}), "
+                f"{format_p(t.get('p_holm'))} / {format_p(t.get('p_hac_holm'))}" for t in tests) + " |")
     print("\n## The cells not passed\n")
     for (name, key), per_pair in table.items():
         for pair, (_, fails) in per_pair.items():

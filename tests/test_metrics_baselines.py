@@ -103,8 +103,6 @@ def test_serial_robust_test_holds_its_level_where_the_paired_t_test_does_not():
 
 
 def test_windows_to_pass_is_where_the_same_effect_reaches_the_level():
-    from scipy import stats
-
     def sample(n):  # an effect of 0.1 standard deviations, exactly, on n windows
         z = np.random.default_rng(n).standard_normal(n)
         return 0.1 + (z - z.mean()) / z.std(ddof=1)

@@ -143,7 +143,8 @@ def unresolved_cells(results: dict, alpha: float = ALPHA) -> dict[tuple[str, str
     better at Holm p < ``alpha`` (``resolved``, a count), better on the mean but not significantly
     (``open``: dataset, horizon, metric, the test, and the windows at which the same difference
     would pass the Bonferroni bound of its Holm family, alpha / its size, by the paired and by the
-    serial-robust test: ``stats.windows_to_pass``), and worse on the mean (``worse``, a count)."""
+    serial-robust test: ``stats.windows_to_pass``; a sufficient count, as Holm may pass a cell with
+    fewer), worse on the mean (``worse``) and untested or equal (``undefined``)."""
     st = results["statistics"]
     reference = st["reference"]
     out: dict[tuple[str, str], dict] = {}
@@ -154,19 +155,21 @@ def unresolved_cells(results: dict, alpha: float = ALPHA) -> dict[tuple[str, str
                 others.update(entry.get("vs_models") or {})
                 for other, tests in others.items():
                     family = st["tests"] if other == reference else st.get("head_to_head_tests", st["tests"])
-                    cells = out.setdefault((model, other), {"resolved": 0, "open": [], "worse": 0})
+                    pair = out.setdefault((model, other), {"resolved": 0, "open": [], "worse": 0, "undefined": 0})
                     for k, _ in TABLE_METRICS:
-                        t = tests.get(k)
-                        if t is None or not _better(k, t.get("mean_diff")):
-                            cells["worse"] += t is not None
-                            continue
-                        if t.get("p_holm") is not None and t["p_holm"] < alpha:
-                            cells["resolved"] += 1
-                            continue
-                        need = [windows_to_pass(math.nan if t.get(key) is None else t[key], t["n"], alpha / family)
-                                for key in ("t_paired_p", "t_hac_p")]
-                        cells["open"].append({"dataset": ds, "horizon": int(h), "metric": k, "test": t,
-                                              "windows_to_pass": need})
+                        t = tests.get(k) or {}
+                        diff = t.get("mean_diff")
+                        if diff is None or diff == 0 or not math.isfinite(diff):
+                            pair["undefined"] += 1
+                        elif not _better(k, diff):
+                            pair["worse"] += 1
+                        elif t.get("p_holm") is not None and t["p_holm"] < alpha:
+                            pair["resolved"] += 1
+                        else:
+                            need = [windows_to_pass(math.nan if t.get(key) is None else t[key], t["n"], alpha / family)
+                                    for key in ("t_paired_p", "t_hac_p")]
+                            pair["open"].append({"dataset": ds, "horizon": int(h), "metric": k, "test": t,
+                                                 "windows_to_pass": need})
     return out
 
 
@@ -176,7 +179,8 @@ def unresolved_table(results: dict, alpha: float = ALPHA) -> str:
     lines, rows = [], []
     for (model, other), cells in unresolved_cells(results, alpha).items():
         lines.append(f"- {model} vs {other}: better at Holm p < {alpha:g} in {cells['resolved']} cells, better on the "
-                     f"mean but not significantly in {len(cells['open'])}, worse on the mean in {cells['worse']}")
+                     f"mean but not significantly in {len(cells['open'])}, worse on the mean in {cells['worse']}"
+                     + (f", untested or equal in {cells['undefined']}" if cells["undefined"] else ""))
         for c in cells["open"]:
             t = c["test"]
             need = " | ".join("-" if not math.isfinite(x) else f"{x:,.0f} ({x / t['n']:.1f}x)"
@@ -215,8 +219,10 @@ def results_markdown(results: dict) -> str:
     parts += ["", "## Cells not resolved", "",
               f"Where a model is better than another on the mean but not at Holm p < {ALPHA}: how many windows "
               "the same difference, with its spread, would need to pass the Bonferroni bound of its Holm family "
-              "(a power estimate, not a test; `sonarset.scoring.stats.windows_to_pass`). Many times the windows "
-              "say a tie; a few, a sample too small.", "", unresolved_table(results)]
+              "(sufficient: Holm may pass a cell with fewer; more runs of the same length, for the serial-robust "
+              "test; a power estimate at the observed effect, itself uncertain, not a test: "
+              "`sonarset.scoring.stats.windows_to_pass`). Many times the windows: a difference small against its "
+              "spread; a few: a sample too small.", "", unresolved_table(results)]
     t = results["timings"]
     methods = list(t["per_method"])
     parts += ["", "## Timing (seconds)", "",

@@ -187,12 +187,12 @@ def hac_t_p(d: np.ndarray, positions: np.ndarray, groups: np.ndarray, bandwidth:
 
 def windows_to_pass(p: float, n: int, alpha: float) -> float:
     """The windows at which a two-sided t-test that gave ``p`` on ``n`` windows would give ``alpha``,
-    the mean difference and its spread (or, for :func:`hac_t_p`'s p, its serial correlation)
-    staying as they are: the t statistic grows with the root of the windows, to Student's t
-    quantile of ``alpha`` at the new degrees of freedom (a fixed point, from the normal quantile).
-    A power question, not a test: where a cell of a benchmark is unresolved, it says whether a
-    larger sample would resolve it at the observed effect. NaN for an undefined p or fewer than 3
-    windows; inf for p 1."""
+    the mean difference and its spread staying as they are (for :func:`hac_t_p`'s p, also its
+    serial correlation: the windows added as more runs of the same length). The t statistic grows
+    with the root of the windows, to Student's t quantile of ``alpha`` at the new degrees of
+    freedom (a fixed point, from the normal quantile). A power question at the observed effect,
+    itself uncertain, not a test: where a cell of a benchmark is unresolved, it says whether a
+    larger sample would resolve it. NaN for an undefined p or fewer than 3 windows; inf for p 1."""
     if not (np.isfinite(p) and 0 < p <= 1 and n >= 3 and 0 < alpha < 1):
         return float("nan")
     t = stats.t.isf(p / 2, n - 1)
