@@ -1,7 +1,7 @@
 """Are protocol v1's unresolved cells a question of its power? A projection, and a replication on fresh runs.
 
     python bench/bench_replicate.py --models flow,echopt:pretrained,pretrained
-                                    [--results docs/results/benchmark-v1.json] [--seed-offset 1] [--samples 1000]
+                                    [--results docs/results/benchmark-v1.json] [--seed-offsets 1,2] [--samples 1000]
 
 A cell (dataset x horizon x CC, NRMSD, echo F1) is unresolved where a model is not better than an
 earlier one at Holm p < 0.001. Two questions tell a real tie from a sample too small:
@@ -12,10 +12,11 @@ earlier one at Holm p < 0.001. Two questions tell a real tie from a sample too s
    bound of the cell's Holm family, p < 0.001 / m (which passes Holm whatever the cell's rank: a
    sufficient, conservative target)? The observed effect is itself uncertain: a fresh sample decides.
 2. **Replication**: the protocol's datasets simulated afresh from other master seeds (the same
-   worlds, minutes, images, windows and horizons; each seed + ``--seed-offset``), every model
-   evaluated as ``sonarset benchmark`` does (ceilings aside), and the cells counted in v1, in the
-   replication and with both sets of windows pooled (independent runs: twice the windows per
-   dataset), each with the file's Holm families, by the paired and by the serial-robust test.
+   worlds, minutes, images, windows and horizons; each seed + each of ``--seed-offsets``, one
+   replication per offset), every model evaluated as ``sonarset benchmark`` does (ceilings
+   aside), and the cells counted in v1, in each replication and with every sample's windows
+   pooled (independent runs: as many times the windows per dataset as there are samples), each
+   with the file's Holm families, by the paired and by the serial-robust test.
 
 Protocol v1 is not changed: its verdicts are its own; this measures how far each unresolved cell
 is from resolving, and whether a fresh sample agrees.
@@ -52,6 +53,10 @@ def replication(protocol: Protocol, offset: int) -> Protocol:
                                          about=f"{d.about}, replicated from master seed {d.store.seed + offset}")
                      for d in protocol.datasets)
     return dataclasses.replace(protocol, version=f"{protocol.version}-replication", datasets=datasets, ceiling=False)
+
+
+def sample_name(offset: int) -> str:
+    return f"replication +{offset}"
 
 
 def evaluate_all(protocol: Protocol, specs: list[str], precision: str) -> dict:
@@ -117,36 +122,40 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--models", default="flow,echopt:pretrained,pretrained")
     ap.add_argument("--results", default="docs/results/benchmark-v1.json", help="protocol v1 results file to project from")
-    ap.add_argument("--seed-offset", type=int, default=1)
+    ap.add_argument("--seed-offsets", default="1", help="one replication per offset of the master seeds")
     ap.add_argument("--precision", default="auto")
     ap.add_argument("--samples", type=int, default=PROTOCOL_V1.samples, help="windows per dataset (fewer: a quick look)")
     ap.add_argument("--projection-only", action="store_true")
-    ap.add_argument("--out", help="a JSON file for the three samples' tests (v1, replication, pooled)")
+    ap.add_argument("--out", help="a JSON file for every sample's tests (v1, each replication, pooled)")
     args = ap.parse_args()
     t0 = time.perf_counter()
     projection(json.loads(Path(args.results).read_text()))
     if args.projection_only:
         return
     v1 = dataclasses.replace(PROTOCOL_V1, samples=args.samples, ceiling=False)
-    fresh = replication(v1, args.seed_offset)
+    offsets = [int(x) for x in args.seed_offsets.split(",")]
     specs = method_specs(args.models.split(","), v1.reference)
-    runs = {"v1": evaluate_all(v1, specs, args.precision), "replication": evaluate_all(fresh, specs, args.precision)}
+    runs = {"v1": evaluate_all(v1, specs, args.precision)}
+    for offset in offsets:
+        runs[sample_name(offset)] = evaluate_all(replication(v1, offset), specs, args.precision)
     files, statistics = {}, {}
     for name, results in runs.items():
         files[name] = {ds: dataset_entry(res, d, v1, seconds)
                        for d, (ds, (res, seconds)) in zip(v1.datasets, results.items())}
         statistics[name] = correct_over_file(files[name], v1)
-    files["pooled"] = {ds: pooled_entry([runs["v1"][ds][0], runs["replication"][ds][0]], v1) for ds in runs["v1"]}
+    files["pooled"] = {ds: pooled_entry([results[ds][0] for results in runs.values()], v1) for ds in runs["v1"]}
     statistics["pooled"] = correct_over_file(files["pooled"], v1)
     if args.out:  # first: what follows only prints
-        Path(args.out).write_text(json.dumps({"seed_offset": args.seed_offset, "samples": args.samples, "models": specs,
+        Path(args.out).write_text(json.dumps({"seed_offsets": offsets, "samples": args.samples, "models": specs,
                                               "statistics": statistics, "files": finite_or_none(files)}, indent=1))
     print(f"\n# bench_replicate  {platform.node()}  {time.strftime('%Y-%m-%d')}  {time.perf_counter() - t0:.0f} s  "
-          f"{args.samples} windows per dataset and sample; replication seeds +{args.seed_offset}")
+          f"{args.samples} windows per dataset and sample; replications at master seeds "
+          f"{', '.join(f'+{o}' for o in offsets)}")
     table = {(name, key): counts(datasets, v1, key) for name, datasets in files.items()
              for key in ("p_holm", "p_hac_holm")}
     pairs = list(next(iter(table.values())))
-    labels = {"v1": "protocol v1's", "replication": "the replication's", "pooled": "both, pooled"}
+    labels = {"v1": "protocol v1's", **{sample_name(o): f"the replication at seeds +{o}" for o in offsets},
+              "pooled": f"all {len(runs)}, pooled"}
     cells = len(v1.datasets) * len(v1.horizons) * len(METRICS)
     print(f"\n## Cells (of {cells}) in which the model is better at Holm p < {BAR:g}\n")
     print("| windows | test | " + " | ".join(f"{m} vs {o}" for m, o in pairs) + " |")
