@@ -128,12 +128,14 @@ def main() -> None:
     ap.add_argument("--projection-only", action="store_true")
     ap.add_argument("--out", help="a JSON file for every sample's tests (v1, each replication, pooled)")
     args = ap.parse_args()
+    offsets = [int(x) for x in args.seed_offsets.split(",")]
+    if 0 in offsets or len(set(offsets)) != len(offsets):  # v1's own runs, or one run twice, are no fresh sample
+        ap.error(f"--seed-offsets {args.seed_offsets}: distinct offsets other than 0")
     t0 = time.perf_counter()
     projection(json.loads(Path(args.results).read_text()))
     if args.projection_only:
         return
     v1 = dataclasses.replace(PROTOCOL_V1, samples=args.samples, ceiling=False)
-    offsets = [int(x) for x in args.seed_offsets.split(",")]
     specs = method_specs(args.models.split(","), v1.reference)
     runs = {"v1": evaluate_all(v1, specs, args.precision)}
     for offset in offsets:
