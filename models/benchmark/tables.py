@@ -14,6 +14,7 @@ from sonarset.report.numbers import format_p, horizon_name
 from sonarset.scoring.stats import windows_to_pass
 
 from sonarset.models.benchmark.machine import describe
+from sonarset.models.eval.report import LOWER_IS_BETTER
 
 #: The per-dataset table's metrics: CC and NRMSD (the paper's) and echo F1.
 TABLE_METRICS = (("cc", "CC"), ("nrmsd", "NRMSD"), ("echo_f1", "echo F1"))
@@ -133,10 +134,6 @@ def zoo_table(results: dict, costs: dict) -> str:
     return "\n".join(lines)
 
 
-def _better(metric: str, diff: float | None) -> bool:
-    return diff is not None and (diff < 0 if metric == "nrmsd" else diff > 0)
-
-
 def unresolved_cells(results: dict, alpha: float = ALPHA) -> dict[tuple[str, str], dict]:
     """Per (model, other) of a results file (each model against the reference and against every model
     before it), over every dataset, horizon and table metric: the cells in which ``model`` is
@@ -161,7 +158,7 @@ def unresolved_cells(results: dict, alpha: float = ALPHA) -> dict[tuple[str, str
                         diff = t.get("mean_diff")
                         if diff is None or diff == 0 or not math.isfinite(diff):
                             pair["undefined"] += 1
-                        elif not _better(k, diff):
+                        elif (diff < 0) != LOWER_IS_BETTER[k]:  # worse on the mean
                             pair["worse"] += 1
                         elif t.get("p_holm") is not None and t["p_holm"] < alpha:
                             pair["resolved"] += 1
