@@ -8,8 +8,8 @@ from scipy import stats
 
 from sonarset.scoring.metrics import cc, cc_and_nrmsd, nrmsd, slip_error
 from sonarset.format.attrs import RobotRig, SensorGrid
-from sonarset.scoring.stats import (WindowPlaces, auc, compare, hac_t_p, hac_variance, holm, mcnemar_p, wilson_interval,
-                                    windows_to_pass)
+from sonarset.scoring.stats import (WindowPlaces, auc, compare, hac_t_p, hac_variance, holm, mcnemar_p, wilcoxon_p,
+                                    wilson_interval, windows_to_pass)
 from sonarset.windows import N_IN
 from sonarset.models.baselines import AcousticFlow, NaiveShift, Persistence, rollout
 from sonarset.models.registry import make_predictor
@@ -100,6 +100,20 @@ def test_serial_robust_test_holds_its_level_where_the_paired_t_test_does_not():
     naive = np.mean([stats.ttest_1samp(x, 0).pvalue < 0.05 for x in d])  # compare's paired t-test
     robust = np.mean([hac_t_p(x, frames, runs, bandwidth=20) < 0.05 for x in d])
     assert naive > 0.25 and robust < 0.12, (naive, robust)
+
+
+@pytest.mark.parametrize("d", [
+    [0.5, -0.5, 1, 1, 0, 2, 1 / 3],  # ties and a zero: scipy's exact permutation test
+    [1, 1, 1, 2, 2, -1, 3, 0, 0, 0.5, 0.5, 4, -4],  # 13, the most scipy permutes
+    [0.2, 0.1, -0.3, 0.4, -0.05, 0.7],  # no ties: scipy's exact distribution
+    np.round(np.random.default_rng(3).normal(size=14), 1),  # 14 with ties: the normal approximation
+])
+def test_wilcoxon_p_is_scipys(d):
+    """The vectorised permutation test gives scipy's p to the last bit where scipy permutes, and
+    scipy's own everywhere else."""
+    d = np.asarray(d, float)
+    assert wilcoxon_p(d) == stats.wilcoxon(d).pvalue
+    assert compare(d, np.zeros_like(d), metric="cc", horizon=1, names=("a", "b")).wilcoxon_p == stats.wilcoxon(d).pvalue
 
 
 def test_windows_to_pass_is_where_the_same_effect_reaches_the_level():
