@@ -15,10 +15,11 @@ from __future__ import annotations
 
 import argparse
 import platform
-import time
 
 import numpy as np
 from scipy import stats
+
+from bench_scoring import per_image_ms
 
 from sonarset.scoring.stats import wilcoxon_p
 
@@ -36,16 +37,6 @@ def cases(count: int, seed: int = 0) -> list[np.ndarray]:
     return out
 
 
-def mean_ms(fn, data: list[np.ndarray], rounds: int) -> float:
-    best = np.inf
-    for _ in range(rounds):
-        t = time.perf_counter()
-        for d in data:
-            fn(d)
-        best = min(best, time.perf_counter() - t)
-    return 1e3 * best / len(data)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=200)
@@ -56,8 +47,8 @@ def main() -> None:
     data = cases(args.cases)
     unequal = [d for d in data if wilcoxon_p(d) != stats.wilcoxon(d).pvalue]
     assert not unequal, f"p differs from scipy's on {len(unequal)} cases, e.g. {unequal[0]}"
-    scipy_ms = mean_ms(lambda d: stats.wilcoxon(d).pvalue, data, args.rounds)
-    ours_ms = mean_ms(wilcoxon_p, data, args.rounds)
+    scipy_ms = per_image_ms(lambda d: stats.wilcoxon(d).pvalue, data, len(data), args.rounds)  # per test
+    ours_ms = per_image_ms(wilcoxon_p, data, len(data), args.rounds)
     print(f"{len(data)} cases of 5-13 windows, every p equal to scipy's")
     print(f"scipy.stats.wilcoxon: {scipy_ms:.2f} ms per test ({168 * scipy_ms / 1e3:.1f} s for 168 tests)")
     print(f"wilcoxon_p:           {ours_ms:.2f} ms per test ({168 * ours_ms / 1e3:.2f} s for 168 tests), "
