@@ -374,7 +374,8 @@ def bag_cases(work: Path) -> None:
     import math
 
     from sonarset.format.attrs import SensorGrid
-    from tests.test_bag import Drive, jittery_times, with_zero_chunk
+    from tests.bag_drives import Drive, jittery_times
+    from tests.test_bag_robustness import with_zero_chunk
 
     grid = SensorGrid(range_min_m=0.5, range_max_m=5.0, n_range=200, azimuth_min_rad=-math.pi / 2,
                       azimuth_max_rad=math.pi / 2, n_azimuth=90)

@@ -2,6 +2,7 @@
 autocast and onnxruntime, in one run.
 
     python bench/bench_infer.py [--model pretrained] [--batches 1,16,128] [--threads 1,2] [--seconds 2]
+                                [--opsets 18,20]
 
 Samples/s for every (engine, threads, batch), each the median of ``--rounds`` rounds in which the
 engines take turns (a noisy machine slows all of them alike, so the ratios to torch fp32 hold);
@@ -10,7 +11,8 @@ the predictor as evaluation runs it (NumPy windows, batches of ``INFERENCE_BATCH
 single-threaded batch per core). Inputs are sparse like the default 'ertis' images (~12% of
 pixels lit). Channels-last is measured against the default layout in fp32 and bf16. For a model
 that forecasts each horizon directly (EchoWarp), last: its forecast to ten steps against
-``forecast_at`` the scored horizons alone, as the evaluation asks for them.
+``forecast_at`` the scored horizons alone, as the evaluation asks for them. With ``--opsets``, also
+onnxruntime's batch-1 latency with the graph exported at each ONNX opset, in alternated rounds.
 """
 
 from __future__ import annotations
@@ -94,6 +96,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=1.5, help="per measurement")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--latency-calls", type=int, default=300)
+    ap.add_argument("--opsets", default="", help="also onnxruntime's batch-1 latency at each of these ONNX opsets")
     args = ap.parse_args()
     batches = [int(b) for b in args.batches.split(",")]
     thread_counts = [int(t) for t in args.threads.split(",")]
@@ -169,6 +172,30 @@ def main() -> None:
         print(f"| {precision} | {rate(lambda f, c, p=p: p.predict(f, c), frames, commands, args.seconds):.0f} |")
     if callable(getattr(model, "forecast_at", None)):
         scored_horizons(model, args.rounds)
+    if args.opsets and onnx_path is not None:
+        opset_latency(args.model, model, [int(o) for o in args.opsets.split(",")], args.rounds, args.latency_calls)
+
+
+def opset_latency(spec: str, model, opsets: list[int], rounds: int, calls: int) -> None:
+    """onnxruntime's batch-1 latency on one thread with the checkpoint exported at each opset, the
+    graphs taking turns round by round, and each export's difference from torch."""
+    from sonarset.models.echopt.onnx_export import export_onnx
+
+    folder = Path(tempfile.mkdtemp())
+    exports = {o: export_onnx(spec, folder / f"opset{o}.onnx", opset=o) for o in opsets}
+    runs = {o: onnx_engine(e.path, 1) for o, e in exports.items()}
+    frames, commands = random_windows(model, 1, seed=7)
+    lat = {o: [] for o in opsets}
+    for _ in range(rounds):
+        for o, run in runs.items():
+            lat[o].extend(latencies(run, frames, commands, max(1, calls // rounds)) * 1e3)
+    first = np.percentile(lat[opsets[0]], 50)
+    print(f"\n## onnxruntime batch-1 latency by ONNX opset, 1 thread ({rounds} alternated rounds)\n")
+    print(f"| opset | p50 ms | p99 ms | opset {opsets[0]}'s p50 / this | max abs difference from torch |")
+    print("|---|---|---|---|---|")
+    for o in opsets:
+        p50 = np.percentile(lat[o], 50)
+        print(f"| {o} | {p50:.2f} | {np.percentile(lat[o], 99):.2f} | {first / p50:.2f}x | {exports[o].max_abs_diff:.1e} |")
 
 
 def scored_horizons(model, rounds: int, windows: int = 64, horizons: tuple[int, ...] = (1, 3, 5, 10)) -> None:

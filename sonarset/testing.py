@@ -26,13 +26,13 @@ class CountingHandler(http.server.SimpleHTTPRequestHandler):
     def do_GET(self) -> None:
         cls = type(self)
         cls.requests += 1
-        if cls.fault is not None and cls.faults_left != 0 and (cls.fault in ("hang", "trickle") or "/c/" in self.path):
+        faulty = cls.fault is not None and cls.faults_left != 0 and (cls.fault in ("hang", "trickle") or "/c/" in self.path)
+        if faulty:
             cls.faults_left -= 1
-            try:
-                return FAULTS[cls.fault](self)
-            except (BrokenPipeError, ConnectionResetError):  # the client gave up first: as it should
-                return None
-        super().do_GET()
+        try:
+            return FAULTS[cls.fault](self) if faulty else super().do_GET()
+        except (BrokenPipeError, ConnectionResetError):  # the client gave up first (its timeout): as it should
+            return None
 
     def _hang(self) -> None:
         time.sleep(60)

@@ -142,7 +142,7 @@ def metadata(card: dict, model: EchoPT) -> dict[str, str]:
 def _hypot(x, y):
     """aten::hypot in ONNX, which has no such operator: sqrt(x^2 + y^2) (the flow prior's ranges are
     metres, far from where hypot's overflow guard matters)."""
-    from onnxscript import opset18 as op
+    from onnxscript import opset20 as op  # OPSET's
 
     return op.Sqrt(op.Add(op.Mul(x, x), op.Mul(y, y)))
 

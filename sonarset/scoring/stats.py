@@ -98,8 +98,8 @@ def wilcoxon_p(d: np.ndarray) -> float:
     return _signed_rank_p(d) if len(d) >= 3 and np.any(d != 0) else float("nan")
 
 
-#: scipy's ``wilcoxon`` tests up to this many differences holding ties or zeros by its exact
-#: permutation test, over all 2**n signs
+#: scipy's ``wilcoxon`` (1.15 on) tests up to this many differences holding ties or zeros by its
+#: exact permutation test, over all 2**n signs
 _PERMUTED_UP_TO = 13
 
 
@@ -108,7 +108,8 @@ def _signed_rank_p(d: np.ndarray) -> float:
     test (a few windows with ties or zeros: tests, quick runs, the experiments' few runs) it calls
     the statistic once per sign pattern, 0.1-0.3 s a test; here the statistic is vectorised."""
     nonzero = d[d != 0]
-    if len(d) > _PERMUTED_UP_TO or (len(nonzero) == len(d) and len(np.unique(np.abs(d))) == len(d)):
+    if (len(d) > _PERMUTED_UP_TO or not np.all(np.isfinite(d))  # scipy's NaN, or its own test
+            or (len(nonzero) == len(d) and len(np.unique(np.abs(d))) == len(d))):
         return float(stats.wilcoxon(d).pvalue)
     # |d| and so its ranks are the same under every sign pattern; zeros rank lowest and drop out
     ranks = stats.rankdata(np.abs(d)) - (len(d) - len(nonzero))
