@@ -53,7 +53,7 @@ ONNX_KINDS = ("echopt", "echowarp")
 PARITY_TOLERANCE = 1e-3
 #: ONNX's Gelu operator is opset 20's: onnxruntime (>= 1.20, the onnx extra's) runs it as one kernel,
 #: where opset 18 spells it as five (Div, Erf, Add, Mul, Mul) that also break the convolutions'
-#: blocked layout: batch-1 latency 1.10x (EchoWarp) and 1.04x (EchoPT) on one core
+#: blocked layout: batch-1 latency 1.11x (EchoWarp) and 1.05x (EchoPT) on one core (bench_infer --opsets)
 OPSET = 20
 
 
