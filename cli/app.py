@@ -16,7 +16,7 @@ from sonarset import __version__
 
 from sonarset.cli.commands import bag, ingest, model, registry, sim, store, view
 from sonarset.cli.commands import benchmark
-from sonarset.cli.common import err, out
+from sonarset.cli.common import err, labelled, out
 from sonarset.cli.experiment import experiment_app
 
 app = typer.Typer(
@@ -70,7 +70,7 @@ def main() -> None:
             app()
     except KeyboardInterrupt as exc:  # one that arrived outside a command's own handler
         if signal_exit_code() is None:  # not from a signal (raised by code): said and done here
-            err.print(f"[bold red]error:[/] {'terminated' if isinstance(exc, Terminated) else 'interrupted'}")
+            err.print(labelled("error", "terminated" if isinstance(exc, Terminated) else "interrupted"))
             sys.exit(143 if isinstance(exc, Terminated) else 130)
     except SystemExit as exc:
         if signal_exit_code() is None:
@@ -83,12 +83,12 @@ def main() -> None:
         if signal_exit_code() is None:
             if os.environ.get("SONARSET_DEBUG"):
                 raise
-            err.print(f"[bold red]internal error:[/] {type(exc).__name__}: {exc} (set SONARSET_DEBUG=1 for details)",
+            err.print(labelled("internal error", f"{type(exc).__name__}: {exc} (set SONARSET_DEBUG=1 for details)"),
                       highlight=False, soft_wrap=True)
             sys.exit(70)
     if signal_exit_code() is None:
         return
-    code = ending_on_signal(None if said else lambda what: err.print(f"[bold red]error:[/] {what}"))
+    code = ending_on_signal(None if said else lambda what: err.print(labelled("error", what)))
     if "zarr" in sys.modules:  # its I/O loop, interrupted mid-request, would fill the exit with tracebacks
         from sonarset.store.zarrio import release_event_loop
 

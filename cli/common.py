@@ -11,17 +11,26 @@ from typing import Callable
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.text import Text
 from typer.models import OptionInfo
 
 from sonarset.errors import InputValidationError, SonarSetError
 from sonarset.pool import Terminated
 
-out = Console(soft_wrap=True)
-err = Console(stderr=True, soft_wrap=True)
+# Neither reads markup or emoji codes in what it prints: names, paths and messages come from users
+# and their files ("[/]" in a predictor's error was a traceback, ":factory:" an emoji); styles are
+# given as Text (``labelled``).
+out = Console(soft_wrap=True, markup=False, emoji=False)
+err = Console(stderr=True, soft_wrap=True, markup=False, emoji=False)
+
+
+def labelled(label: str, text: str, style: str = "bold red") -> Text:
+    """``label:`` in ``style``, then ``text`` as it is."""
+    return Text.assemble((f"{label}:", style), " ", str(text))
 
 
 def fail(message: str, code: int = 1) -> None:
-    err.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    err.print(labelled("error", message), highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 
@@ -80,7 +89,7 @@ def user_errors(fn: Callable) -> Callable:
                 # a parameter is about some of the lines (those that name it), not every one
                 for parameter in named:
                     line = with_flag(line, parameter, flags, append=False)
-                err.print(f"[bold red]error:[/] {exc.source}: {line}", highlight=False, soft_wrap=True)
+                err.print(labelled("error", f"{exc.source}: {line}"), highlight=False, soft_wrap=True)
             raise typer.Exit(1) from None
         except SonarSetError as exc:
             fail(with_flag(str(exc), exc.parameter, command_flags(fn)))
@@ -96,8 +105,9 @@ def user_errors(fn: Callable) -> Callable:
 
 
 def progress_bar() -> Progress:
-    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                    TimeRemainingColumn(), console=err, transient=True, disable=not err.is_terminal)
+    return Progress(TextColumn("{task.description}", style="bold", markup=False), BarColumn(),
+                    TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn(), console=err, transient=True,
+                    disable=not err.is_terminal)
 
 
 def per_name_progress(bar: Progress) -> Callable[[str, int, int], None]:

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import copy
 import numbers
+import warnings
 from typing import Callable, Protocol, runtime_checkable
 
 import numpy as np
@@ -184,8 +185,11 @@ class CheckedPredictor:
                              "(B, len(horizons), R, A)")
 
     def _call(self, what: str, method: Callable, *args):
-        """``method(*args)``; an error inside an outside predictor is that predictor's, so it is
-        named in one line (our own errors, and interrupts, pass as they are)."""
+        """``method(*args)``, each array a copy of its own: an evaluation hands every predictor the
+        same windows, and one that wrote into its inputs would change what the models after it see.
+        An error inside an outside predictor is that predictor's, so it is named in one line (our own
+        errors, and interrupts, pass as they are)."""
+        args = tuple(np.array(a) if isinstance(a, np.ndarray) else a for a in args)
         try:
             return method(*args)
         except (SonarSetError, KeyboardInterrupt, MemoryError):
@@ -199,7 +203,16 @@ class CheckedPredictor:
             raise SonarSetError(f"predictor {self.who}: {what} returned "
                                 f"{'shape ' + str(tuple(got)) if got is not None else type(out).__name__}, "
                                 f"not {layout} = {shape}")
-        return np.asarray(out, dtype=np.float32)
+        kind = getattr(getattr(out, "dtype", None), "kind", None)  # numpy's; a tensor's dtype has none
+        if kind is not None and kind not in "fiub":
+            raise SonarSetError(f"predictor {self.who}: {what} returned {out.dtype} values, not real numbers")
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("error", np.exceptions.ComplexWarning)
+                return np.asarray(out, dtype=np.float32)
+        except Exception as exc:
+            raise SonarSetError(f"predictor {self.who}: {what} returned a {type(out).__name__} that is no "
+                                f"float32 array ({type(exc).__name__}: {exc})") from exc
 
 
 def _describe(obj) -> str:
@@ -214,6 +227,8 @@ def as_predictor(obj, spec: str | None = None) -> CheckedPredictor:
     if isinstance(obj, CheckedPredictor):
         return copy.copy(obj)
     who = repr(spec) if spec else _describe(obj)
+    if isinstance(obj, type):
+        raise SonarSetError(f"predictor {who}: the class {obj.__name__}, not an instance of it")
     missing, problems = [], []
     name = getattr(obj, "name", None)
     if name is None:
@@ -228,7 +243,9 @@ def as_predictor(obj, spec: str | None = None) -> CheckedPredictor:
     if not callable(getattr(obj, "predict", None)):
         missing.append("predict(frames, commands) method")
     if len(missing) == 3:
-        raise SonarSetError(f"predictor {who}: it is a {type(obj).__name__} object, not a predictor "
+        kind = type(obj).__name__
+        article = "an" if kind[:1].lower() in "aeiou" else "a"
+        raise SonarSetError(f"predictor {who}: it is {article} {kind} object, not a predictor "
                             "(no name, n_in or predict(frames, commands))")
     method = getattr(obj, "rollout", None)
     if method is not None and not callable(method):

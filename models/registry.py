@@ -228,9 +228,10 @@ def _one_line(exc: BaseException) -> str:
 
 def _import_factory(spec: str, module_name: str, attribute: str) -> Callable:
     """``module_name``'s ``attribute`` (dotted), imported as ``python -m`` would: the working
-    directory on the path, for a predictor written beside the data."""
+    directory first on the path, for a predictor written beside the data (after the installed
+    packages, a user's ``test.py`` was the standard library's ``test``)."""
     if os.getcwd() not in sys.path and "" not in sys.path:
-        sys.path.append(os.getcwd())
+        sys.path.insert(0, os.getcwd())
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as exc:
@@ -243,7 +244,9 @@ def _import_factory(spec: str, module_name: str, attribute: str) -> Callable:
     target = module
     for part in attribute.split("."):
         if not hasattr(target, part):
-            raise SonarSetError(f"predictor {spec!r}: module {module_name!r} has no attribute {attribute!r}")
+            where = getattr(module, "__file__", None)
+            raise SonarSetError(f"predictor {spec!r}: module {module_name!r}{f' ({where})' if where else ''} "
+                                f"has no attribute {attribute!r}")
         target = getattr(target, part)
     if not callable(target):
         raise SonarSetError(f"predictor {spec!r}: {module_name}.{attribute} is a {type(target).__name__}, not a "

@@ -107,9 +107,13 @@ def record_run(store: SonarStore, run_name: str | None, out: str | os.PathLike, 
         dt = float(np.median(np.diff(time_s))) if T > 1 else 1.0 / store.attrs.frame_rate_hz
         rig = store.rig.model_copy(update={"frame_interval_s": dt}) if store.rig is not None \
             else RobotRig(frame_interval_s=dt, sensor_offset_m=0.0)
-        for spec in models:
+        for spec in dict.fromkeys(models):
             p = make_predictor(spec, grid, rig, device=device, precision=precision)
-            preds[(p.label if p.label not in preds else spec) if p.name in preds else p.name] = p
+            key = (p.label if p.label not in preds else spec) if p.name in preds else p.name
+            if key in preds:  # as eval: two models of one name would be one entity in the recording
+                raise SonarSetError(f"model {spec!r}: another model is named {key!r}; view them apart",
+                                    parameter="models")
+            preds[key] = p
     out = Path(out)
     aside = _aside_file(out)
     rec = rr.RecordingStream("sonarset", recording_id=f"{Path(store.location).name}/{name}")

@@ -90,6 +90,7 @@ def test_quick_end_to_end_through_the_cli(tmp_path):
     assert not any(s["generated"] for s in again["stores"].values())
     assert (cache / "families-quick.zarr" / "zarr.json").stat().st_mtime_ns == stamp
     assert again["datasets"]["lab"]["horizons"] == doc["datasets"]["lab"]["horizons"]  # same windows, same numbers
+    assert {d["n_in"] for d in doc["datasets"].values()} == {3}  # the context the windows have room for
 
     r = runner.invoke(app, ["benchmark", "--compare", str(first / "results.json"), str(second / "results.json")])
     assert r.exit_code == 0, r.output
@@ -106,6 +107,17 @@ def test_unknown_model_fails_in_one_line_before_any_simulation(tmp_path):
                             "--out", str(tmp_path / "o")])
     assert r.exit_code == 1 and "nope" in r.output and len(r.output.strip().splitlines()) == 1
     assert not (tmp_path / "c").exists() and not (tmp_path / "o").exists()
+
+
+def test_compare_refuses_files_scored_on_other_windows(tmp_path):
+    """Models of another context draw other windows from the same seed: such files do not compare
+    (a file from before the context was recorded has the paper's 3)."""
+    paths = []
+    for name, dataset in (("old", {}), ("five", {"n_in": 5})):
+        paths.append(tmp_path / f"{name}.json")
+        paths[-1].write_text(json.dumps({"protocol": {"name": "p", "version": "v1"}, "datasets": {"lab": dataset}}))
+    with pytest.raises(SonarSetError, match="five.json: windows with room for 5 input frames, not 3 as .*old.json's"):
+        compare_results(paths)
 
 
 def test_compare_refuses_what_is_not_a_results_file(tmp_path):

@@ -87,8 +87,36 @@ def test_the_warp_correction_moves_an_echo_without_spreading_it():
     assert out[0, 19, 9].item() == pytest.approx(1.0, abs=1e-4) and out.sum().item() == pytest.approx(1.0, abs=1e-4)
 
 
-def test_gradients_reach_every_part():
-    model = _trained_like(_model()).train()
+@pytest.mark.parametrize("patch", [2, 3])
+def test_in_patches_every_convolution_runs_coarser_and_each_pixel_keeps_its_place(patch):
+    """``patch`` p folds each p x p patch of the inputs into channels (the grid padded to whole
+    patches) and unfolds the head's outputs: untrained it is still the composite flow, every
+    convolution reads the patches' grid or a coarser one, and folding and unfolding put each pixel's
+    values back where they were."""
+    model = _model(patch=patch)
+    frames, commands = _window(k=3)
+    with torch.no_grad():
+        torch.testing.assert_close(model.forecast(frames, commands, 3), _model().forecast(frames, commands, 3))
+    coarse = (-(-GRID.shape[0] // patch), -(-GRID.shape[1] // patch))
+    g = torch.Generator().manual_seed(5)
+    x = torch.rand((2, 5, *GRID.shape), generator=g).contiguous(memory_format=torch.channels_last)
+    folded = model.folded(x)
+    assert folded.shape == (2, 5 * patch ** 2, *coarse)
+    assert torch.equal(folded[:, (1 * patch + 0) * 5 + 2, 3, 1], x[:, 2, 3 * patch + 1, patch])  # pixel (1, 0) of patch (3, 1)
+    assert torch.equal(model.unfolded(folded, *GRID.shape), x)
+    sizes = []
+    hooks = [m.register_forward_hook(lambda m, i, o: sizes.append(tuple(i[0].shape[-2:])))
+             for m in model.modules() if isinstance(m, torch.nn.Conv2d)]
+    with torch.no_grad():
+        model.forecast(frames, commands, 1)
+    for h in hooks:
+        h.remove()
+    assert sizes and all(r <= coarse[0] and a <= coarse[1] for r, a in sizes)
+
+
+@pytest.mark.parametrize("patch", [1, 2])
+def test_gradients_reach_every_part(patch):
+    model = _trained_like(_model(patch=patch)).train()
     frames, commands = _window(k=2)
     model.forecast(frames, commands, 2).square().mean().backward()
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in model.parameters())
@@ -144,8 +172,8 @@ def test_it_forecasts_chosen_horizons_alone_with_the_images_of_its_whole_forecas
     np.testing.assert_array_equal(checked.forecast_at(f, c, (2, 6)), checked.rollout(f, c, 6)[:, [1, 5]])
 
 
-@pytest.mark.parametrize("outside", ["border", "zeros"])
-def test_it_exports_to_onnx_and_runs_in_onnxruntime(tmp_path, outside):
+@pytest.mark.parametrize("outside,patch", [("border", 1), ("zeros", 1), ("border", 2)])
+def test_it_exports_to_onnx_and_runs_in_onnxruntime(tmp_path, outside, patch):
     pytest.importorskip("onnxruntime")
     pytest.importorskip("onnxscript")
     import onnx
@@ -157,7 +185,7 @@ def test_it_exports_to_onnx_and_runs_in_onnxruntime(tmp_path, outside):
     from sonarset.models.predictor import chain_rollout
     from sonarset.models.registry import make_predictor
 
-    model = _trained_like(_model(outside=outside))
+    model = _trained_like(_model(outside=outside, patch=patch))
     for p in model.parameters():
         p.data *= 0.1
     card = {"preset": "tiny", "grid": GRID.model_dump(), "rig": RIG.model_dump(mode="json")}

@@ -110,6 +110,65 @@ def test_outputs_of_the_wrong_shape_are_refused_in_one_line(store):
         evaluate(store, [], predictors={"short": ShortRollout()}, horizons=(3,), samples=5)
 
 
+def test_a_predictor_that_writes_into_its_inputs_changes_no_other_models_windows(store):
+    class Scribbler(LastFrame):
+        name = "scribbler"
+
+        def rollout(self, frames, commands, horizon):
+            out = np.repeat(frames[:, -1:], horizon, axis=1).copy()
+            frames *= 0  # a plugin's own bug: the windows are everyone's
+            commands *= 0
+            return out
+
+    alone = evaluate(store, [], predictors={"last": LastFrame()}, horizons=(1, 2), samples=6)
+    after = evaluate(store, [], predictors={"scribbler": Scribbler(), "last": LastFrame()}, horizons=(1, 2), samples=6)
+    for h in (1, 2):
+        np.testing.assert_array_equal(after.per_window["last"][h]["cc"], alone.per_window["last"][h]["cc"])
+        np.testing.assert_array_equal(after.per_window["scribbler"][h]["cc"], alone.per_window["last"][h]["cc"])
+
+
+def test_outputs_that_are_no_real_numbers_are_refused_and_out_of_range_ones_noted(store):
+    class Outputs(LastFrame):
+        def __init__(self, convert):
+            self.convert = convert
+
+        def predict(self, frames, commands):
+            return self.convert(frames[:, -1])
+
+    for name, convert, says in [("complex", lambda x: x + 1j, "predict returned complex64 values, not real numbers"),
+                                ("text", lambda x: x.astype(str), "values, not real numbers"),
+                                ("object", lambda x: x.astype(object), "object values, not real numbers")]:
+        with pytest.raises(SonarSetError, match=rf"^predictor '{name}': .*{says}") as exc:
+            evaluate(store, [], predictors={name: Outputs(convert)}, horizons=(1,), samples=5)
+        assert "\n" not in str(exc.value)
+    res = evaluate(store, [], predictors={"big": Outputs(lambda x: x * 1000 + 5), "last": LastFrame()},
+                   horizons=(1, 2), samples=5)
+    assert "big: 10 of its 10 forecast images hold values outside [0, 1], the energyscapes' range; they are scored " \
+           "as they are" in res.notes and not any(n.startswith("last:") for n in res.notes)
+
+
+def test_a_card_is_anyones_dict(store):
+    class Carded(LastFrame):
+        card = {"config": 3, "rig": "a robot"}
+
+    res = evaluate(store, [], predictors={"carded": Carded()}, horizons=(1,), samples=5)
+    assert any("model card has an invalid processing or rig" in n for n in res.notes)
+
+
+def test_a_predictor_named_as_a_ceiling_is_refused_or_renamed(store, tmp_path, monkeypatch):
+    with pytest.raises(SonarSetError, match="predictor 'ceiling': that name is the ceiling row's"):
+        evaluate(store, [], predictors={"ceiling": LastFrame()}, horizons=(1,), samples=5)
+    (tmp_path / "sonarset_test_ceiling.py").write_text(
+        "class P:\n    name, n_in = 'observable', 3\n    def predict(self, f, c):\n        return f[:, -1]\n"
+        "def make(grid, rig):\n    return P()\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    res = evaluate(store, ["flow", "sonarset_test_ceiling:make"], horizons=(1,), samples=5, ceiling=False)
+    assert res.predictors == ["flow", "sonarset_test_ceiling:make"]
+    assert any(c.a == "sonarset_test_ceiling:make" or c.b == "sonarset_test_ceiling:make" for c in res.comparisons)
+    sys.modules.pop("sonarset_test_ceiling", None)
+
+
 def test_an_error_inside_a_predictor_is_named_in_one_line(store):
     class Broken(LastFrame):
         def predict(self, frames, commands):
@@ -164,23 +223,30 @@ def test_the_protocol_loads_no_torch():
 
 def test_module_factory_errors_are_one_line(store, tmp_path, monkeypatch):
     (tmp_path / "sonarset_test_broken.py").write_text("raise RuntimeError('boom at import')\n")
+    # text from a predictor is printed as it is: neither markup ("[/]" was a traceback) nor emoji codes
+    (tmp_path / "sonarset_test_markup.py").write_text(
+        "class P:\n    name, n_in = 'p[/]:factory:', 3\n"
+        "    def predict(self, f, c):\n        raise ValueError('bad [/] [red]x :factory:')\n"
+        "def make(grid, rig):\n    return P()\n")
     monkeypatch.chdir(tmp_path)  # a module beside the data imports, as with python -m
     monkeypatch.setattr(sys, "path", list(sys.path))
     cases = {
         "sonarset_test_broken:make": "predictor 'sonarset_test_broken:make': module 'sonarset_test_broken' does not "
                                      "import (RuntimeError: boom at import)",
-        "json:nope": "predictor 'json:nope': module 'json' has no attribute 'nope'",
+        "json:nope": "has no attribute 'nope'",
         "json:dumps": "predictor 'json:dumps': its factory json:dumps raised TypeError",
-        "collections:OrderedDict": "predictor 'collections:OrderedDict': it is a OrderedDict object, not a predictor",
+        "collections:OrderedDict": "predictor 'collections:OrderedDict': it is an OrderedDict object, not a predictor",
         "no_such_module_here:make": "unknown model 'no_such_module_here:make': no module 'no_such_module_here'",
         "magic": "name any other predictor as package.module:factory",
         "flow:2": "model 'flow:2': flow takes nothing after ':'",
+        "sonarset_test_markup:make": "predict raised ValueError: bad [/] [red]x :factory:",
     }
     for spec, says in cases.items():
         r = runner.invoke(app, ["eval", store.location, "--models", spec, "--out", str(tmp_path / "o")])
         assert r.exit_code == 1 and says in r.output, (spec, r.output)
         assert "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1, r.output
     sys.modules.pop("sonarset_test_broken", None)
+    sys.modules.pop("sonarset_test_markup", None)
 
 
 def test_an_installed_plugin_is_listed_and_evaluated(store, tmp_path):

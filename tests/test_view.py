@@ -125,3 +125,19 @@ def test_a_killed_recorders_leftover_is_removed_by_the_next(sim, tmp_path):
     leftover.write_bytes(b"half")
     record_run(sim, "test_000", tmp_path / "v.rrd", frames=slice(0, 3))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["v.rrd"]
+
+
+def test_two_models_of_one_name_are_refused_not_merged(sim, tmp_path, monkeypatch):
+    """A model named like a built-in and the built-in itself would be one entity of the recording:
+    refused in one line, as eval refuses them."""
+    (tmp_path / "sonarset_test_named_flow.py").write_text(
+        "class P:\n    name, n_in = 'flow', 3\n    def predict(self, f, c):\n        return f[:, -1]\n"
+        "def make(grid, rig):\n    return P()\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    out = tmp_path / "v.rrd"
+    res = CliRunner().invoke(app, ["view", sim.location, "--model", "sonarset_test_named_flow:make", "--model", "flow",
+                                   "--frames", "0:8", "--out", str(out)])
+    sys.modules.pop("sonarset_test_named_flow", None)
+    assert res.exit_code == 1 and "model 'flow': another model is named 'flow'" in res.output, res.output
+    assert len(res.output.strip().splitlines()) == 1 and not out.exists()

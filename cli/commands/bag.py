@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 import typer
 
 from sonarset.cli.choices import Beamformer, ProcessingProfile, Stamps, value
-from sonarset.cli.common import command_flags, err, out, per_name_progress, progress_bar, user_errors, with_flag
+from sonarset.cli.common import command_flags, err, labelled, out, per_name_progress, progress_bar, user_errors, with_flag
 from sonarset.cli.options import MetaPath, OutStore, Overwrite, RunName, RunSplit
 
 Topic = Optional[str]
@@ -46,11 +46,11 @@ def import_bag_(
     from sonarset.ingest.bag import import_bag
 
     def note(line: str) -> None:
-        err.print(f"[cyan]note:[/] {line}", highlight=False, soft_wrap=True)
+        err.print(labelled("note", line, "cyan"), highlight=False, soft_wrap=True)
 
     def warn(line: str) -> None:  # a line may name the parameter that fixes it: said as the flag
         line = with_flag(line, "command_offset_s", command_flags(import_bag_), append=False)
-        err.print(f"[yellow]warning:[/] {line}", highlight=False, soft_wrap=True)
+        err.print(labelled("warning", line, "yellow"), highlight=False, soft_wrap=True)
 
     runs = import_bag(bag, out_store, images=images, raw=raw, commands=cmd_vel, odometry=odom, stamps=stamps.value,
                       command_offset_s=cmd_offset, command_timeout_s=cmd_timeout, meta_path=meta, name=name,

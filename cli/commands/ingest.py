@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 import typer
 
 from sonarset.cli.choices import Beamformer, ProcessingProfile, value
-from sonarset.cli.common import err, out, progress_bar, user_errors
+from sonarset.cli.common import err, labelled, out, progress_bar, user_errors
 from sonarset.cli.options import MetaPath, OutStore, Overwrite, RunName, RunSplit
 
 
@@ -24,7 +24,7 @@ def import_(
     from sonarset.ingest.images import import_recording
 
     def warn(line: str) -> None:
-        err.print(f"[yellow]warning:[/] {line}", highlight=False, soft_wrap=True)
+        err.print(labelled("warning", line, "yellow"), highlight=False, soft_wrap=True)
 
     run = import_recording(src, out_store, meta_path=meta, name=name, split=split, overwrite=overwrite,
                            allow_implausible=allow_implausible, warn=warn)

@@ -303,8 +303,9 @@ def train(
         res = run_training(s, out_dir, cfg, resume=resume, progress=progress)
     if not main:
         return
-    out.print(f"{res.steps} steps ({res.epochs_done:.2f} epochs); best validation loss {res.best_val_loss:.6f}; "
-              f"weights: {out_dir / 'model.safetensors'}")
+    weights = out_dir / "model.safetensors"
+    kept = f"weights: {weights}" if weights.is_file() else "no weights kept (no validation loss was finite)"
+    out.print(f"{res.steps} steps ({res.epochs_done:.2f} epochs); best validation loss {res.best_val_loss:.6f}; {kept}")
     if cfg.test_samples and s.runs("test"):
         test = add_test_metrics(out_dir, s, cfg)
         r = test["results"]

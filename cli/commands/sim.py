@@ -64,7 +64,7 @@ def generate(
 
     grid = SensorGrid(**{**GRID.model_dump(), "n_range": n_range, "n_azimuth": n_azimuth})
     t0 = time.perf_counter()
-    columns = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+    columns = [TextColumn("{task.description}", style="bold", markup=False), BarColumn(), MofNCompleteColumn(),
                TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), TimeRemainingColumn()]
     with Progress(*columns, console=err, disable=not err.is_terminal) as bar:
         tasks: dict[str, int] = {}

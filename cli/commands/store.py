@@ -9,9 +9,10 @@ from typing import Optional
 
 import typer
 from rich.table import Table
+from rich.text import Text
 
 from sonarset.cli.choices import SchemaKind
-from sonarset.cli.common import err, out, progress_bar, user_errors
+from sonarset.cli.common import err, labelled, out, progress_bar, user_errors
 
 
 @user_errors
@@ -28,7 +29,8 @@ def info(
     if as_json:
         print(json.dumps(summary, indent=2))
         return
-    out.print(f"[bold]{s.location}[/]  SonarSet {s.format_version}  ({s.attrs.created_by or 'unknown writer'})")
+    writer = s.attrs.created_by or "unknown writer"
+    out.print(Text.assemble((str(s.location), "bold"), f"  SonarSet {s.format_version}  ({writer})"))
     for line in describe_sensing(s):
         out.print(line, highlight=False)
     table = Table("run", "split", "world", "frames", "duration", "images", "optional")
@@ -39,7 +41,7 @@ def info(
     out.print(f"{len(summary['runs'])} complete run(s), {summary['frames']} frames, {human_bytes(summary['bytes'])} on disk")
     incomplete = summary["incomplete_runs"]
     if incomplete:
-        out.print(f"[yellow]{len(incomplete)} incomplete run(s) ignored: {', '.join(incomplete)}[/]")
+        out.print(f"{len(incomplete)} incomplete run(s) ignored: {', '.join(incomplete)}", style="yellow")
 
 
 @user_errors
@@ -72,11 +74,11 @@ def validate(
     allowed = [p for p in problems if allow_implausible and isinstance(p, Implausible)]
     problems = [p for p in problems if not (allow_implausible and isinstance(p, Implausible))]
     for p in allowed:
-        err.print(f"[yellow]warning:[/] {p}", highlight=False, soft_wrap=True)
+        err.print(labelled("warning", p, "yellow"), highlight=False, soft_wrap=True)
     if problems:
         for p in problems:
             label = "implausible" if isinstance(p, Implausible) else "invalid"
-            err.print(f"[bold red]{label}:[/] {p}", highlight=False, soft_wrap=True)
+            err.print(labelled(label, p), highlight=False, soft_wrap=True)
         if any(isinstance(p, Implausible) for p in problems):
             err.print("note: if the implausible values are right, pass --allow-implausible", highlight=False)
         raise typer.Exit(1)
@@ -87,7 +89,7 @@ def validate(
 def schema(
     kind: SchemaKind = typer.Argument("store", help="The document."),
 ) -> None:
-    """Print the JSON Schema of a SonarSet document (root, run or import-sidecar attributes)."""
+    """Print the JSON Schema of a SonarSet document: a store's or a run's attributes, or an import's metadata."""
     from sonarset.format.schemas import json_schema_text
 
     sys.stdout.write(json_schema_text(kind.value))

@@ -167,8 +167,10 @@ def dataset_entry(res: EvalResult, ds: Dataset, protocol: Protocol, seconds: flo
         ceilings = {c: {k: metric_stats(res.per_window[c][h][k]) for k in protocol.metrics}
                     for c in CEILINGS if c in res.methods}
         horizons[str(h)] = {"methods": methods, "ceilings": ceilings}
+    # n_in: the windows have room for that many input frames (the models'), which decides which
+    # windows the seed draws: files of other contexts score other windows
     return {"about": ds.about, "store": ds.store.name, "world": ds.world, "runs": res.runs,
-            "windows": len(res.window_ids), "notes": res.notes, "ceiling_skipped": res.ceiling_skipped,
+            "windows": len(res.window_ids), "n_in": res.n_in, "notes": res.notes, "ceiling_skipped": res.ceiling_skipped,
             "precision": res.precision, "seconds": {"evaluate": seconds, "methods": res.seconds},
             "horizons": horizons}
 

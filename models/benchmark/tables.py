@@ -12,6 +12,7 @@ from pathlib import Path
 from sonarset.errors import SonarSetError
 from sonarset.report.numbers import format_p, horizon_name
 from sonarset.scoring.stats import windows_to_pass
+from sonarset.windows import N_IN
 
 from sonarset.models.benchmark.machine import describe
 from sonarset.models.eval.report import LOWER_IS_BETTER
@@ -35,6 +36,12 @@ def load_results(path: str | os.PathLike) -> dict:
     if not isinstance(doc, dict) or not isinstance(doc.get("protocol"), dict) or "datasets" not in doc:
         raise SonarSetError(f"{path}: not a benchmark results file (no protocol and datasets)")
     return doc
+
+
+def window_context(doc: dict) -> int:
+    """The input frames a results file's windows have room for: its models' ``n_in``, which decides
+    the windows its seed draws (files before it was recorded: the paper's 3)."""
+    return max(int(d.get("n_in", N_IN)) for d in doc["datasets"].values())
 
 
 def _version(doc: dict) -> str:
@@ -241,10 +248,14 @@ def compare_results(paths: list[str | os.PathLike]) -> str:
         raise SonarSetError("no results files to compare")
     docs = [(str(p), load_results(p)) for p in paths]
     first, version = docs[0][0], _version(docs[0][1])
+    context = window_context(docs[0][1])
     for path, doc in docs[1:]:
         if _version(doc) != version:
             raise SonarSetError(f"{path}: protocol {_version(doc)}, not {version} as {first}; results compare "
                                 "only within one protocol version")
+        if window_context(doc) != context:
+            raise SonarSetError(f"{path}: windows with room for {window_context(doc)} input frames, not {context} "
+                                f"as {first}'s; results compare only on the same windows")
     names = [d["name"] for d in docs[0][1]["protocol"]["definition"]["datasets"]]
     longest = str(max(docs[0][1]["protocol"]["definition"]["horizons"]))
     lines = [f"# {version}: CC at {horizon_name(int(longest))} (`*`: differs from flow, Holm p < {ALPHA} within "

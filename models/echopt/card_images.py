@@ -51,7 +51,8 @@ def training_notices(label: str, card: dict, processing: Processing, rig: RobotR
     if trained_rig is not None and rig is not None and trained_rig != rig:
         notes.append(f"note: {label} was trained on a robot with {trained_rig.describe()}; this store's robot has "
                      f"{rig.describe()}: scores are not comparable to its training")
-    dt = (card.get("config") or {}).get("dt")
+    config = card.get("config")
+    dt = config.get("dt") if isinstance(config, dict) else None  # a plugin's card is anyone's dict
     if not notes and isinstance(dt, (int, float)) and dt > 0 and frame_interval_s and \
             abs(frame_interval_s - dt) > FRAME_INTERVAL_TOLERANCE * dt:
         # a real sensor runs at its own rate (a bag import records it): one step of the model is not one frame

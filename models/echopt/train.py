@@ -42,6 +42,7 @@ reports progress.
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from dataclasses import asdict, dataclass, field
@@ -366,9 +367,13 @@ def _steps(run: _Run, step: int, best: float, history: list[dict]) -> tuple[int,
         epoch, pos = divmod(step, plan.steps_per_epoch)
         for windows in run.data.epoch(epoch, pos, plan.steps_per_epoch):
             k = cfg.k_at(step)
-            loss = run.optimizer_step(step, windows, k)
+            loss = run.optimizer_step(step, windows, k).item()
+            if not math.isfinite(loss):  # every later step would be NaN too: the kept weights are the last good ones
+                hint = "precision fp32 (it trains in bf16), or " if run.precision == "bf16" else ""
+                raise SonarSetError(f"step {step + 1}: the training loss is {loss} (not finite); the weights kept so "
+                                    f"far are those of the best validation before it; try {hint}a lower lr")
             step += 1
-            tally.loss += loss.item() * local
+            tally.loss += loss * local
             tally.n += local
             tally.samples += cfg.batch_size
             out_of_time = run.out_of_time()
@@ -376,7 +381,7 @@ def _steps(run: _Run, step: int, best: float, history: list[dict]) -> tuple[int,
                 best = run.validate(step, k, tally, history, best)
                 tally = _Tally()
             elif run.progress and dist.main and step % 10 == 0:
-                run.progress({"step": step, "total_steps": plan.total_steps, "train_loss": loss.item()})
+                run.progress({"step": step, "total_steps": plan.total_steps, "train_loss": loss})
             if step >= plan.total_steps or out_of_time:
                 return step, best
     return step, best

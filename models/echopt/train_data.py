@@ -22,6 +22,18 @@ from sonarset.models.echopt.distributed import Dist
 from sonarset.models.echopt.train_config import TrainConfig
 
 
+
+def held_out(index: WindowIndex, store: SonarStore, cfg: TrainConfig) -> tuple[WindowIndex, WindowIndex]:
+    """``index`` split into training and ``cfg.n_val`` validation windows; SonarSetError naming the
+    store when its training runs hold no window, or too few for the validation set."""
+    if len(index) == 0:
+        raise SonarSetError(f"{store.location}: no training run is long enough for one window "
+                            f"({index.n_in} input frames and the {index.horizon} ahead)")
+    if not 0 < cfg.n_val < len(index):
+        raise SonarSetError(f"{store.location}: its training runs hold {len(index)} windows, too few to hold out "
+                            f"n_val {cfg.n_val} for validation and train on the rest", parameter="n_val")
+    return index.split(cfg.n_val, seed=cfg.seed)
+
 @dataclass
 class MemoryWindows:
     """Every frame of the training runs in memory (on the training device), each batch one gather:
@@ -39,7 +51,7 @@ class MemoryWindows:
     def make(cls, store: SonarStore, cfg: TrainConfig, n_in: int, horizon: int, dist: Dist,
              device: str) -> "MemoryWindows":
         bank = FrameBank.from_store(store, split="train", worlds=cfg.world_list())
-        train_idx, val_idx = WindowIndex.build(bank, n_in, horizon).split(cfg.n_val, seed=cfg.seed)
+        train_idx, val_idx = held_out(WindowIndex.build(bank, n_in, horizon), store, cfg)
         return cls(bank.run_names, torch_batcher(bank, device), train_idx, val_idx, cfg.batch_size, cfg.seed, dist)
 
     @property
@@ -105,7 +117,7 @@ class StreamedWindows:
     def make(cls, store: SonarStore, cfg: TrainConfig, n_in: int, horizon: int, dist: Dist,
              device: str) -> "StreamedWindows":
         layout = RunLayout.of(store, split="train", worlds=cfg.world_list())
-        train_idx, val_idx = layout.index(n_in, horizon).split(cfg.n_val, seed=cfg.seed)
+        train_idx, val_idx = held_out(layout.index(n_in, horizon), store, cfg)
         val_bank = window_bank(store, layout, val_idx)  # packed: a sixth of the frames' bytes
         local = cfg.batch_size // dist.world
         ds = StreamingWindowDataset(layout, train_idx.starts, n_in=n_in, horizon=horizon, batch_size=local,

@@ -4,10 +4,13 @@ weights, with its optimizer."""
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn as nn
 
 from sonarset.errors import SonarSetError
+from sonarset.format.attrs import RobotRig
 from sonarset.store.store import SonarStore
 
 from sonarset.models.echopt.checkpoint import load_checkpoint
@@ -26,6 +29,17 @@ def widenable(model: nn.Module) -> dict:
     return dict.fromkeys(WIDENABLE_FIELDS, can_widen)
 
 
+def _same(a, b) -> bool:
+    """Equal, numbers to a float32's rounding (as ``SensorGrid.matches`` takes a grid's edges: a
+    store imported from a bag has them as float32 bin centres made them)."""
+    if isinstance(a, tuple) and isinstance(b, tuple):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, float) or isinstance(b, float):
+        return isinstance(a, (int, float)) and isinstance(b, (int, float)) and math.isclose(a, b, rel_tol=1e-6,
+                                                                                           abs_tol=1e-9)
+    return a == b
+
+
 def init_from(model: nn.Module, spec: str, trained: nn.Module, card: dict, store: SonarStore) -> None:
     """Copy a trained model's weights into ``model``, which must be the same network on the same grid,
     trained on the same images (a fine-tune continues a model; it cannot change what it is, except
@@ -34,7 +48,7 @@ def init_from(model: nn.Module, spec: str, trained: nn.Module, card: dict, store
     models/echowarp/widen.py)."""
     from sonarset.models.echopt.card_images import card_processing, describe_images
 
-    differ = [k for k in model.cfg.__dataclass_fields__ if getattr(trained.cfg, k) != getattr(model.cfg, k)]
+    differ = [k for k in model.cfg.__dataclass_fields__ if not _same(getattr(trained.cfg, k), getattr(model.cfg, k))]
     added = [k for k in differ if k in ADDABLE_FIELDS and not getattr(trained.cfg, k)]
     growable = widenable(model)
     widened = [k for k in differ if k in growable and growable[k](trained.cfg, model.cfg)]
@@ -89,14 +103,19 @@ def build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[nn.Mo
     if cfg.model != "echopt":
         refuse_echopt_options(cfg)
     torch.manual_seed(cfg.seed)
-    overrides = grid_and_rig(store.grid, store.rig)
+    trained = card = None
+    if cfg.init:
+        trained, card = load_checkpoint(cfg.init, store.grid, kind=cfg.model)
+    # A store without a rig: one step is its own frame interval (not the simulator's 0.2 s), and
+    # the sensor sits where eval's baselines put it (models/eval/evaluate.py, baseline_rig), on the
+    # wheel axle, or, for a fine-tune, where the model was trained with it: the store says nothing.
+    rig = store.rig or RobotRig(frame_interval_s=1.0 / store.attrs.frame_rate_hz,
+                                sensor_offset_m=trained.cfg.sensor_offset if trained is not None else 0.0)
+    overrides = grid_and_rig(store.grid, rig)
     if cfg.prior:
         overrides["prior"] = cfg.prior
     if cfg.n_in:
         overrides["n_in"] = cfg.n_in
-    trained = card = None
-    if cfg.init:
-        trained, card = load_checkpoint(cfg.init, store.grid, kind=cfg.model)
     if cfg.inputs or trained is not None:  # a fine-tune keeps its model's unless told otherwise
         overrides["inputs"] = cfg.inputs or trained.cfg.inputs
     if cfg.model == "echopt" and cfg.geometry_channels >= 0:

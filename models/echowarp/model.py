@@ -37,7 +37,7 @@ from sonarset.errors import GridMismatchError
 from sonarset.models.echopt.config import ConfigError
 from sonarset.models.flow import arc_motion, sampling_grid, source_points
 from sonarset.models.predictor import checked_horizons
-from sonarset.models.zoo.common import ConvAct, Up, ZooConfig, ZooModel, conv, zero_init
+from sonarset.models.zoo.common import ConvAct, Up, ZooConfig, ZooModel, cat_channels, conv, zero_init
 
 #: The protocol's longest horizon (AR-10): a forecast of up to this many steps is one pass.
 MAX_HORIZON = 10
@@ -53,7 +53,12 @@ OUTSIDE = ("border", "zeros")
 class EchoWarpConfig(ZooConfig):
     inputs: str = "aligned"  # by design: the older frames registered to the predicted pose
     channels: tuple[int, ...] = (32, 64, 128)  # the U-Net's widths at 1/2, 1/4, 1/8 resolution
-    full_channels: int = 16  # the one convolution at full resolution
+    full_channels: int = 16  # the one convolution at full resolution (with patch > 1: at 1/patch)
+    # the side of the square of pixels the network reads and writes as one position: 1, a U-Net from
+    # 1/2 resolution under a full-resolution layer; p > 1, each p x p patch folded into channels
+    # (pixel_unshuffle) so that every convolution runs at 1/p resolution or coarser, its outputs
+    # unfolded (pixel_shuffle) for the full-resolution warp
+    patch: int = 1
     max_shift: int = 6  # pixels: the largest correction of where a pixel is sampled from (0: none)
     older_frames: int = 1  # 1: gates add the registered older frames; 0: the last frame alone
     # what the warp reads where a pixel's source lies outside the view: "border", the edge's value
@@ -83,6 +88,9 @@ PRESETS: dict[str, dict] = {
     # small with its U-Net 1.5x wider (0.96 M parameters, 2.1x the FLOPs): grown from a trained
     # small by ``init`` (models/echowarp/widen.py), to see whether small's plateau is its capacity
     "wide": dict(channels=(48, 96, 192)),
+    # every convolution at 1/4 resolution or coarser (4 x 4 patches): the elementwise passes at full
+    # and half resolution, most of small's training step on a CPU with matrix units, are gone
+    "patch4": dict(patch=4, channels=(64, 128, 256), full_channels=64),
     # the ablation (recipes/echowarp/ablation/): small without one part each
     "small-no-correction": dict(max_shift=0),  # the network's output is an intensity residual on the warp
     "small-last-frame": dict(older_frames=0),  # the older registered frames are inputs only
@@ -106,14 +114,17 @@ class EchoWarp(ZooModel):
 
     def __init__(self, cfg: EchoWarpConfig):
         super().__init__(cfg)
-        ch, fc, cin = cfg.channels, cfg.full_channels, n_features(cfg.n_in)
-        # down: the first level halves the grid, each further one halves it again
-        self.down = nn.ModuleList(nn.Sequential(ConvAct(a, b, 3, stride=2), ConvAct(b, b))
-                                  for a, b in zip((cin, *ch), ch))
+        ch, fc, p = cfg.channels, cfg.full_channels, cfg.patch
+        cin = n_features(cfg.n_in) * p * p  # a patch's inputs
+        # down: the first level halves the grid (with patches: keeps the patches' grid), each
+        # further one halves it again
+        self.down = nn.ModuleList(nn.Sequential(ConvAct(a, b, 3, stride=2 if i or p == 1 else 1), ConvAct(b, b))
+                                  for i, (a, b) in enumerate(zip((cin, *ch), ch)))
         self.up = nn.ModuleList(Up(deep, skip, skip) for deep, skip in zip(ch[:0:-1], ch[-2::-1]))
         self.full = nn.Sequential(ConvAct(ch[0] + cin, fc, 1), ConvAct(fc, fc))
-        # the warp's correction (range, azimuth pixels), a gate per older frame, the source term
-        self.head = conv(fc, 2 + (cfg.n_in - 1) + 1, 1)
+        # the warp's correction (range, azimuth pixels), a gate per older frame, the source term;
+        # with patches, those of each of a patch's pixels
+        self.head = conv(fc, (2 + (cfg.n_in - 1) + 1) * p * p, 1)
         zero_init(self.head)
 
     @property
@@ -172,15 +183,16 @@ class EchoWarp(ZooModel):
         slots = frames[:, None].expand(B, steps, n_in, R, A).reshape(B * steps, n_in, R, A)
         ir, ia = ir.reshape(B * steps, n_in, R, A), ia.reshape(B * steps, n_in, R, A)
         registered = self.sample(slots, ir, ia)  # every frame at the target's pose
-        x = self.features(registered, ir[:, -1], ia[:, -1], motion.reshape(B * steps, 3), horizons)
+        x = self.folded(self.features(registered, ir[:, -1], ia[:, -1], motion.reshape(B * steps, 3), horizons))
         skips, y = [], x
         for level in self.down:
             y = level(y)
             skips.append(y)
         for up, skip in zip(self.up, reversed(skips[:-1])):
             y = up(y, skip)
+        out = self.unfolded(self.head(self.full_resolution(y, x)), R, A)
         # one plane per output, each read whole below (a channels-last slice is strided: tanh was 3x slower)
-        out = self.head(self.full_resolution(y, x)).to(torch.float32, memory_format=torch.contiguous_format)
+        out = out.to(torch.float32, memory_format=torch.contiguous_format)
         composite = registered[:, -1].float()
         parts = {"source": out[:, n_in + 1], "composite": composite}
         if cfg.max_shift:  # the last frame through the corrected warp
@@ -193,14 +205,41 @@ class EchoWarp(ZooModel):
             parts["older"] = (out[:, 2:n_in + 1] * registered[:, :-1].float()).sum(1)
         return {name: v.reshape(B, steps, *v.shape[1:]) for name, v in parts.items()}
 
+    def folded(self, x: torch.Tensor) -> torch.Tensor:
+        """The inputs ``x`` (N, C, R, A) as patches, channels-last (N, patch**2 * C, ceil(R / patch),
+        ceil(A / patch)), the grid padded with zeros to whole patches (itself with ``patch`` 1). A
+        patch's channels are its pixels' inputs, row by row: each pixel's C inputs, contiguous in a
+        channels-last ``x``, are copied whole (``pixel_unshuffle``'s order, the channel outermost,
+        copies one value at a time: 4x slower)."""
+        p = self.cfg.patch
+        if p == 1:
+            return x
+        x = F.pad(x, (0, -x.shape[-1] % p, 0, -x.shape[-2] % p)).permute(0, 2, 3, 1)  # (N, R, A, C)
+        N, R, A, C = x.shape
+        x = x.reshape(N, R // p, p, A // p, p, C).transpose(2, 3).reshape(N, R // p, A // p, p * p * C)
+        return x.permute(0, 3, 1, 2)
+
+    def unfolded(self, out: torch.Tensor, R: int, A: int) -> torch.Tensor:
+        """The head's outputs per patch (N, patch**2 * C, ...) on the R x A grid (N, C, R, A): ``folded``'s
+        inverse."""
+        p = self.cfg.patch
+        if p == 1:
+            return out
+        N, _, r, a = out.shape
+        out = out.permute(0, 2, 3, 1).reshape(N, r, a, p, p, -1).transpose(2, 3).reshape(N, r * p, a * p, -1)
+        return out[:, :R, :A].permute(0, 3, 1, 2)
+
     def full_resolution(self, y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """``self.full`` on ``y`` resized to the grid of the inputs ``x``, concatenated with them.
+        With patches both are on the patches' grid: ``self.full`` on the two concatenated.
 
         Its first layer is a 1x1 convolution, which commutes with a bilinear resize (both linear, the
         resize's weights summing to 1), so the part of it that reads ``y`` runs at ``y``'s resolution
         and its ``full_channels`` outputs are resized instead of ``y``'s wider channels, and no
         full-resolution concatenation is made: the same function and parameters, in less time (the
         resize's backward was the step's costliest non-matrix kernel: BENCHMARKS, "EchoWarp")."""
+        if self.cfg.patch > 1:
+            return self.full(cat_channels([y, x]))
         first, act = self.full[0]
         c = y.shape[1]
         z = F.interpolate(F.conv2d(y, first.weight[:, :c]), size=x.shape[-2:], mode="bilinear", align_corners=False)

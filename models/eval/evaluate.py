@@ -17,6 +17,7 @@ import numpy as np
 from sonarset.errors import FormatError, SonarSetError
 from sonarset.format.arrays import FRAME_INTERVAL_TOLERANCE
 from sonarset.format.attrs import RobotRig
+from sonarset.scoring.ceiling import CEILINGS
 from sonarset.scoring.echoes import EchoMatching
 from sonarset.scoring.stats import Comparison, WindowPlaces, compare, holm
 from sonarset.store.store import SonarStore
@@ -139,6 +140,9 @@ def evaluate(
                         echo_matching=echo_matching, worlds=list(worlds) if worlds else None,
                         direct=[m for m, p in preds.items() if p.forecasts_directly])
     result.notes += undefined_notes(result)
+    n_images = len(index) * len(horizons)
+    result.notes += [f"{m}: {k} of its {n_images} forecast images hold values outside [0, 1], the "
+                     "energyscapes' range; they are scored as they are" for m, k in scores.outside_unit.items() if k]
     result.comparisons = _compare_all(result, seed)
     return result
 
@@ -153,13 +157,17 @@ def _predictors(store: SonarStore, model_specs: list[str], rig: RobotRig, device
 
     preds: dict[str, CheckedPredictor] = {}
     for name, p in (given or {}).items():
+        if name in CEILINGS:
+            raise SonarSetError(f"predictor {name!r}: that name is the {name} row's (not a predictor); "
+                                "pass the model under another name")
         preds[name] = as_predictor(p, name)
         preds[name].name = name
     for spec in dict.fromkeys(model_specs):
         p = make_predictor(spec, store.grid, rig, device=device, precision=precision)
-        if p.name in preds:  # several checkpoints: each under its own label (echopt RUN/model), else its spec
-            p.name = p.label if p.label not in preds else spec
-            if p.name in preds:
+        taken = preds.keys() | set(CEILINGS)  # the ceilings' rows are named so too
+        if p.name in taken:  # several checkpoints: each under its own label (echopt RUN/model), else its spec
+            p.name = p.label if p.label not in taken else spec
+            if p.name in taken:
                 raise SonarSetError(f"model {spec!r}: another model is named {p.name!r}; evaluate them apart",
                                     parameter="model_specs")
         preds[p.name] = p
@@ -181,7 +189,8 @@ def window_frames(preds: dict[str, CheckedPredictor]) -> int:
         return N_IN
     if len(counts) != 1:
         raise SonarSetError("the models take different numbers of input frames ("
-                            + ", ".join(f"{name} {p.n_in}" for name, p in preds.items()) + "); evaluate them apart")
+                            + ", ".join(f"{name} {p.n_in}" for name, p in preds.items() if not p.any_context)
+                            + "); evaluate them apart")
     return counts.pop()
 
 

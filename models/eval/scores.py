@@ -6,7 +6,7 @@ and scored at every horizon (:class:`Scores`), and the two ceilings re-rendered 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -33,6 +33,7 @@ class Scores:
     target_energy: np.ndarray
     grid: object  # SensorGrid: echo positions in metres and degrees
     matching: EchoMatching
+    outside_unit: dict[str, int] = field(default_factory=dict)  # method -> forecast images with a pixel outside [0, 1]
 
     @classmethod
     def of(cls, preds: dict[str, CheckedPredictor], n: int, horizons: tuple[int, ...], grid,
@@ -76,6 +77,7 @@ class Scores:
                     self.step_peak[name][sl], self.step_energy[name][sl] = peak_and_energy(rolled)
                     if lo == 0:
                         examples["methods"][name] = rolled[0].copy()  # not a view of the whole batch's rollout
+                self.outside_unit[name] = self.outside_unit.get(name, 0) + int(((pred < 0) | (pred > 1)).any((-2, -1)).sum())
                 for i, (h, metrics) in enumerate(self.per_window[name].items()):
                     for k, v in score_images(pred[:, i], batch.targets[:, h - 1], self.grid, self.matching,
                                              target_echoes[h]).items():
