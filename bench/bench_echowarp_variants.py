@@ -1,6 +1,6 @@
 """Speed only: EchoWarp variants' training rate and share of the matmul roof, untrained.
 
-    python bench/bench_echowarp_variants.py [--variants small,relu,full8,wide,wide-relu] [--steps 6]
+    python bench/bench_echowarp_variants.py [--variants small,relu,full8,wide,wide-relu,patch4] [--steps 6]
                                            [--loss 'cc=1,w1=100,energy=2,nrmsd_capped=2,nrmsd=2,echo=6']
 
 Each variant is built as ``sonarset train`` builds EchoWarp (ten horizons, batch 16, channels-last)
@@ -33,6 +33,8 @@ VARIANTS = {
     "full8": ("small, 8 full-resolution channels for 16", {"full_channels": 8}, "gelu"),
     "wide": ("wide: U-Net 48-96-192 for 32-64-128", {"channels": (48, 96, 192)}, "gelu"),
     "wide-relu": ("wide with ReLU", {"channels": (48, 96, 192)}, "relu"),
+    "patch4": ("patch4: 4 x 4 patches, U-Net 64-128-256 from 1/4 resolution", {"patch": 4, "channels": (64, 128, 256),
+                                                                             "full_channels": 64}, "gelu"),
 }
 
 

@@ -2,10 +2,11 @@
 matmul roof of the same process, on CPU and on a GPU when there is one.
 
     python bench/bench_train.py [--presets small,paper] [--steps 5] [--devices cpu,cuda]
-                                [--roof-kinds echowarp:10,echopt:3] [--roof-batch 16] [--roof-compile]
+                                [--roof-kinds echowarp:10,echopt:3] [--roof-batch 16] [--roof-preset small]
+                                [--roof-compile]
                                 [--roof-loss mse]
 
-The roof section (CPU): each ``KIND:K`` of ``--roof-kinds`` built as its small preset and trained as
+The roof section (CPU): each ``KIND:K`` of ``--roof-kinds`` built as its small preset (``--roof-preset``) and trained as
 its recipe trains it (a K-step rollout per window: EchoWarp forecasts its K horizons in one pass),
 its forward and backward GFLOP per window (torch's flop counter), training samples/s in fp32 and in
 bf16 autocast, and the achieved TFLOP/s as a share of a large torch.matmul's in the same precision,
@@ -84,6 +85,7 @@ def main() -> None:
     ap.add_argument("--cuda-batches", default="64,256")
     ap.add_argument("--roof-kinds", default="echowarp:10,echopt:3", help="KIND:K,... ('' skips the roof section)")
     ap.add_argument("--roof-batch", type=int, default=16)
+    ap.add_argument("--roof-preset", default="small", help="the preset each roof kind is built as")
     ap.add_argument("--matmul", type=int, default=2048, help="size of the roof's square matmul")
     ap.add_argument("--roof-compile", action="store_true", help="also time bf16 with torch.compile")
     ap.add_argument("--roof-loss", default="mse", help="the roof section's training loss, a recipe's loss spec")
@@ -134,7 +136,7 @@ def roof_section(args) -> None:
           f"{'bf16' if resolve_precision('auto', 'cpu') == 'bf16' else 'fp32'}; loss {args.roof_loss}")
     for item in args.roof_kinds.split(","):
         kind, _, k = item.partition(":")
-        model = network(kind, "small", (200, 90))
+        model = network(kind, args.roof_preset, (200, 90))
         gflop = gflop_per_sample(model, (200, 90), int(k or 1))
         runs = [(precision, model, precision) for precision in ("fp32", "bf16")]
         if args.roof_compile:
@@ -146,7 +148,7 @@ def roof_section(args) -> None:
             rate = samples_per_s(net, (200, 90), int(k or 1), args.roof_batch, args.steps, precision, terms)
             cells.append(f"{label} {rate:6.1f} samples/s = {rate * gflop / 1e3:.3f} TFLOP/s "
                          f"({100 * rate * gflop / 1e3 / roof[precision]:.1f}% of roof)")
-        print(f"{kind:9s} small, {k}-step windows, batch {args.roof_batch}: {gflop:.2f} GFLOP/window; "
+        print(f"{kind:9s} {args.roof_preset}, {k}-step windows, batch {args.roof_batch}: {gflop:.2f} GFLOP/window; "
               + ";  ".join(cells), flush=True)
 
 

@@ -85,6 +85,7 @@ def model_against_flow(res: EvalResult) -> list[str]:
     if gap.get(longest, {}).get("cc") is not None:
         s = res.summary()
         f1 = {m: s[m][longest]["echo_f1"]["mean"] for m in ("flow", model)}
-        lines.append(f"{horizon_name(int(longest))}: {name} closes {gap[longest]['cc']:.0%} of the CC gap between flow "
+        share = round(gap[longest]["cc"], 2) + 0.0  # + 0.0: one that rounds to zero is 0 %, not -0 %
+        lines.append(f"{horizon_name(int(longest))}: {name} closes {share:.0%} of the CC gap between flow "
                      f"and the observable ceiling; echo F1 {f1[model]:.3f} vs flow {f1['flow']:.3f}")
     return lines

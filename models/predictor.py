@@ -260,7 +260,7 @@ def as_predictor(obj, spec: str | None = None) -> CheckedPredictor:
     if precision is not None and (not isinstance(precision, str) or not precision):
         problems.append(f"its precision is {precision!r}, not a str (fp32, bf16) or None")
     label = getattr(obj, "label", None)
-    if label is not None and (not isinstance(label, str) or not label):
+    if label is not None and label is not name and (not isinstance(label, str) or not label):  # a default label is the name
         problems.append(f"its label is {label!r}, not a non-empty str")
     any_context = getattr(obj, "any_context", False)
     if not isinstance(any_context, (bool, np.bool_)):

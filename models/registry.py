@@ -274,6 +274,8 @@ def _call_factory(factory: Callable, spec: str, where: str, arg: str | None, gri
         raise
     except Exception as exc:  # the factory's own code: any error
         raise SonarSetError(f"predictor {spec!r}: its factory {where} raised {_one_line(exc)}") from exc
+    except SystemExit as exc:  # a script's habit: not the command's exit
+        raise SonarSetError(f"predictor {spec!r}: its factory {where} called sys.exit({exc.code!r})") from None
     if obj is None:
         raise SonarSetError(f"predictor {spec!r}: its factory {where} returned None, not a predictor")
     return obj

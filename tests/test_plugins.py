@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ from sonarset.format.attrs import RobotRig
 from sonarset.models import BasePredictor, Predictor
 from sonarset.models.baselines import AcousticFlow, rollout
 from sonarset.models.eval.evaluate import evaluate
+from sonarset.models.eval.report import results_table
 from sonarset.models.predictor import as_predictor
 from sonarset.models.registry import available_predictors, make_predictor, model_option_spec
 from sonarset.store.store import create_store
@@ -145,6 +147,11 @@ def test_outputs_that_are_no_real_numbers_are_refused_and_out_of_range_ones_note
                    horizons=(1, 2), samples=5)
     assert "big: 10 of its 10 forecast images hold values outside [0, 1], the energyscapes' range; they are scored " \
            "as they are" in res.notes and not any(n.startswith("last:") for n in res.notes)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an infinite forecast is undefined in the scores, not numpy's warning
+        res = evaluate(store, [], predictors={"inf|nite": Outputs(lambda x: np.full_like(x, np.inf))}, horizons=(1,), samples=5)
+    assert np.isnan(res.per_window["inf|nite"][1]["cc"]).all()
+    assert "| inf\\|nite |" in results_table(res, with_paper=False)
 
 
 def test_a_card_is_anyones_dict(store):

@@ -42,7 +42,7 @@ def training_notices(label: str, card: dict, processing: Processing, rig: RobotR
     except ValueError as exc:  # pydantic's ValidationError
         return [f"note: {label}'s model card has an invalid processing or rig ({str(exc).splitlines()[0]})"]
     notes = []
-    if processing.profile == "unknown":
+    if processing.profile == "unknown" and not trained.same_images(processing):  # unknown matches unknown
         notes.append(f"note: {label} was trained on {describe_images(trained)}; this store's images are of "
                      "unknown processing: scores may not be comparable to its training")
     elif not trained.same_images(processing):

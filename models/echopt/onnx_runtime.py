@@ -116,10 +116,11 @@ class OnnxEchoPTPredictor(BasePredictor):
             self.n_in = int(cfg["n_in"])
             self.shape = (int(cfg["n_range"]), int(cfg["n_azimuth"]))
         except (KeyError, TypeError, ValueError) as exc:
-            raise SonarSetError(f"{self.path}: its EchoPT card's config lacks the grid or n_in ({exc})") from None
+            raise SonarSetError(f"{self.path}: its card's config lacks the grid or n_in ({exc})") from None
         trained = SensorGrid.model_validate(self.card["grid"]) if "grid" in self.card else None
         if grid is not None and trained is not None and not trained.matches(grid):
-            raise GridMismatchError(f"{self.path}: EchoPT was trained on grid {trained.describe()}, "
+            title = {"echopt": "EchoPT", "echowarp": "EchoWarp"}.get(str(self.card.get("model", "echopt")), "the model")
+            raise GridMismatchError(f"{self.path}: {title} was trained on grid {trained.describe()}, "
                                     f"the data has {grid.describe()}; retrain on this grid")
         if grid is not None and grid.shape != self.shape:
             raise GridMismatchError(f"{self.path}: the model takes {self.shape[0]}x{self.shape[1]} images, "

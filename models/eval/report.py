@@ -50,6 +50,11 @@ OBSERVABLE_MEANING = ("observable ceiling: each target frame re-rendered at its 
 CEILING_LABELS = {CEILING: "noise ceiling", OBSERVABLE: "observable ceiling"}
 
 
+
+def md_cell(name: str) -> str:
+    """A method's name as a Markdown table cell: a '|' in it would end the cell."""
+    return name.replace("|", "\\|")
+
 def write_report(res: EvalResult, out: str | os.PathLike, *, figures: bool = True) -> Path:
     """metrics.json, per_window.csv, the figures (unless ``figures`` is False) and report.md in ``out``."""
     def write(folder: Path) -> None:
@@ -133,7 +138,7 @@ def fade_table(res: EvalResult, fade: dict | None = None) -> str:
                 kind = "no window with echo energy"
             verdict = f"{kind} from step {h}" + (f" (steps checked: {', '.join(map(str, f['steps']))})"
                                                   if m in res.direct else "")
-        lines.append(f"| {m} | " + " | ".join([*rng(f["peak_ratio"]), *rng(f["energy_ratio"])]) + f" | {verdict} |")
+        lines.append(f"| {md_cell(m)} | " + " | ".join([*rng(f["peak_ratio"]), *rng(f["energy_ratio"])]) + f" | {verdict} |")
     return "\n".join(lines)
 
 
@@ -145,7 +150,7 @@ def results_table(res: EvalResult, with_paper: bool = True) -> str:
     for m in res.methods:
         cells = [_cell(s[m][str(h)][k]) for k in IMAGE_METRICS for h in res.horizons]
         label = f"*{m} ({CEILING_LABELS[m]}, not a predictor)*" if m in CEILINGS else m
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        lines.append(f"| {md_cell(label)} | " + " | ".join(cells) + " |")
         if with_paper and m in PAPER:
             p = PAPER[m]
             cells = [format_value(p["cc"][h], ".2f") if h in p["cc"] else "-" for h in res.horizons]
@@ -165,7 +170,7 @@ def echo_table(res: EvalResult) -> str:
             e = s[m][str(h)]
             f1 = e["echo_f1"]
             cells = [f"{_mean_only(f1)} ({f1.get('n', 0)})"] + [_mean_only(e[k]) for k in ECHO_METRICS[1:]]
-            lines.append(f"| {m} | {horizon_name(h)} | " + " | ".join(cells) + " |")
+            lines.append(f"| {md_cell(m)} | {horizon_name(h)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -237,7 +242,7 @@ def gap_section(res: EvalResult) -> list[str]:
     for m, per in gap.items():
         for h in res.horizons:
             cells = ["undefined" if per[str(h)][k] is None else f"{per[str(h)][k]:.2f}" for k in keys]
-            lines.append(f"| {m} | {horizon_name(h)} | " + " | ".join(cells) + " |")
+            lines.append(f"| {md_cell(m)} | {horizon_name(h)} | " + " | ".join(cells) + " |")
     return lines
 
 
@@ -264,7 +269,8 @@ def statistics_section(res: EvalResult) -> list[str]:
             a_better = (c.mean_diff < 0) if LOWER_IS_BETTER[c.metric] else (c.mean_diff > 0)
             better = c.a if a_better else c.b
         why = "n/a (one window)" if c.n < 2 else "n/a (undefined)"
-        lines.append(f"| {horizon_name(c.horizon)} | {c.metric} | {c.a} | {c.b} | {format_value(c.mean_diff, '+.4f', why)} | "
+        lines.append(f"| {horizon_name(c.horizon)} | {c.metric} | "
+                     f"{md_cell(c.a)} | {md_cell(c.b)} | {format_value(c.mean_diff, '+.4f', why)} | "
                      f"{format_interval(c.ci_low, c.ci_high, '+.4f', why)} | "
                      f"{format_p(c.t_two_sample_p)} | {format_p(c.t_paired_p)} | "
                      f"{format_p(c.wilcoxon_p)} | {format_p(c.p_holm)} | {format_p(c.t_hac_p)} | "

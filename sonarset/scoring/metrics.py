@@ -30,13 +30,14 @@ def cc_and_nrmsd(pred: np.ndarray, meas: np.ndarray) -> tuple[np.ndarray, np.nda
     with both): both follow from the means and the centred second moments, in float64."""
     p, m = _flat(pred), _flat(meas)
     n = p.shape[-1]
-    mean_p, mean_m = p.mean(-1), m.mean(-1)
-    p -= mean_p[..., None]  # in place: _flat made copies
-    m -= mean_m[..., None]
-    pp, mm, pm = (np.einsum("...i,...i->...", a, b) for a, b in ((p, p), (m, m), (p, m)))
-    # ||p - m||^2 = |p_c - m_c|^2 + n (mean_p - mean_m)^2: exact algebra, and float64 keeps the
-    # cancellation of near-identical images (NRMSD ~0.03) at ~1e-13
-    diff2 = np.maximum(pp + mm - 2 * pm + n * (mean_p - mean_m) ** 2, 0.0)
+    with np.errstate(invalid="ignore", over="ignore"):  # a forecast of inf or NaN pixels is undefined, not a warning
+        mean_p, mean_m = p.mean(-1), m.mean(-1)
+        p -= mean_p[..., None]  # in place: _flat made copies
+        m -= mean_m[..., None]
+        pp, mm, pm = (np.einsum("...i,...i->...", a, b) for a, b in ((p, p), (m, m), (p, m)))
+        # ||p - m||^2 = |p_c - m_c|^2 + n (mean_p - mean_m)^2: exact algebra, and float64 keeps the
+        # cancellation of near-identical images (NRMSD ~0.03) at ~1e-13
+        diff2 = np.maximum(pp + mm - 2 * pm + n * (mean_p - mean_m) ** 2, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         return pm / np.sqrt(pp * mm), np.sqrt(diff2 / (mm + n * mean_m ** 2))
 
