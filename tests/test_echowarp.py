@@ -398,3 +398,22 @@ def test_its_sampling_grid_is_the_stacked_grid_values_and_gradients(monkeypatch)
         (pred * torch.linspace(0, 1, pred.numel()).view_as(pred)).sum().backward()
         runs.append([pred.detach(), *(p.grad.clone() for p in model.parameters())])
     assert all(torch.equal(a, b) for a, b in zip(*runs))
+
+
+def test_a_narrow_grid_trains_in_bf16_as_in_fp32():
+    """Its U-Net levels 1 or 2 pixels wide: strided convolutions of such inputs are fp32 under bf16
+    autocast (oneDNN's bf16 kernel returned up to 1e34 there on an AMX CPU, in some passes)."""
+    torch.manual_seed(0)
+    narrow = GRID.model_copy(update={"n_range": 64, "n_azimuth": 3})
+    model = build("echowarp", "tiny", 64, 3, **grid_and_rig(narrow, RIG)).to(memory_format=torch.channels_last)
+    for p in model.parameters():
+        torch.nn.init.normal_(p, std=0.1)
+    g = torch.Generator().manual_seed(1)
+    frames = torch.rand((4, 3, 64, 3), generator=g).contiguous(memory_format=torch.channels_last)
+    commands = (torch.rand((4, 7, 2), generator=g) * 2 - 1) * torch.tensor([0.3, 1.0])
+    with torch.no_grad():
+        exact = model.forecast(frames, commands, 4)
+    for _ in range(10):  # the kernel read memory it had not written: some passes were right
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            half = model.forecast(frames, commands, 4)
+        assert torch.isfinite(half).all() and (half.float() - exact).abs().max() < 0.05

@@ -174,7 +174,20 @@ def command_planes(values: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
 
 def conv(cin: int, cout: int, kernel: int = 3, stride: int = 1) -> nn.Conv2d:
     """A ``kernel`` x ``kernel`` convolution keeping the size (stride 1) or halving it, rounding up."""
-    return nn.Conv2d(cin, cout, kernel, stride=stride, padding=kernel // 2)
+    return (nn.Conv2d if stride == 1 else StridedConv)(cin, cout, kernel, stride=stride, padding=kernel // 2)
+
+
+class StridedConv(nn.Conv2d):
+    """A strided convolution that, on a CPU under bf16 autocast, convolves an input at most 2 pixels
+    wide in fp32: oneDNN's bf16 kernel (torch 2.13, AMX and AVX-512 bf16) returns garbage or NaN
+    for a stride-2 convolution of such an input 16 or more pixels tall, as a narrow grid's U-Net
+    levels are (a 64 x 3 grid trained to NaN). The same parameters and, elsewhere, the same code."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.shape[-1] <= 2 and x.device.type == "cpu" and torch.is_autocast_enabled("cpu"):
+            with torch.autocast("cpu", enabled=False):
+                return super().forward(x.float())
+        return super().forward(x)
 
 
 class ConvAct(nn.Sequential):
