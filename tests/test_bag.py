@@ -215,7 +215,7 @@ MALFORMED = {
     "pixel type changes mid-run": (_pixel_type_changes, [], "message 5: pixels are uint16, the first message's uint8"),
     "ranges below zero": (_ranges_below_zero, [], "ranges -0.4375..1.9375 m (20 bins) put the first bin's near edge"),
     "commands a minute late": (None, ["--cmd-offset", "60"], "no command reaches any frame interval"),
-    "command timeout of zero": (None, ["--cmd-timeout", "0"], "command timeout must be > 0"),
+    "command timeout of zero": (None, ["--cmd-timeout", "0"], "command timeout must be a finite time > 0"),
 }
 
 

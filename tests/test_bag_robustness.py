@@ -3,6 +3,7 @@ or refuses in one line (sonarset.ingest.bag)."""
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -193,22 +194,36 @@ def test_a_long_drive_is_held_in_its_pixel_type_and_written_a_chunk_at_a_time(tm
 
 
 def test_implausible_commands_are_refused_in_one_line_as_import_does_unless_allowed(tmp_path):
-    """Commands in cm/s (a Twist's 0.3 m/s logged as 30): ``import``'s plausibility rules, its refusal
-    and its --allow-implausible."""
+    """Commands in cm/s (a Twist's 0.3 m/s logged as 30) are beyond any ground robot: refused in one
+    line, flag or not (no reader takes such a run). Commands beyond the rig's limits but not any
+    robot's are implausible: ``import``'s refusal and its --allow-implausible."""
+    import json
+
     drive = Drive(n_frames=10)
     drive.v = drive.v * 100
     bag = drive.write(tmp_path / "d.mcap")
-    res = CliRunner().invoke(app, ["import-bag", str(bag), str(tmp_path / "s.zarr")])
+    for flags in ([], ["--allow-implausible"]):
+        res = CliRunner().invoke(app, ["import-bag", str(bag), str(tmp_path / "s.zarr"), *flags])
+        lines = [ln for ln in res.output.splitlines() if ln.strip()]
+        assert res.exit_code == 1 and len(lines) == 1 and "Traceback" not in res.output, res.output
+        assert lines[0].startswith(f"error: {bag}: topic '/cmd_vel': linear speed up to"), lines[0]
+        assert "beyond any ground robot" in lines[0] and "cm/s" in lines[0] and "allow" not in lines[0], lines[0]
+        assert not (tmp_path / "s.zarr").exists()
+    drive = Drive(n_frames=10)
+    drive.v = drive.v * 3  # up to 0.9 m/s: over the rig's 0.3
+    bag = drive.write(tmp_path / "r.mcap")
+    meta = tmp_path / "r.json"
+    meta.write_text(json.dumps({"rig": {"v_max_m_s": 0.3}}))
+    res = CliRunner().invoke(app, ["import-bag", str(bag), str(tmp_path / "s.zarr"), "--meta", str(meta)])
     lines = [ln for ln in res.output.splitlines() if ln.strip()]
-    assert res.exit_code == 1 and len(lines) == 1 and "Traceback" not in res.output, res.output
-    assert lines[0].startswith(f"error: {bag}: topic '/cmd_vel': linear speed up to"), lines[0]
-    assert "cm/s" in lines[0] and "(--allow-implausible imports it as is)" in lines[0], lines[0]
-    assert not (tmp_path / "s.zarr").exists()
-    res = CliRunner().invoke(app, ["import-bag", str(bag), str(tmp_path / "s.zarr"), "--allow-implausible"])
+    assert res.exit_code == 1 and len(lines) == 1 and "the rig's limit 0.3 m/s" in lines[0], res.output
+    assert "(--allow-implausible imports it as is)" in lines[0], lines[0]
+    res = CliRunner().invoke(app, ["import-bag", str(bag), str(tmp_path / "s.zarr"), "--meta", str(meta),
+                                   "--allow-implausible"])
     assert res.exit_code == 0, res.output
     [warning] = [ln for ln in res.output.splitlines() if ln.startswith("warning:")]
     assert "linear speed up to" in warning and str(bag) in warning
-    assert open_store(tmp_path / "s.zarr").runs() == ["d"]
+    assert open_store(tmp_path / "s.zarr").runs() == ["r"]
 
 
 def test_a_grid_in_millimetres_is_implausible_too(tmp_path):
@@ -234,3 +249,75 @@ def test_a_drive_of_only_short_stretches_between_long_gaps_is_refused_in_one_lin
     with pytest.raises(InputValidationError, match="no run of 4 frames at a steady rate") as exc:
         import_bag(drive.write(tmp_path / "d.mcap"), tmp_path / "s.zarr")
     assert len(exc.value.problems) == 1 and not (tmp_path / "s.zarr").exists()
+
+
+def test_a_topic_whose_pixels_or_beams_change_mid_drive_is_refused_and_a_byte_order_flip_read(tmp_path):
+    """One run has one pixel type and one sensor grid: a later message of another pixel type (its
+    values would be scaled by the first's full scale) or with its beams in another order (its
+    pixels would land in other columns) is refused; each message's byte order is its own."""
+    import math
+
+    def wider_pixels(k, msg):
+        if k >= 4:
+            msg["image"] = {**msg["image"], "dtype": 2, "data": np.frombuffer(msg["image"]["data"], np.uint8)
+                            .astype("<u2").tobytes()}
+        return msg
+
+    def beams_reversed(k, msg):
+        if k >= 4:
+            msg["beam_directions"] = msg["beam_directions"][::-1]
+        return msg
+
+    drive = Drive(n_frames=10)
+    cases = {"wider": (wider_pixels, "topic '/sonar/image', message 4: pixels are uint16, the first message's uint8"),
+             "beams": (beams_reversed, "message 4: the ranges or beams (their number, directions or order) differ")}
+    for name, (edit, says) in cases.items():
+        with pytest.raises(InputValidationError, match=re.escape(says)):
+            import_bag(drive.write(tmp_path / f"{name}.mcap", edit=edit), tmp_path / f"{name}.zarr")
+        assert not (tmp_path / f"{name}.zarr").exists()
+
+    def big_endian(k, msg):
+        if k >= 4:
+            data = np.frombuffer(msg["image"]["data"], "<u2").astype(">u2").tobytes()
+            msg["image"] = {**msg["image"], "is_bigendian": True, "data": data}
+        return msg
+
+    import_bag(drive.write(tmp_path / "flip.mcap", image_dtype=2, edit=big_endian), tmp_path / "flip.zarr")
+    import_bag(drive.write(tmp_path / "same.mcap", image_dtype=2), tmp_path / "same.zarr")
+    flipped = open_store(tmp_path / "flip.zarr").run("flip").read("images")
+    assert np.array_equal(flipped, open_store(tmp_path / "same.zarr").run("same").read("images"))
+    assert flipped.max() > 0.5
+
+
+def test_the_first_stamp_is_the_first_imported_frames_and_a_lone_frame_is_no_run(tmp_path):
+    drive = Drive(n_frames=12)
+    late = drive.command_ns > drive.frame_ns[2]  # frames 0..2 before the first command: dropped
+    drive.command_ns, drive.v, drive.w = drive.command_ns[late], drive.v[late], drive.w[late]
+    import_bag(drive.write(tmp_path / "late.mcap"), tmp_path / "late.zarr")
+    run = open_store(tmp_path / "late.zarr").run("late")
+    assert run.attrs.source["first_stamp_ns"] == int(drive.frame_ns[3]) and run.read("time")[0] == 0.0
+    lone = Drive(n_frames=12)
+    keep = lone.command_ns > lone.frame_ns[10]  # one command, reaching the last frame alone
+    lone.command_ns, lone.v, lone.w = lone.command_ns[keep][:1], lone.v[keep][:1], lone.w[keep][:1]
+    with pytest.raises(InputValidationError, match=r"no run of 4 frames at a steady rate \(1 frame\(s\) left"):
+        import_bag(lone.write(tmp_path / "lone.mcap"), tmp_path / "lone.zarr")
+
+
+def test_sidecar_fields_a_bag_cannot_apply_and_commands_beyond_any_robot_are_refused(tmp_path):
+    import json
+
+    from sonarset import SonarSetError
+
+    bag = Drive(n_frames=10).write(tmp_path / "d.mcap")
+    meta = tmp_path / "d.json"
+    meta.write_text(json.dumps({"units": {"linear_velocity": "cm/s"}, "velocity_alignment": "next"}))
+    with pytest.raises(InputValidationError, match="metadata: units.linear_velocity 'cm/s', velocity_alignment "
+                                                   "'next' do not apply to a bag"):
+        import_bag(bag, tmp_path / "s.zarr", meta_path=meta)
+    with pytest.raises(SonarSetError, match="command timeout must be a finite time > 0 s, got inf"):
+        import_bag(bag, tmp_path / "s.zarr", command_timeout_s=float("inf"))
+    fast = Drive(n_frames=10)
+    fast.v = fast.v * 100 + 15  # beyond any ground robot: allowed, no reader would take the run
+    with pytest.raises(InputValidationError, match="linear speed up to .* exceeds 10 m/s, beyond any ground robot"):
+        import_bag(fast.write(tmp_path / "f.mcap"), tmp_path / "f.zarr", allow_implausible=True)
+    assert not (tmp_path / "s.zarr").exists() and not (tmp_path / "f.zarr").exists()

@@ -69,8 +69,8 @@ def split_at_gaps(times: np.ndarray, tolerance: float = 0.05,
     they must keep to instead (the frame interval an existing store declares). A drive can lose a
     hundred pings: the note counts them, it does not list them.
     """
-    if len(times) < 2:
-        return [Segment(0, len(times))], [], 0.2
+    if len(times) < MIN_SEGMENT:  # no run: not even a rate to measure
+        return [], [f"{len(times)} frame(s) left, a run needs at least {MIN_SEGMENT}"], 0.0
     dt = np.diff(times)
     nominal = float(np.median(dt))
     gap = dt > GAP_FACTOR * nominal

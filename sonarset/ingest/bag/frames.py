@@ -30,6 +30,7 @@ class FrameDecoder:
         self.notes: list[str] = []
         self._ranges = self._azimuths = None
         self._order = None  # beam permutation into increasing azimuth
+        self._message_azimuths = None  # the first message's beam azimuths, in its order
         self._resample = None  # (range, azimuth) resamplers, when the beams or bins are not uniform
 
     def decode(self, index: int, msg, problems: list[str]) -> np.ndarray | None:
@@ -52,22 +53,21 @@ class FrameDecoder:
         dtype = np.dtype(m.SONAR_DTYPES[data.dtype]).newbyteorder(">" if data.is_bigendian else "<")
         ranges = np.asarray(msg.ranges, np.float64)
         beams = int(data.beam_count)
-        if self._ranges is None:
-            directions = np.array([(d.x, d.y, d.z) for d in msg.beam_directions], np.float64).reshape(-1, 3)
-            if len(directions) != beams:
-                problems.append(f"{where}: {len(directions)} beam directions for beam_count {beams}")
-                return None
-            if not self._set_geometry(where, ranges, m.beam_azimuths(directions), problems):
-                return None
-            self.dtype = dtype.str
-        elif len(ranges) != len(self._ranges) or not np.allclose(ranges, self._ranges, rtol=1e-6, atol=1e-9) \
-                or beams != len(self._order):
-            problems.append(f"{where}: the ranges or beams differ from the first message's; "
-                            "a run has one sensor grid")
+        directions = np.array([(d.x, d.y, d.z) for d in msg.beam_directions], np.float64).reshape(-1, 3)
+        if len(directions) != beams:
+            problems.append(f"{where}: {len(directions)} beam directions for beam_count {beams}")
             return None
-        if dtype != np.dtype(self.dtype):
-            problems.append(f"{where}: pixels are {dtype.name}, the first message's {np.dtype(self.dtype).name}; "
-                            "a run has one pixel type")
+        azimuths = m.beam_azimuths(directions)  # in the message's beam order, which may change
+        if self._ranges is None:
+            if not self._set_geometry(where, ranges, azimuths, problems):
+                return None
+            self._message_azimuths = azimuths
+        elif len(ranges) != len(self._ranges) or not np.allclose(ranges, self._ranges, rtol=1e-6, atol=1e-9) \
+                or beams != len(self._order) or not np.allclose(azimuths, self._message_azimuths, rtol=0, atol=1e-6):
+            problems.append(f"{where}: the ranges or beams (their number, directions or order) differ from the "
+                            "first message's; a run has one sensor grid")
+            return None
+        if not self._same_pixels(where, dtype, problems):
             return None
         raw = np.asarray(data.data, np.uint8)
         need = len(ranges) * beams * dtype.itemsize
@@ -99,9 +99,23 @@ class FrameDecoder:
             problems.append(f"{where}: image data has {raw.size} bytes, {rows} rows of step {step} need "
                             f"{rows * step} (and a step of at least {cols * dtype.itemsize})")
             return None
-        self.dtype = dtype.str
+        if not self._same_pixels(where, dtype, problems):
+            return None
         image = raw.reshape(rows, step)[:, :cols * dtype.itemsize].copy().view(dtype)
         return image.astype(dtype.newbyteorder("="), copy=False)
+
+    def _same_pixels(self, where: str, dtype: np.dtype, problems: list[str]) -> bool:
+        """Whether ``dtype``'s values are the first message's kind (either byte order: each message
+        says its own); the first message's sets it. One run has one pixel type, which the store's
+        value rule (uint8 / 255, uint16 / 65535, ...) is made from."""
+        native = dtype.newbyteorder("=")
+        if self.dtype is None:
+            self.dtype = native.str
+        elif native != np.dtype(self.dtype):
+            problems.append(f"{where}: pixels are {native.name}, the first message's {np.dtype(self.dtype).name}; "
+                            "a run has one pixel type")
+            return False
+        return True
 
     def _set_geometry(self, where: str, ranges: np.ndarray, azimuths: np.ndarray, problems: list[str]) -> bool:
         if len(ranges) < 2 or len(azimuths) < 2:

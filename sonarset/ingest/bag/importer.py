@@ -28,6 +28,7 @@ from sonarset.errors import InputValidationError, SonarSetError
 from sonarset.format.arrays import FRAME_INTERVAL_TOLERANCE
 from sonarset.format.attrs import Processing, RobotRig, SensorGrid
 from sonarset.format.problems import pydantic_problems
+from sonarset.format.rules import command_limit_problems
 from sonarset.format.units import grid_to_si
 import sonarset.ingest.bag.align as align
 from sonarset.ingest.bag.clock import command_clock, offset_hint, offset_warning
@@ -80,11 +81,21 @@ def load_bag(bag: str | os.PathLike, *, images: str | None = None, commands: str
     implausible: list[str] = []
     if not np.isfinite(command_offset_s):
         raise SonarSetError(f"command offset must be finite, got {command_offset_s}", parameter="command_offset_s")
-    if not (command_timeout_s > 0):
-        raise SonarSetError(f"command timeout must be > 0 s, got {command_timeout_s}", parameter="command_timeout_s")
+    if not (0 < command_timeout_s < np.inf):
+        raise SonarSetError(f"command timeout must be a finite time > 0 s, got {command_timeout_s}",
+                            parameter="command_timeout_s")
     meta = sidecar_meta or recording_meta(bag, meta_path, None, problems, implausible)
     if meta is None:
         raise InputValidationError(where, problems)
+    # a bag's commands are geometry_msgs' m/s and rad/s at their own stamps (REP 103): a sidecar
+    # saying otherwise was written for `sonarset import`'s arrays, and would not be applied here
+    units = meta.units
+    unapplied = [f"units.{k} {getattr(units, k)!r}" for k, si in (("linear_velocity", "m/s"), ("angular_velocity", "rad/s"),
+                                                                 ("time", "s")) if getattr(units, k) != si]
+    unapplied += [f"velocity_alignment {meta.velocity_alignment!r}"] * (meta.velocity_alignment != "previous")
+    if unapplied:
+        raise InputValidationError(where, [f"metadata: {', '.join(unapplied)} do not apply to a bag, whose commands "
+                                           "are in m/s and rad/s at their own time stamps; remove them"])
     if meta.grid is not None and sidecar_meta is None:
         try:
             grid = grid_to_si(meta.grid, meta.units)
@@ -100,6 +111,9 @@ def load_bag(bag: str | os.PathLike, *, images: str | None = None, commands: str
     if not problems:
         implausible += bag_implausible(runs, streams.grid, rig or meta.rig, interval, streams.commands.topic,
                                        streams.frames.topic)
+    if runs and not problems:  # beyond any robot: no reader takes such a run, so no flag lets it through
+        velocity = np.concatenate([r["velocity"] for r in runs.values()])
+        problems += [f"topic {streams.commands.topic!r}: {p.message}" for p in command_limit_problems(velocity)]
     if implausible and not allow_implausible:
         problems += [line + IMPLAUSIBLE_NOTE for line in implausible]
     hint = offset_hint(clock, command_offset_s)  # commands that reach no frame: a clock offset says why
@@ -109,10 +123,13 @@ def load_bag(bag: str | os.PathLike, *, images: str | None = None, commands: str
                  + ("command_offset_s",) * bool(hint))
         raise InputValidationError(where, problems, parameter=named[0] if len(named) == 1 else named or None)
     warnings = implausible + [line for line in [offset_warning(clock, interval, command_offset_s)] if line]
+    # time 0 is the first imported frame's, after any frames before the first command were dropped
+    name, (a, _) = next(iter(frames.items()))
+    first_ns = streams.origin_ns + round(1e9 * (float(streams.frames.times[a]) - float(runs[name]["time"][0])))
     attrs = {"kind": "import-bag", "file": bag.name, "images_topic": streams.frames.topic,
              "images_type": streams.frames.msgtype, "commands_topic": streams.commands.topic,
              "commands_type": streams.commands.msgtype, "stamps": stamps, "command_offset_s": command_offset_s,
-             "command_timeout_s": command_timeout_s, "frame_interval_s": interval, "first_stamp_ns": streams.origin_ns,
+             "command_timeout_s": command_timeout_s, "frame_interval_s": interval, "first_stamp_ns": first_ns,
              "source": meta.source,
              "command_offset_estimate": clock.as_attr() if clock is not None else None}
     if streams.grid is not None:

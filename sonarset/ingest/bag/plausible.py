@@ -26,7 +26,7 @@ def bag_implausible(runs: dict[str, dict[str, np.ndarray]], grid: SensorGrid | N
     """The plausibility findings on a bag's runs (``importer._runs``'s arrays), one line each,
     naming the topic they come from."""
     found: list[str] = []
-    if runs:
+    if runs and rig is not None:  # beyond any robot (no rig) is no finding but an error: importer.load_bag
         velocity = np.concatenate([r["velocity"] for r in runs.values()])
         found += [f"topic {commands_topic!r}: {p.message}" for p in plaus.command_problems(velocity, rig)]
     if grid is not None:
