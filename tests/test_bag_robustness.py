@@ -321,3 +321,13 @@ def test_sidecar_fields_a_bag_cannot_apply_and_commands_beyond_any_robot_are_ref
     with pytest.raises(InputValidationError, match="linear speed up to .* exceeds 10 m/s, beyond any ground robot"):
         import_bag(fast.write(tmp_path / "f.mcap"), tmp_path / "f.zarr", allow_implausible=True)
     assert not (tmp_path / "s.zarr").exists() and not (tmp_path / "f.zarr").exists()
+
+
+def test_frames_of_one_stamp_are_named_not_blamed_on_the_commands(tmp_path):
+    """A driver that never updates its header's stamp: the frames' stamps repeat (no interval to
+    hold a command over), said as such, with the way out."""
+    drive = Drive(times_s=[0.0, 0.2, 0.4, 0.6, 0.6, 0.8, 1.0, 1.2, 1.4, 1.6])
+    with pytest.raises(InputValidationError, match=r"topic '/sonar/image', message 4: the same time stamp as message 3 "
+                                                   r"\(.*\); 1 repeat\(s\) \(stamps 'bag' uses") as exc:
+        import_bag(drive.write(tmp_path / "d.mcap"), tmp_path / "s.zarr")
+    assert len(exc.value.problems) == 1

@@ -151,7 +151,7 @@ def _bound_decompression() -> None:
 def choose_topic(reader, wanted: str | None, types: tuple[str, ...], what: str, parameter: str,
                  problems: list[str], required: bool = True):
     """The connections of the topic named ``wanted``, else of the one topic with one of ``types``."""
-    topics = {name: info.msgtype for name, info in reader.topics.items()}
+    topics = {name: info.msgtype or _connection_types(reader, name) for name, info in reader.topics.items()}
     if wanted is not None:
         if wanted not in topics:
             problems.append(f"no topic {wanted!r} ({what}); the bag has {_listing(topics)}")
@@ -168,6 +168,13 @@ def choose_topic(reader, wanted: str | None, types: tuple[str, ...], what: str, 
     elif required:
         problems.append(f"no {what} topic ({' or '.join(types)}); the bag has {_listing(topics)}")
     return None
+
+
+def _connection_types(reader, topic: str) -> str:
+    """A topic recorded with several message types (rosbags gives it none): them all, which no
+    importer reads as one stream."""
+    kinds = sorted({c.msgtype for c in reader.connections if c.topic == topic})
+    return " and ".join(kinds) if kinds else "of no message type"
 
 
 def default_raw_topic(bag: Path) -> str | None:
@@ -230,7 +237,7 @@ def read_streams(bag: str | Path, *, images: str | None = None, commands: str | 
     streams = [s for s in (frames, cmds, odom) if s is not None]
     for stream in streams:
         if not (stream is frames and frames_failed):
-            problems += _stamp_problems(stream, stamps)
+            problems += _stamp_problems(stream, stamps, repeats=stream is frames)
     if problems or (found_grid is None and raw is None):
         raise InputValidationError(where, problems or ["no sensor grid"])
     # Seconds since the first frame, from integer nanoseconds: float seconds since 1970 would
@@ -259,7 +266,9 @@ def _messages(reader, topic: str, problems: list[str], stamps: str):
         problems.append(f"topic {topic!r}: the bag ends inside a message or is damaged: {one_line(exc)}")
 
 
-def _stamp_problems(stream: Stream, stamps: str) -> list[str]:
+def _stamp_problems(stream: Stream, stamps: str, repeats: bool = False) -> list[str]:
+    """The first thing wrong with a stream's stamps, in one line; with ``repeats``, two equal
+    stamps too (two frames at one moment: a driver that never updates its header's stamp)."""
     t = stream.times * 1e-9
     if t.size == 0:
         return [f"topic {stream.topic!r} has no messages"]
@@ -271,6 +280,11 @@ def _stamp_problems(stream: Stream, stamps: str) -> list[str]:
     if back.size:
         k = int(back[0]) + 1
         return [f"topic {stream.topic!r}, message {k}: time stamps go backwards ({t[k - 1]:.6f} -> {t[k]:.6f} s){fix}"]
+    same = np.flatnonzero(np.diff(stream.times) == 0) if repeats else []
+    if len(same):
+        k = int(same[0]) + 1
+        return [f"topic {stream.topic!r}, message {k}: the same time stamp as message {k - 1} ({t[k]:.6f} s); "
+                f"{int(len(same))} repeat(s){fix}"]
     return []
 
 
