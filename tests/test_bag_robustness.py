@@ -331,3 +331,11 @@ def test_frames_of_one_stamp_are_named_not_blamed_on_the_commands(tmp_path):
                                                    r"\(.*\); 1 repeat\(s\) \(stamps 'bag' uses") as exc:
         import_bag(drive.write(tmp_path / "d.mcap"), tmp_path / "s.zarr")
     assert len(exc.value.problems) == 1
+
+
+def test_a_drive_at_another_rate_than_the_store_is_told_so(tmp_path):
+    import_bag(Drive(n_frames=10, hz=5.0).write(tmp_path / "a.mcap"), tmp_path / "s.zarr")
+    with pytest.raises(InputValidationError, match=r"no run of 4 frames at a steady rate \(the frames are 0\.1 s apart, "
+                                                   r"the store declares 0\.2 s frames\)"):
+        import_bag(Drive(n_frames=20, hz=10.0).write(tmp_path / "b.mcap"), tmp_path / "s.zarr")
+    assert open_store(tmp_path / "s.zarr").runs() == ["a"]

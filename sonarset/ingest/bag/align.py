@@ -84,6 +84,8 @@ def split_at_gaps(times: np.ndarray, tolerance: float = 0.05,
     for a, b in zip([0, *long.tolist()], [*long.tolist(), len(times)]):
         _keep(a, b, dt, lost, keep_to, tolerance, segments, drops, whole=True)
     if not gap.any():
+        if not segments and drops["off"] and reference_s is not None:  # a steady drive at another rate
+            return [], [f"the frames are {interval:.4g} s apart, the store declares {reference_s:.4g} s frames"], interval
         return segments, [], interval
     kept = sum(len(s.gaps) for s in segments)
     note = (f"{int(lost.sum())} lost ping(s) at {int(gap.sum())} gap(s) (intervals over {GAP_FACTOR:g} x the median "
