@@ -112,7 +112,7 @@ def record_run(store: SonarStore, run_name: str | None, out: str | os.PathLike, 
             key = (p.label if p.label not in preds else spec) if p.name in preds else p.name
             if key in preds:  # as eval: two models of one name would be one entity in the recording
                 raise SonarSetError(f"model {spec!r}: another model is named {key!r}; view them apart",
-                                    parameter="models")
+                                    parameter="model")
             preds[key] = p
     out = Path(out)
     aside = _aside_file(out)

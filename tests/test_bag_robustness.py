@@ -320,6 +320,12 @@ def test_sidecar_fields_a_bag_cannot_apply_and_commands_beyond_any_robot_are_ref
     fast.v = fast.v * 100 + 15  # beyond any ground robot: allowed, no reader would take the run
     with pytest.raises(InputValidationError, match="linear speed up to .* exceeds 10 m/s, beyond any ground robot"):
         import_bag(fast.write(tmp_path / "f.mcap"), tmp_path / "f.zarr", allow_implausible=True)
+    rig = tmp_path / "rig.json"
+    rig.write_text(json.dumps({"rig": {"v_max_m_s": 0.3}}))
+    with pytest.raises(InputValidationError) as exc:  # beyond the rig's limit too: said once, with no flag to try
+        import_bag(tmp_path / "f.mcap", tmp_path / "f.zarr", meta_path=rig)
+    assert len(exc.value.problems) == 1 and "beyond any ground robot" in exc.value.problems[0]
+    assert exc.value.parameter is None
     assert not (tmp_path / "s.zarr").exists() and not (tmp_path / "f.zarr").exists()
 
 

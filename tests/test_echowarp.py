@@ -104,6 +104,8 @@ def test_in_patches_every_convolution_runs_coarser_and_each_pixel_keeps_its_plac
     assert folded.shape == (2, 5 * patch ** 2, *coarse)
     assert torch.equal(folded[:, (1 * patch + 0) * 5 + 2, 3, 1], x[:, 2, 3 * patch + 1, patch])  # pixel (1, 0) of patch (3, 1)
     assert torch.equal(model.unfolded(folded, *GRID.shape), x)
+    with pytest.raises(ConfigError, match="patch must be at most 16 pixels, got 17"):
+        _model(patch=17)
     sizes = []
     hooks = [m.register_forward_hook(lambda m, i, o: sizes.append(tuple(i[0].shape[-2:])))
              for m in model.modules() if isinstance(m, torch.nn.Conv2d)]

@@ -82,7 +82,7 @@ def test_a_loss_that_is_no_number_stops_training_in_one_line_keeping_the_last_go
         return loss if i < 2 else loss * float("nan")  # as bf16 on a too narrow U-Net level did
 
     monkeypatch.setattr(train_module._Run, "optimizer_step", diverging)
-    with pytest.raises(SonarSetError, match=r"^step 3: the training loss is nan \(not finite\); the weights kept so far "
+    with pytest.raises(SonarSetError, match=r"^step 3: the training loss is nan \(not finite\); the weights kept, if any, "
                                             r"are those of the best validation before it; try .*a lower lr$"):
         train(store, out, cfg(max_steps=6))
     assert (out / "model.safetensors").is_file()  # step 2's validation

@@ -42,6 +42,7 @@ reports progress.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import time
@@ -182,6 +183,12 @@ def _resumed(out: Path, model: nn.Module, opt: torch.optim.Optimizer, cfg: Train
         # each process streams its own shards: another count cuts the epoch into other shards
         raise SonarSetError(f"{out}: resume a streamed run on {meta['processes']} processes, as it was started "
                             f"(not {dist.world})", parameter="stream")
+    card = json.loads((out / "model.json").read_text()) if (out / "model.json").is_file() else {}
+    for key, was in ((k, (card.get("config") or {}).get(k)) for k in ("dt", "sensor_offset")):
+        if isinstance(was, (int, float)) and not math.isclose(was, getattr(model.cfg, key, was), rel_tol=1e-6):
+            # a store without a rig made the simulator's robot before 2026-12-07, its own frame rate since
+            raise SonarSetError(f"{out}: the run's model has {key} {was:g}, this store makes {getattr(model.cfg, key):g}; "
+                                "start a new run")
     if dist.main:  # derived from the state: whatever a kill left behind, rewrite it
         write_metrics(out, list(meta["history"]))
     return int(meta["step"]), float(meta["best_val_loss"]), list(meta["history"])
@@ -368,10 +375,11 @@ def _steps(run: _Run, step: int, best: float, history: list[dict]) -> tuple[int,
         for windows in run.data.epoch(epoch, pos, plan.steps_per_epoch):
             k = cfg.k_at(step)
             loss = run.optimizer_step(step, windows, k).item()
-            if not math.isfinite(loss):  # every later step would be NaN too: the kept weights are the last good ones
+            bad = not math.isfinite(loss)  # every later step would be too: every process stops here
+            if bad or (dist.world > 1 and dist.all_sum(float(bad))[0]):
                 hint = "precision fp32 (it trains in bf16), or " if run.precision == "bf16" else ""
-                raise SonarSetError(f"step {step + 1}: the training loss is {loss} (not finite); the weights kept so "
-                                    f"far are those of the best validation before it; try {hint}a lower lr")
+                raise SonarSetError(f"step {step + 1}: the training loss is {loss} (not finite); the weights kept, if "
+                                    f"any, are those of the best validation before it; try {hint}a lower lr")
             step += 1
             tally.loss += loss * local
             tally.n += local

@@ -79,6 +79,8 @@ class EchoWarpConfig(ZooConfig):
             raise ConfigError("outside", f"outside must be one of {', '.join(OUTSIDE)}, got {self.outside!r}")
         if len(self.channels) < 2:
             raise ConfigError("channels", f"channels needs at least 2 levels, got {self.channels!r}")
+        if self.patch > 16:  # its square multiplies the first and last layers' widths
+            raise ConfigError("patch", f"patch must be at most 16 pixels, got {self.patch}")
 
 
 PRESETS: dict[str, dict] = {

@@ -178,8 +178,9 @@ def _to_si(conv: dict[str, np.ndarray], meta: RecordingMeta, rig: RobotRig | Non
         out["velocity"] = velocity_to_si(conv["velocity"].astype(np.float64), u)
         # beyond any ground robot no reader takes (rules.command_limit_problems): an error, whatever
         # the flags; beyond the rig's limits, a finding allow_implausible lets through
-        problems += map(str, plaus.command_problems(out["velocity"], None, u))
-        if rig or meta.rig:
+        beyond = list(map(str, plaus.command_problems(out["velocity"], None, u)))
+        problems += beyond
+        if (rig or meta.rig) and not beyond:  # said once, and without a flag that could not help
             implausible += map(str, plaus.command_problems(out["velocity"], rig or meta.rig, u))
     if "time" in conv and conv["time"].ndim == 1:
         out["time"] = time_to_si(conv["time"].astype(np.float64), u)

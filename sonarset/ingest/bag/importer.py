@@ -113,7 +113,10 @@ def load_bag(bag: str | os.PathLike, *, images: str | None = None, commands: str
                                        streams.frames.topic)
     if runs and not problems:  # beyond any robot: no reader takes such a run, so no flag lets it through
         velocity = np.concatenate([r["velocity"] for r in runs.values()])
-        problems += [f"topic {streams.commands.topic!r}: {p.message}" for p in command_limit_problems(velocity)]
+        beyond = [f"topic {streams.commands.topic!r}: {p.message}" for p in command_limit_problems(velocity)]
+        if beyond:  # said once, and without a flag that could not help
+            problems += beyond
+            implausible = [line for line in implausible if not line.startswith(f"topic {streams.commands.topic!r}:")]
     if implausible and not allow_implausible:
         problems += [line + IMPLAUSIBLE_NOTE for line in implausible]
     hint = offset_hint(clock, command_offset_s)  # commands that reach no frame: a clock offset says why
