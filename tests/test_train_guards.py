@@ -112,6 +112,16 @@ def test_a_store_without_a_rig_trains_at_its_own_frame_rate(tmp_path):
     assert s.rig is None
     model, _ = build_model(s, cfg(model="echowarp"), "cpu")
     assert (model.cfg.dt, model.cfg.sensor_offset) == (0.1, 0.0)
+    # a run begun when such a store made the simulator's robot is not resumed as another model
+    import json
+
+    out = tmp_path / "run"
+    train(s, out, cfg(model="echowarp", max_steps=2))
+    card = json.loads((out / "model.json").read_text())
+    card["config"]["dt"] = 0.2
+    (out / "model.json").write_text(json.dumps(card))
+    with pytest.raises(SonarSetError, match=r"run: the run's model has dt 0\.2, this store makes 0\.1; start a new run"):
+        train(s, out, cfg(model="echowarp", max_steps=2), resume=True)
 
 
 def test_a_fine_tune_takes_grid_edges_equal_to_float32s_rounding(store):
