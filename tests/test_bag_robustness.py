@@ -255,7 +255,6 @@ def test_a_topic_whose_pixels_or_beams_change_mid_drive_is_refused_and_a_byte_or
     """One run has one pixel type and one sensor grid: a later message of another pixel type (its
     values would be scaled by the first's full scale) or with its beams in another order (its
     pixels would land in other columns) is refused; each message's byte order is its own."""
-    import math
 
     def wider_pixels(k, msg):
         if k >= 4:

@@ -70,7 +70,6 @@ def test_a_full_disk_while_saving_is_one_line_and_keeps_the_previous_checkpoint(
 
 def test_a_loss_that_is_no_number_stops_training_in_one_line_keeping_the_last_good_weights(store, tmp_path,
                                                                                           monkeypatch):
-    import torch
 
     import sonarset.models.echopt.train as train_module
 

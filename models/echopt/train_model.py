@@ -54,7 +54,8 @@ def init_from(model: nn.Module, spec: str, trained: nn.Module, card: dict, store
     widened = [k for k in differ if k in growable and growable[k](trained.cfg, model.cfg)]
     if any(k not in WARM_START_FIELDS and k not in added and k not in widened for k in differ):
         diff = ", ".join(f"{k}: {getattr(trained.cfg, k)!r} vs {getattr(model.cfg, k)!r}" for k in differ)
-        why = "; this store records no rig, so its frame rate sets dt" if "dt" in differ and getattr(store, "rig", 0) is None else ""
+        rigless = "dt" in differ and getattr(store, "rig", 0) is None
+        why = "; this store records no rig, so its frame rate sets dt" if rigless else ""
         raise SonarSetError(f"init {spec}: another network than this preset and prior make here ({diff}){why}",
                             parameter="init")
     trained_on = card_processing(card)
