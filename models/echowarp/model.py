@@ -56,8 +56,8 @@ class EchoWarpConfig(ZooConfig):
     full_channels: int = 16  # the one convolution at full resolution (with patch > 1: at 1/patch)
     # the side of the square of pixels the network reads and writes as one position: 1, a U-Net from
     # 1/2 resolution under a full-resolution layer; p > 1, each p x p patch folded into channels
-    # (pixel_unshuffle) so that every convolution runs at 1/p resolution or coarser, its outputs
-    # unfolded (pixel_shuffle) for the full-resolution warp
+    # (``folded``) so that every convolution runs at 1/p resolution or coarser, its outputs
+    # unfolded per pixel (``unfolded``) for the full-resolution warp
     patch: int = 1
     max_shift: int = 6  # pixels: the largest correction of where a pixel is sampled from (0: none)
     older_frames: int = 1  # 1: gates add the registered older frames; 0: the last frame alone
