@@ -7,7 +7,8 @@ Three ways a plain ``ProcessPoolExecutor`` leaks or shouts:
   exception (KeyboardInterrupt included) terminates the workers at once and re-raises.
 - Ctrl-C reaches the whole process group: every worker prints its own KeyboardInterrupt
   traceback, some while still importing. Here workers are started with SIGINT blocked (the mask
-  survives exec), so only the parent sees it, and the parent tears the pool down.
+  survives exec), so only the parent sees it, and the parent tears the pool down; a signal that
+  arrives while a worker is being started waits until it is (``signals_held``).
 
 Workers are spawned, never forked: zarr's event loop thread must not be copied.
 """
@@ -28,17 +29,33 @@ _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 @contextlib.contextmanager
-def sigint_held() -> Iterator[None]:
-    """SIGINT blocked in this thread: processes started now inherit it blocked; one that arrives
-    meanwhile is delivered (as KeyboardInterrupt) when the block ends."""
+def signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM held until the block ends, where one that arrived meanwhile takes effect
+    (its handler runs: KeyboardInterrupt, ``Terminated``). A process started within is wholly
+    started and registered, or never was: one interrupted half-way gets its start-up data cut off
+    and prints ``EOFError`` from ``multiprocessing.spawn``, outside the pool that would stop it.
+
+    Two layers, as the signal may reach any thread: SIGINT is blocked in this thread, so processes
+    started now inherit it blocked (Ctrl-C to the process group reaches the parent alone); and the
+    Python handlers are swapped for ones that only note the signal, since a signal another thread
+    received still runs its handler in this one, at the next bytecode."""
     if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    arrived: list[int] = []
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    deferred = {sig: h for sig, h in handlers.items() if callable(h)}  # Python handlers; not SIG_IGN/SIG_DFL
+    for sig in deferred:
+        signal.signal(sig, lambda signum, frame: arrived.append(signum))
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a blocked SIGINT arrives here, deferred
+        for sig, handler in deferred.items():
+            signal.signal(sig, handler)
+        for signum in dict.fromkeys(arrived):
+            deferred[signum](signum, None)
 
 
 class WorkerPool:
@@ -51,8 +68,8 @@ class WorkerPool:
                                             initargs=(os.getpid(), initializer, initargs))
 
     def submit(self, fn: Callable, *args: Any) -> cf.Future:
-        # The pool starts its processes inside submit: start them with SIGINT blocked.
-        with sigint_held(), _one_thread_per_worker():
+        # The pool starts its processes inside submit.
+        with signals_held(), _one_thread_per_worker():
             return self._pool.submit(fn, *args)
 
     def terminate(self) -> None:

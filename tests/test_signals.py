@@ -61,6 +61,38 @@ def test_no_worker_outlives_a_signalled_generate(tmp_path, how, code, says):
         assert says in stderr.splitlines(), stderr
 
 
+HELD = """
+import os, signal, sys, threading, time
+import sonarset.pool as pool
+go, sent = threading.Event(), threading.Event()
+def send():  # started before the block, so this thread does not block SIGINT: the kernel picks it
+    go.wait()
+    os.kill(os.getpid(), getattr(signal, sys.argv[1]))
+    sent.set()
+threading.Thread(target=send, daemon=True).start()
+steps = 0
+try:
+    with pool.terminated_as_interrupt():
+        with pool.signals_held():
+            go.set()
+            sent.wait()
+            for steps in range(1, 200):  # bytecode, calls and sleeps: where a handler would run
+                time.sleep(0.001)
+        print("not raised", flush=True)
+except KeyboardInterrupt as e:
+    print("raised after the block" if steps == 199 else f"raised at step {steps}", type(e).__name__)
+"""
+
+
+@pytest.mark.parametrize("sig, raised", [("SIGINT", "KeyboardInterrupt"), ("SIGTERM", "Terminated")])
+def test_a_signal_while_a_worker_starts_waits_until_it_has(sig, raised):
+    """A signal received by another thread while a worker is being started runs its handler only
+    once the worker is (sonarset.pool.signals_held): never half-way through multiprocessing's start-up."""
+    out = subprocess.run([sys.executable, "-c", HELD, sig], capture_output=True, text=True, timeout=60,
+                         preexec_fn=_interruptible)
+    assert out.stdout.splitlines() == [f"raised after the block {raised}"], out.stdout + out.stderr
+
+
 # ---- any command: one line and the signal's exit status, whatever zarr's I/O loop was doing ------
 
 def _threads(pid: int) -> int:
