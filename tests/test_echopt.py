@@ -276,6 +276,12 @@ def test_init_fine_tunes_from_a_checkpoint_and_refuses_another_network(tiny_stor
         assert torch.allclose(a, b, atol=1e-6), k
     # the card names no path of this machine: init relative to the run directory
     assert card["training"]["config"]["init"] == "../base"
+    # init may name its checkpoint as --models does (kind:RUN); the kind must be the one trained
+    named = train(tiny_store, tmp_path / "named", _cfg(max_steps=1, lr=1e-12, init=f"echopt:{tmp_path / 'base'}"))
+    assert load_checkpoint(named.out_dir, TINY_GRID)[1]["training"]["config"]["init"] == "echopt:../base"
+    with pytest.raises(SonarSetError, match="a unet checkpoint, but this run trains model echopt; set model unet") as e:
+        train(tiny_store, tmp_path / "kind", _cfg(max_steps=1, init=f"unet:{tmp_path / 'base'}"))
+    assert e.value.parameter == "init"
     with pytest.raises(SonarSetError, match="another network.*prior"):
         train(tiny_store, tmp_path / "other", _cfg(max_steps=1, prior="last", init=str(tmp_path / "base")))
     with pytest.raises(SonarSetError, match="no EchoPT checkpoint"):

@@ -251,9 +251,10 @@ def train(
                                         help="Std of Gaussian noise on the context frames."),
     val_horizon: int = typer.Option(TRAIN.val_horizon, "--val-horizon", min=0,
                                     help="Rollout steps of the validation loss (0: the curriculum's longest)."),
-    init: str = typer.Option(TRAIN.init, "--init", help="Fine-tune: start from this checkpoint's weights (pretrained "
-                                                        "or a path; same preset, prior, grid and images); the "
-                                                        "optimizer starts fresh."),
+    init: str = typer.Option(TRAIN.init, "--init", help="Fine-tune: start from this checkpoint's weights (pretrained, "
+                                                        "a run directory or a path, also as KIND:RUN; same kind, "
+                                                        "preset, prior, grid and images); the optimizer starts "
+                                                        "fresh."),
     worlds: str = typer.Option(TRAIN.worlds, "--worlds", help="Train only on runs of these world families, "
                                                               "comma-separated (e.g. lab,orchard; default: every "
                                                               "training run)."),

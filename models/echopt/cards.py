@@ -36,13 +36,13 @@ def read_card(spec: str | os.PathLike) -> dict:
 
     path = resolve(spec).with_suffix(".json")
     if not path.is_file():
-        raise SonarSetError(f"{path.with_suffix('.safetensors')}: no EchoPT checkpoint here (need {path.name})")
+        raise SonarSetError(f"{path.with_suffix('.safetensors')}: no model checkpoint here (need {path.name})")
     try:
         card = json.loads(path.read_text())
     except (OSError, ValueError) as exc:
-        raise SonarSetError(f"{path}: no readable EchoPT model card ({exc})") from None
+        raise SonarSetError(f"{path}: no readable model card ({exc})") from None
     if not isinstance(card, dict):
-        raise SonarSetError(f"{path}: not an EchoPT model card (not a JSON object)")
+        raise SonarSetError(f"{path}: not a model card (not a JSON object)")
     return card
 
 

@@ -108,8 +108,9 @@ def recipe_of(cfg: TrainConfig, store: str | os.PathLike, out: str | os.PathLike
         return str(path) if relative_to is None else portable_path(path, relative_to)
 
     settings = {key: getattr(cfg, key) for key in SETTINGS}
-    if settings["init"] not in INIT_NAMES:
-        settings["init"] = where(settings["init"])
+    kind, init = cfg.init_parts()
+    if init not in INIT_NAMES:
+        settings["init"] = f"{kind}:{where(init)}" if kind else where(init)
     return {"store": where(store), "out": where(out), **settings}
 
 

@@ -124,6 +124,16 @@ class TrainConfig:
             value = getattr(self, name)
             if (value or name not in ("prior", "inputs")) and value not in allowed:
                 raise SonarSetError(f"{name} must be one of {', '.join(allowed)}, got {value!r}", parameter=name)
+        init_kind = self.init_parts()[0]
+        if init_kind and init_kind != self.model:
+            raise SonarSetError(f"init {self.init}: a {init_kind} checkpoint, but this run trains model {self.model}; "
+                                f"set model {init_kind} to fine-tune it", parameter="init")
+
+    def init_parts(self) -> tuple[str, str]:
+        """``init`` as (kind, checkpoint): it may be written as ``--models`` names a checkpoint
+        (``echowarp:RUN``); kind is "" when it names none."""
+        kind, sep, spec = self.init.partition(":")
+        return (kind, spec or "pretrained") if sep and kind in MODEL_KINDS else ("", self.init)
 
     def lr_at(self, step: int, total: int) -> float:
         """The learning rate of ``step`` of ``total``: constant, or the cosine schedule."""

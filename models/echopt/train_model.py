@@ -107,7 +107,7 @@ def build_model(store: SonarStore, cfg: TrainConfig, device: str) -> tuple[nn.Mo
     torch.manual_seed(cfg.seed)
     trained = card = None
     if cfg.init:
-        trained, card = load_checkpoint(cfg.init, store.grid, kind=cfg.model)
+        trained, card = load_checkpoint(cfg.init_parts()[1], store.grid, kind=cfg.model)
     # A store without a rig: one step is its own frame interval (not the simulator's 0.2 s), and
     # the sensor sits where eval's baselines put it (models/eval/evaluate.py, baseline_rig), on the
     # wheel axle, or, for a fine-tune, where the model was trained with it: the store says nothing.
