@@ -57,6 +57,22 @@ def test_pixel_types_map_by_the_recorded_rule(tmp_path, dtype_code):
     np.testing.assert_allclose(run.read("images"), drive.images / 255.0, atol=1e-3)
 
 
+def test_a_range_bin_at_zero_metres_is_dropped_and_said(tmp_path):
+    """Sonars that report their first sample at 0 m: that bin would reach behind the sensor."""
+    def from_zero(k, msg):
+        msg["ranges"] = [r - msg["ranges"][0] for r in msg["ranges"]]
+        return msg
+
+    drive, notes = Drive(n_frames=10), []
+    [run] = import_bag(drive.write(tmp_path / "d.mcap", edit=from_zero), tmp_path / "s.zarr", note=notes.append)
+    step = drive.grid.range_step
+    assert open_store(tmp_path / "s.zarr").grid.matches(
+        drive.grid.model_copy(update=dict(range_min_m=step / 2, range_max_m=drive.grid.range_max_m - drive.grid.range_min_m
+                                          - step / 2, n_range=drive.grid.n_range - 1)), rtol=1e-5)
+    np.testing.assert_allclose(run.read("images"), drive.images[:, 1:] / 255.0, atol=1e-3)
+    assert any("the range bin at 0 m dropped" in n for n in notes), notes
+
+
 def test_twist_without_header_takes_bag_time_and_a_few_dropped_pings_are_recorded_in_the_run(tmp_path):
     drive = Drive(n_frames=40)
     keep = np.ones(40, bool)

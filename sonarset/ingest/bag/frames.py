@@ -30,6 +30,7 @@ class FrameDecoder:
         self.notes: list[str] = []
         self._ranges = self._azimuths = None
         self._order = None  # beam permutation into increasing azimuth
+        self._skip = 0  # leading range bins dropped: centred so near the sensor that they reach behind it
         self._message_azimuths = None  # the first message's beam azimuths, in its order
         self._resample = None  # (range, azimuth) resamplers, when the beams or bins are not uniform
 
@@ -135,6 +136,18 @@ class FrameDecoder:
             self.notes.append("beams run right to left in the messages; stored left-positive, as the spec says")
         az = azimuths[order]
         self._ranges, self._azimuths, self._order = ranges, az, order
+        # Many sonars report their first sample at 0 m (the transmit itself): a bin centred there
+        # reaches behind the sensor, which no grid can hold. Such bins are dropped, and said so.
+        self._skip = int(np.sum((ranges >= 0) & (ranges < _half_step(ranges)))) if ranges[0] >= 0 else 0
+        if self._skip:
+            if len(ranges) - self._skip < 2:
+                problems.append(f"{where}: a sonar image needs at least 2 ranges beyond the sensor")
+                return False
+            kept = ranges[self._skip]
+            self.notes.append(f"the range bin{'s' if self._skip > 1 else ''} at {ranges[0]:g}"
+                              f"{f'..{ranges[self._skip - 1]:g}' if self._skip > 1 else ''} m dropped (a bin there "
+                              f"reaches behind the sensor); frames start at the bin at {kept:g} m")
+            ranges = ranges[self._skip:]
         uniform_r, uniform_a = _uniform(ranges), _uniform(az)
         grid = _grid_of(where, ranges, az, uniform_r and uniform_a, problems)
         if grid is None:
@@ -154,7 +167,7 @@ class FrameDecoder:
     def _to_grid(self, image: np.ndarray) -> np.ndarray:
         """The image on the store's grid, in its own pixel type (a long drive of uint8 frames is held
         as uint8 until it is written, a chunk at a time); float32 where it had to be resampled."""
-        image = image[:, self._order]
+        image = image[self._skip:, self._order]
         if self._resample is None:
             return np.ascontiguousarray(image)
         from scipy.interpolate import interp1d
@@ -175,7 +188,7 @@ def _grid_of(where: str, ranges: np.ndarray, az: np.ndarray, uniform: bool, prob
     centres), or None and a problem naming the ranges or beams that make none."""
     from pydantic import ValidationError
 
-    r_half = (ranges[-1] - ranges[0]) / (len(ranges) - 1) / 2
+    r_half = _half_step(ranges)
     a_half = (az[-1] - az[0]) / (len(az) - 1) / 2
     edges = (float(ranges[0] - r_half), float(ranges[-1] + r_half), float(az[0] - a_half), float(az[-1] + a_half))
     span = f"ranges {ranges[0]:g}..{ranges[-1]:g} m ({len(ranges)} bins)"
@@ -197,6 +210,10 @@ def _grid_of(where: str, ranges: np.ndarray, az: np.ndarray, uniform: bool, prob
         why = "; ".join(str(e.get("msg", "invalid")).removeprefix("Value error, ") for e in errors)
         problems.append(f"{where}: {span} and {len(az)} beams make no sensor grid: {why}")
         return None
+
+
+def _half_step(centres: np.ndarray) -> float:
+    return float(centres[-1] - centres[0]) / (len(centres) - 1) / 2
 
 
 def _uniform(centres: np.ndarray) -> bool:
