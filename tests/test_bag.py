@@ -124,6 +124,10 @@ def test_export_then_import_gives_back_the_run_and_eval_runs_on_it(tmp_path):
     bag = export_bag(src, tmp_path / "run.mcap")
     [run] = import_bag(bag, tmp_path / "back.zarr", split="test")
     a = src.run("run_000")
+    # what no message carries comes back through the sidecar written beside the bag
+    back = open_store(tmp_path / "back.zarr")
+    assert (tmp_path / "run.json").is_file() and run.name == "run_000" and back.rig == src.rig
+    assert back.processing.same_images(src.processing) and not back.processing.unknown
     images_a, images_b = a.read("images").astype(np.float64), run.read("images").astype(np.float64)
     cc = np.corrcoef(images_a.ravel(), images_b.ravel())[0, 1]
     assert cc >= 0.999

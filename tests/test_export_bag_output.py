@@ -29,3 +29,8 @@ def test_export_bag_into_a_folder_or_fifo_is_refused_in_one_line(tmp_path):
         assert res.exit_code == 1, res.output
         assert res.output.strip() == f"error: {target}: is {what}; the output needs an .mcap file path", res.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exdir.mcap", "pipe.mcap", "sim.zarr"]
+    (tmp_path / "side.json").mkdir()  # the sidecar's place taken: nothing is written
+    res = CliRunner().invoke(app, ["export-bag", str(tmp_path / "sim.zarr"), str(tmp_path / "side.mcap")])
+    assert res.exit_code == 1 and res.output.strip() == (f"error: {tmp_path / 'side.json'}: is a folder; export "
+                                                         "writes its sidecar there"), res.output
+    assert not (tmp_path / "side.mcap").exists()

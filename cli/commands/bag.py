@@ -78,4 +78,4 @@ def export_bag_(
 
     with progress_bar() as bar:
         path = export_bag(store, out_file, runs=run, progress=per_name_progress(bar))
-    out.print(f"wrote {path} ({path.stat().st_size / 2**20:.1f} MiB)")
+    out.print(f"wrote {path} ({path.stat().st_size / 2**20:.1f} MiB) and its sidecar {path.with_suffix('.json')}")

@@ -11,10 +11,15 @@ Per run, on the frame clock ``base_time_s + time``:
   ``/tf_static`` base_link -> sonar (the rig's sensor offset, the sensor frame's axes).
 Several runs go one after another on the clock, a second apart, each under its own topic prefix
 when there is more than one (``/run_000/sonar/image``...).
+
+Beside it, ``OUT.json``: the sidecar ``import_bag`` reads by default, with what a bag has no
+message for (the store's processing and rig, the run's name), so that an import gives back a
+store that trains and fine-tunes as the original did.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import shutil
@@ -24,6 +29,7 @@ from typing import Callable
 import numpy as np
 
 from sonarset.errors import SonarSetError
+from sonarset.ingest.metadata import sidecar_for
 import sonarset.ingest.bag.messages as m
 from sonarset.store.atomic import aside_dir, refuse_non_regular
 from sonarset.store.store import SonarStore, open_store
@@ -35,8 +41,8 @@ SONAR_IN_BASE = (0.0, math.sqrt(0.5), 0.0, math.sqrt(0.5))  # (w, x, y, z)
 
 def export_bag(store: str | os.PathLike | SonarStore, out: str | os.PathLike, *, runs: list[str] | None = None,
                base_time_s: float = BASE_TIME_S, progress: Callable[[str, int, int], None] | None = None) -> Path:
-    """Write ``runs`` (default: every complete run) of ``store`` to the MCAP file ``out``, written
-    aside and renamed into place; returns its path."""
+    """Write ``runs`` (default: every complete run) of ``store`` to the MCAP file ``out`` and its
+    sidecar ``out.json``, written aside and renamed into place; returns the MCAP's path."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     src = store if isinstance(store, SonarStore) else open_store(store, check=True)
@@ -49,6 +55,7 @@ def export_bag(store: str | os.PathLike | SonarStore, out: str | os.PathLike, *,
     if out.suffix != ".mcap":
         raise SonarSetError(f"{out}: the output is an MCAP file: name it *.mcap", parameter="out")
     refuse_non_regular(out, "the MCAP file", "the output needs an .mcap file path")
+    refuse_non_regular(sidecar_for(out), "the MCAP file's sidecar", "export writes its sidecar there")
     ts = m.writing_typestore()
     tmp = aside_dir(out)
     try:
@@ -60,10 +67,26 @@ def export_bag(store: str | os.PathLike | SonarStore, out: str | os.PathLike, *,
                 prefix = f"/{name}" if len(names) > 1 else ""
                 clock = _write_run(writer, ts, src, name, prefix, clock, static, progress) + 1_000_000_000
         [mcap] = bag_dir.glob("*.mcap")
+        sidecar = tmp / "sidecar.json"
+        sidecar.write_text(json.dumps(_sidecar(src, names), indent=2) + "\n")
+        os.replace(sidecar, sidecar_for(out))
         os.replace(mcap, out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out
+
+
+def _sidecar(store: SonarStore, names: list[str]) -> dict:
+    """The recording metadata (format.sidecars.RecordingMeta) of the exported runs."""
+    doc: dict = {"recording_version": "1.0"}
+    if len(names) == 1:
+        doc["name"] = names[0]
+    if not store.processing.unknown:
+        doc["processing"] = store.processing.model_dump(mode="json")
+    if store.rig is not None:
+        doc["rig"] = store.rig.model_dump(mode="json")
+    doc["source"] = {"exported_from": str(store.location), "runs": names}
+    return doc
 
 
 def _write_run(writer, ts, store: SonarStore, name: str, prefix: str, clock: int, static, progress) -> int:

@@ -301,9 +301,10 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
     for line in rec.warnings:
         if warn is not None:
             warn(f"{bag}: {line}")
-    rig = meta.rig.model_copy(update={"frame_interval_s": rec.frame_interval_s}) if meta.rig is not None else None
+    rig = meta.rig  # its nominal interval where the bag's median agrees with it, else the bag's
     if meta.rig is not None and abs(meta.rig.frame_interval_s - rec.frame_interval_s) > \
             FRAME_INTERVAL_TOLERANCE * meta.rig.frame_interval_s:
+        rig = meta.rig.model_copy(update={"frame_interval_s": rec.frame_interval_s})
         rec.notes.append(f"the sidecar's rig says {meta.rig.frame_interval_s:g} s frames; the bag's are "
                          f"{rec.frame_interval_s:.4g} s (median), which the store records")
     if have is not None:
