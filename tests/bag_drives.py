@@ -85,15 +85,16 @@ class Drive:
         self.odom = np.stack([0.1 * tt, 0.05 * tt, 0.3 * tt], axis=1)
 
     def write(self, path: Path, *, beams_right_to_left=True, stamped=True, odometry=True, image_dtype=0,
-              edit=None) -> Path:
+              edit=None, sonar_package="marine_acoustic_msgs") -> Path:
         """An MCAP file by mcap-ros2's writer: beams in the messages' own order (right to left, as
         Z forward X up makes them for increasing rotation about X... either way: the test says)."""
         az = self.grid.azimuth_centres()
         order = np.arange(len(az))[::-1] if beams_right_to_left else np.arange(len(az))
         with open(path, "wb") as f:
             w = mcap_writer.Writer(f)
-            s_img = w.register_msgdef("marine_acoustic_msgs/msg/ProjectedSonarImage",
-                                      msgdef("marine_acoustic_msgs/msg/ProjectedSonarImage"))
+            s_img = w.register_msgdef(f"{sonar_package}/msg/ProjectedSonarImage",
+                                      msgdef("marine_acoustic_msgs/msg/ProjectedSonarImage").replace(
+                                          "marine_acoustic_msgs/", f"{sonar_package}/"))
             kind = "geometry_msgs/msg/TwistStamped" if stamped else "geometry_msgs/msg/Twist"
             s_cmd = w.register_msgdef(kind, msgdef(kind))
             s_odom = w.register_msgdef("nav_msgs/msg/Odometry", msgdef("nav_msgs/msg/Odometry"))

@@ -57,6 +57,14 @@ def test_pixel_types_map_by_the_recorded_rule(tmp_path, dtype_code):
     np.testing.assert_allclose(run.read("images"), drive.images / 255.0, atol=1e-3)
 
 
+def test_the_older_acoustic_msgs_package_name_reads_too(tmp_path):
+    """marine_acoustic_msgs was acoustic_msgs before 2023: bags of older drivers carry that name."""
+    drive = Drive(n_frames=10)
+    [run] = import_bag(drive.write(tmp_path / "d.mcap", sonar_package="acoustic_msgs"), tmp_path / "s.zarr")
+    np.testing.assert_allclose(run.read("images"), drive.images / 255.0, atol=1e-3)
+    assert run.attrs.source["images_type"] == "acoustic_msgs/msg/ProjectedSonarImage"
+
+
 def test_a_range_bin_at_zero_metres_is_dropped_and_said(tmp_path):
     """Sonars that report their first sample at 0 m: that bin would reach behind the sensor."""
     def from_zero(k, msg):

@@ -38,7 +38,7 @@ class FrameDecoder:
         where = f"topic {self.topic!r}, message {index}"
         try:
             if hasattr(msg, "beam_directions"):
-                self.msgtype = m.SONAR_IMAGE
+                self.msgtype = getattr(msg, "__msgtype__", m.SONAR_IMAGE)
                 return self._sonar_image(where, msg, problems)
             self.msgtype = m.PLAIN_IMAGE
             return self._plain_image(where, msg, problems)

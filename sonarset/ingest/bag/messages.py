@@ -12,13 +12,15 @@ from pathlib import Path
 import numpy as np
 
 SONAR_IMAGE = "marine_acoustic_msgs/msg/ProjectedSonarImage"
+#: The same message under the package's name before 2023 (apl-ocean-engineering's acoustic_msgs).
+OLD_SONAR_IMAGE = "acoustic_msgs/msg/ProjectedSonarImage"
 PLAIN_IMAGE = "sensor_msgs/msg/Image"
 MICROPHONES = "sonarset_msgs/msg/MicrophoneArrayPing"
 TWIST = "geometry_msgs/msg/Twist"
 TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
 ODOMETRY = "nav_msgs/msg/Odometry"
 
-IMAGE_TYPES = (SONAR_IMAGE, PLAIN_IMAGE)
+IMAGE_TYPES = (SONAR_IMAGE, OLD_SONAR_IMAGE, PLAIN_IMAGE)
 COMMAND_TYPES = (TWIST_STAMPED, TWIST)
 ODOMETRY_TYPES = (ODOMETRY,)
 RAW_TYPES = (MICROPHONES,)
@@ -38,8 +40,9 @@ def shipped_types() -> dict:
 
     types: dict = {}
     for path in sorted(DEFINITIONS.glob("*/msg/*.msg")):
-        name = f"{path.parent.parent.name}/msg/{path.stem}"
-        types.update(get_types_from_msg(path.read_text(), name))
+        package = path.parent.parent.name
+        for pkg in (package, "acoustic_msgs") if package == "marine_acoustic_msgs" else (package,):
+            types.update(get_types_from_msg(path.read_text(), f"{pkg}/msg/{path.stem}"))
     return types
 
 
