@@ -230,6 +230,9 @@ def _grid_changes(k, msg):
 
 MALFORMED = {
     "truncated file": (lambda p: p.write_bytes(p.read_bytes()[: p.stat().st_size // 2]), [], "cannot read"),
+    # bytes zeroed inside the first chunk: every topic's reader would meet them; said once
+    "a damaged chunk": (lambda p: p.write_bytes((b := p.read_bytes())[:3000] + bytes(100) + b[3100:]), [],
+                        "the bag ends inside a message or is damaged (reading topic '/sonar/image')"),
     "not a bag": (lambda p: p.write_bytes(b"\x89MCAP0\r\n" + b"garbage" * 100), [], "cannot read"),
     "named topic missing": (None, ["--images", "/nope"], "no topic '/nope'"),
     "topic of the wrong type": (None, ["--images", "/cmd_vel"], "is geometry_msgs/msg/TwistStamped, not"),

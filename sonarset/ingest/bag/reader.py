@@ -230,7 +230,7 @@ def read_streams(bag: str | Path, *, images: str | None = None, commands: str | 
         frames_failed = bool(problems)  # a frame that cannot be decoded ends the topic: say that, not "empty"
         cmds = _read_commands(reader, command_topic, stamps, problems)
         odom = _read_odometry(reader, odom_topic, stamps, problems) if odom_topic else None
-    except bounds.TooLarge as exc:
+    except (bounds.TooLarge, _Damaged) as exc:
         raise InputValidationError(where, [str(exc)]) from None
     finally:
         reader.close()
@@ -262,8 +262,13 @@ def _messages(reader, topic: str, problems: list[str], stamps: str):
             yield i, m.stamp_ns(header.stamp) if stamps == "header" and header is not None else int(t_ns), msg
     except bounds.TooLarge:  # the bag's, not the topic's: said once
         raise
-    except Exception as exc:  # a bag cut short mid-chunk
-        problems.append(f"topic {topic!r}: the bag ends inside a message or is damaged: {one_line(exc)}")
+    except Exception as exc:  # a bag cut short mid-chunk: every later topic would say so again
+        raise _Damaged(f"the bag ends inside a message or is damaged (reading topic {topic!r}): "
+                       f"{one_line(exc)}") from None
+
+
+class _Damaged(Exception):
+    """The bag's storage cannot be read on: one problem, whatever topic found it."""
 
 
 def _stamp_problems(stream: Stream, stamps: str, repeats: bool = False) -> list[str]:
