@@ -4,7 +4,9 @@ per run that compares only with files of its own protocol version."""
 import dataclasses
 import json
 import math
+import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -194,3 +196,16 @@ def test_unresolved_cells_say_how_many_windows_a_difference_needs():
     assert "- m vs flow: better at Holm p < 0.05 in 1 cells, better on the mean but not significantly in 1, " \
            "worse on the mean in 1" in table and "| m vs flow | lab | one-shot | NRMSD | -0.0100 | 100 |" in table
     assert unresolved_cells(results, alpha=1e-7)[("m", "flow")]["resolved"] == 0  # CC's Holm p 3e-6 is above it
+
+
+def test_a_method_named_with_a_bar_keeps_its_tables_columns():
+    """A predictor's name is the user's: a '|' in it must not end its table cell."""
+    from sonarset.models.benchmark import load_results
+    from sonarset.models.benchmark.tables import dataset_table, summary_table, unresolved_table
+
+    shipped = Path(__file__).resolve().parents[1] / "docs/results/benchmark-v1.json"
+    results = json.loads(json.dumps(load_results(shipped)).replace('"echopt"', '"echo|pt"'))
+    for table in (summary_table(results), dataset_table(results, "lab"), unresolved_table(results)):
+        rows = [r for r in table.splitlines() if r.startswith("|")]
+        widths = {len(re.split(r"(?<!\\)\|", r)) for r in rows}
+        assert len(widths) == 1 and any("echo\\|pt" in r for r in rows), table

@@ -15,7 +15,7 @@ from sonarset.scoring.stats import windows_to_pass
 from sonarset.windows import N_IN
 
 from sonarset.models.benchmark.machine import describe
-from sonarset.models.eval.report import LOWER_IS_BETTER
+from sonarset.models.eval.report import LOWER_IS_BETTER, md_cell
 
 #: The per-dataset table's metrics: CC and NRMSD (the paper's) and echo F1.
 TABLE_METRICS = (("cc", "CC"), ("nrmsd", "NRMSD"), ("echo_f1", "echo F1"))
@@ -78,7 +78,7 @@ def dataset_table(results: dict, name: str) -> str:
         cells = [_marked(d["horizons"][h]["methods"][m], k) for k, _ in TABLE_METRICS for h in hs]
         share = (methods[m].get("gap_share") or {}).get("cc")
         cells.append("ref" if m == reference else _number(share, ".2f"))
-        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        lines.append(f"| {md_cell(m)} | " + " | ".join(cells) + " |")
     for c, label in CEILING_LABELS.items():
         if c in d["horizons"][longest]["ceilings"]:
             cells = [_number(d["horizons"][h]["ceilings"][c][k]["mean"]) for k, _ in TABLE_METRICS for h in hs]
@@ -93,7 +93,7 @@ def summary_table(results: dict) -> str:
     lines = ["| method | " + " | ".join(names) + " |", "|---" * (1 + len(names)) + "|"]
     for m in results["datasets"][names[0]]["horizons"][longest]["methods"]:
         cells = [_marked(results["datasets"][n]["horizons"][longest]["methods"][m], "cc") for n in names]
-        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        lines.append(f"| {md_cell(m)} | " + " | ".join(cells) + " |")
     for c, label in CEILING_LABELS.items():
         if all(c in results["datasets"][n]["horizons"][longest]["ceilings"] for n in names):
             cells = [_number(results["datasets"][n]["horizons"][longest]["ceilings"][c]["cc"]["mean"]) for n in names]
@@ -136,7 +136,7 @@ def zoo_table(results: dict, costs: dict) -> str:
         cost = [f"{row['params'] / 1e6:.2f}",
                 f"{row['gflop_per_sample']['1']:.2f} / {row['gflop_per_sample'][str(costs['k'])]:.2f}",
                 _number(rates.get("fp32"), ".1f"), _number(rates.get("bf16"), ".1f")] if row else ["-"] * 4
-        lines.append(f"| {m['method']} | " + " | ".join(cost + [_number(s, ".2f") for s in shares]
+        lines.append(f"| {md_cell(m['method'])} | " + " | ".join(cost + [_number(s, ".2f") for s in shares]
                                                         + [_number(sum(known) / len(known) if known else None, ".2f")]) + " |")
     return "\n".join(lines)
 
@@ -189,7 +189,8 @@ def unresolved_table(results: dict, alpha: float = ALPHA) -> str:
             t = c["test"]
             need = " | ".join("-" if not math.isfinite(x) else f"{x:,.0f} ({x / t['n']:.1f}x)"
                               for x in c["windows_to_pass"])
-            rows.append(f"| {model} vs {other} | {c['dataset']} | {horizon_name(c['horizon'])} | {labels[c['metric']]} | "
+            rows.append(f"| {md_cell(model)} vs {md_cell(other)} | {c['dataset']} | {horizon_name(c['horizon'])} | "
+                        f"{labels[c['metric']]} | "
                         f"{t['mean_diff']:+.4f} | {t['n']} | {format_p(t['p_holm'])} | {need} |")
     if rows:
         lines += ["", "| model vs other | dataset | horizon | metric | mean difference | windows | Holm p | "
@@ -230,7 +231,7 @@ def results_markdown(results: dict) -> str:
     t = results["timings"]
     methods = list(t["per_method"])
     parts += ["", "## Timing (seconds)", "",
-              "| dataset | evaluate | " + " | ".join(methods) + " |", "|---" * (2 + len(methods)) + "|"]
+              "| dataset | evaluate | " + " | ".join(map(md_cell, methods)) + " |", "|---" * (2 + len(methods)) + "|"]
     for name, d in results["datasets"].items():
         parts.append(f"| {name} | {d['seconds']['evaluate']:.1f} | "
                      + " | ".join(_number(d["seconds"]["methods"].get(m), ".1f") for m in methods) + " |")
@@ -265,7 +266,7 @@ def compare_results(paths: list[str | os.PathLike]) -> str:
     for path, doc in docs:
         for m in doc["datasets"][names[0]]["horizons"][longest]["methods"]:
             cells = [_marked(doc["datasets"][n]["horizons"][longest]["methods"][m], "cc") for n in names]
-            lines.append(f"| {path} | {m} | " + " | ".join(cells) + f" | "
+            lines.append(f"| {md_cell(str(path))} | {md_cell(m)} | " + " | ".join(cells) + f" | "
                          f"{_number(doc['timings']['per_method'].get(m), '.1f')} |")
     lines += ["", *[f"- {path}: {describe(doc['machine'])}" for path, doc in docs]]
     return "\n".join(lines) + "\n"
