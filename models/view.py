@@ -26,6 +26,7 @@ from sonarset.format.attrs import RobotRig, SensorGrid
 from sonarset.store.atomic import refuse_non_regular
 from sonarset.store.store import SonarStore
 
+from sonarset.models.experiments.record import entity_name
 from sonarset.models.predictor import CheckedPredictor
 
 FAN_PIXELS = 256  # the metric fan's width and height
@@ -110,8 +111,9 @@ def record_run(store: SonarStore, run_name: str | None, out: str | os.PathLike, 
         for spec in dict.fromkeys(models):
             p = make_predictor(spec, grid, rig, device=device, precision=precision)
             key = (p.label if p.label not in preds else spec) if p.name in preds else p.name
-            if key in preds:  # as eval: two models of one name would be one entity in the recording
-                raise SonarSetError(f"model {spec!r}: another model is named {key!r}; view them apart",
+            twin = next((k for k in preds if entity_name(k) == entity_name(key)), None)
+            if twin is not None:  # as eval: two models of one name would be one entity in the recording
+                raise SonarSetError(f"model {spec!r}: another model is named {twin!r}; view them apart",
                                     parameter="model")
             preds[key] = p
     out = Path(out)
@@ -204,8 +206,9 @@ def _record(rec, rr, name: str, run, store: SonarStore, preds: dict, pose, extra
             for n, pred in predicted.items():
                 frame = pred.get(k)
                 if frame is not None:
-                    rec.log(f"predictions/{n}/image", rr.Image(_colour(_as_picture(frame))))
-                    rec.log(f"predictions/{n}/error", rr.Image(_colour(_as_picture(np.abs(frame - img)))))
+                    rec.log(f"predictions/{entity_name(n)}/image", rr.Image(_colour(_as_picture(frame))))
+                    rec.log(f"predictions/{entity_name(n)}/error",
+                            rr.Image(_colour(_as_picture(np.abs(frame - img)))))
         if progress:
             progress(name, b - start, stop - start)
 
@@ -259,6 +262,7 @@ def _blueprint(models: list[str], has_pose: bool):
         right.insert(0, rrb.Spatial2DView(origin="map", name="map"))
     views = [sonar, rrb.Vertical(*right)]
     if models:
-        views.append(rrb.Grid(*[rrb.Spatial2DView(origin=f"predictions/{m}/{what}", name=f"{m}: {what}")
+        views.append(rrb.Grid(*[rrb.Spatial2DView(origin=f"predictions/{entity_name(m)}/{what}",
+                                                  name=f"{m}: {what}")
                                 for m in models for what in ("image", "error")]))
     return rrb.Blueprint(rrb.Horizontal(*views), collapse_panels=False)

@@ -141,3 +141,19 @@ def test_two_models_of_one_name_are_refused_not_merged(sim, tmp_path, monkeypatc
     sys.modules.pop("sonarset_test_named_flow", None)
     assert res.exit_code == 1 and "model 'flow': another model is named 'flow'" in res.output, res.output
     assert len(res.output.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_a_model_named_with_spaces_and_slashes_is_one_entity(sim, tmp_path, monkeypatch):
+    """A predictor's name is the user's: a '/' would open sub-entities, a space warns in Rerun."""
+    (tmp_path / "sonarset_test_odd_name.py").write_text(
+        "class P:\n    name, n_in = 'my model/v2', 3\n    def predict(self, f, c):\n        return f[:, -1]\n"
+        "def make(grid, rig):\n    return P()\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", [str(tmp_path), *sys.path])
+    try:
+        out = record_run(sim, "test_000", tmp_path / "v.rrd", models=["sonarset_test_odd_name:make"],
+                         frames=slice(0, 8))
+    finally:
+        sys.modules.pop("sonarset_test_odd_name", None)
+    rows = rows_per_entity(out)
+    assert rows["/predictions/my_model_v2/image"] == rows["/predictions/my_model_v2/error"] == 8 - 3
