@@ -130,7 +130,7 @@ class TrainConfig:
                                 f"set model {init_kind} to fine-tune it", parameter="init")
 
     def init_parts(self) -> tuple[str, str]:
-        """``init`` as (kind, checkpoint): it may be written as ``--models`` names a checkpoint
+        """``init`` as (kind, checkpoint): it may be written as eval names a checkpoint
         (``echowarp:RUN``); kind is "" when it names none."""
         kind, sep, spec = self.init.partition(":")
         return (kind, spec or "pretrained") if sep and kind in MODEL_KINDS else ("", self.init)
