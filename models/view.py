@@ -110,10 +110,10 @@ def record_run(store: SonarStore, run_name: str | None, out: str | os.PathLike, 
             else RobotRig(frame_interval_s=dt, sensor_offset_m=0.0)
         for spec in dict.fromkeys(models):
             p = make_predictor(spec, grid, rig, device=device, precision=precision)
-            key = (p.label if p.label not in preds else spec) if p.name in preds else p.name
-            twin = next((k for k in preds if entity_name(k) == entity_name(key)), None)
-            if twin is not None:  # as eval: two models of one name would be one entity in the recording
-                raise SonarSetError(f"model {spec!r}: another model is named {twin!r}; view them apart",
+            key = next((k for k in (p.name, p.label, spec) if _logged_as(preds, k) is None), None)
+            if key is None:  # as eval: two models of one name would be one entity in the recording
+                raise SonarSetError(f"model {spec!r}: another model ({_logged_as(preds, p.name)!r}) would be logged "
+                                    f"as the same entity, predictions/{entity_name(p.name)}; view them apart",
                                     parameter="model")
             preds[key] = p
     out = Path(out)
@@ -249,6 +249,11 @@ def _log_pose(rec, rr, pose: np.ndarray, grid: SensorGrid) -> None:
     r = grid.range_max_m
     wedge = np.r_[[[x, y]], np.c_[x + r * np.cos(a), y + r * np.sin(a)], [[x, y]]]
     rec.log("map/fov", rr.LineStrips2D([wedge], colors=[255, 127, 14, 90]))
+
+
+def _logged_as(models: dict, name: str) -> str | None:
+    """The model of ``models`` whose entity a model named ``name`` would be logged as, if any."""
+    return next((k for k in models if entity_name(k) == entity_name(name)), None)
 
 
 def _blueprint(models: list[str], has_pose: bool):

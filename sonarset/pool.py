@@ -54,7 +54,7 @@ def signals_held() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a blocked SIGINT arrives here, deferred
         for sig, handler in deferred.items():
             signal.signal(sig, handler)
-        for signum in dict.fromkeys(arrived):
+        for signum in dict.fromkeys(arrived):  # several within the hold (milliseconds) act as one
             deferred[signum](signum, None)
 
 

@@ -139,7 +139,8 @@ def test_two_models_of_one_name_are_refused_not_merged(sim, tmp_path, monkeypatc
     res = CliRunner().invoke(app, ["view", sim.location, "--model", "sonarset_test_named_flow:make", "--model", "flow",
                                    "--frames", "0:8", "--out", str(out)])
     sys.modules.pop("sonarset_test_named_flow", None)
-    assert res.exit_code == 1 and "model 'flow': another model is named 'flow'" in res.output, res.output
+    said = "model 'flow': another model ('flow') would be logged as the same entity"
+    assert res.exit_code == 1 and said in res.output, res.output
     assert len(res.output.strip().splitlines()) == 1 and not out.exists()
 
 

@@ -13,7 +13,7 @@ Several runs go one after another on the clock, a second apart, each under its o
 when there is more than one (``/run_000/sonar/image``...).
 
 Beside it, ``OUT.json``: the sidecar ``import_bag`` reads by default, with what a bag has no
-message for (the store's processing and rig, the run's name), so that an import gives back a
+message for (the store's processing and rig, the run's name and split), so that an import gives back a
 store that trains and fine-tunes as the original did.
 """
 
@@ -81,6 +81,9 @@ def _sidecar(store: SonarStore, names: list[str]) -> dict:
     doc: dict = {"recording_version": "1.0"}
     if len(names) == 1:
         doc["name"] = names[0]
+    splits = {store.run(n).split for n in names}
+    if len(splits) == 1:  # a test run must not come back as a training run
+        doc["split"] = splits.pop()
     if not store.processing.unknown:
         doc["processing"] = store.processing.model_dump(mode="json")
     if store.rig is not None:

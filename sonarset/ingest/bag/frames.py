@@ -138,7 +138,11 @@ class FrameDecoder:
         self._ranges, self._azimuths, self._order = ranges, az, order
         # Many sonars report their first sample at 0 m (the transmit itself): a bin centred there
         # reaches behind the sensor, which no grid can hold. Such bins are dropped, and said so.
-        self._skip = int(np.sum((ranges >= 0) & (ranges < _half_step(ranges)))) if ranges[0] >= 0 else 0
+        # (a first centre a rounding error below 0 m is the same case; one further below is refused)
+        self._skip = 0
+        while len(ranges) - self._skip >= 2 and ranges[self._skip] >= -1e-3 * _half_step(ranges) \
+                and ranges[self._skip] < _half_step(ranges[self._skip:]):
+            self._skip += 1
         if self._skip:
             if len(ranges) - self._skip < 2:
                 problems.append(f"{where}: a sonar image needs at least 2 ranges beyond the sensor")

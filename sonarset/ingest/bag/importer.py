@@ -301,10 +301,15 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
     for line in rec.warnings:
         if warn is not None:
             warn(f"{bag}: {line}")
-    rig = meta.rig  # its nominal interval where the bag's median agrees with it, else the bag's
-    if meta.rig is not None and abs(meta.rig.frame_interval_s - rec.frame_interval_s) > \
+    # The store's nominal rate and its rig's interval are one fact (the format checks that they
+    # agree): the sidecar rig's where the bag's median agrees with it, else the bag's, rounded.
+    rate_hz = float(f"{1.0 / rec.frame_interval_s:.4g}")
+    rig = meta.rig
+    if meta.rig is not None and abs(meta.rig.frame_interval_s - rec.frame_interval_s) <= \
             FRAME_INTERVAL_TOLERANCE * meta.rig.frame_interval_s:
-        rig = meta.rig.model_copy(update={"frame_interval_s": rec.frame_interval_s})
+        rate_hz = 1.0 / meta.rig.frame_interval_s
+    elif meta.rig is not None:
+        rig = meta.rig.model_copy(update={"frame_interval_s": 1.0 / rate_hz})
         rec.notes.append(f"the sidecar's rig says {meta.rig.frame_interval_s:g} s frames; the bag's are "
                          f"{rec.frame_interval_s:.4g} s (median), which the store records")
     if have is not None:
@@ -332,7 +337,7 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
     # every run is built aside and published at the end: a killed import leaves the store as it was
     return target.write_runs(writers, overwrite=overwrite, grid=grid, processing=proc,
                              rig=rig if have is None else None,
-                             new_store={"frame_rate_hz": float(f"{1.0 / rec.frame_interval_s:.4g}"),
+                             new_store={"frame_rate_hz": rate_hz,
                                         "processing": proc or Processing(profile="unknown"),
                                         "description": description})
 
