@@ -87,7 +87,7 @@ def experiment_control(
                                                        "frames) as a Rerun recording (.rrd)."),
 ) -> None:
     """Corridor control through noise bursts (paper Fig. 6): clean, bursts, bursts bridged by the model
-    (EchoPT by default)."""
+    (the recommended one, EchoWarp, by default)."""
     from sonarset.models.experiments.control import run_control_experiment
     from sonarset.models.experiments.control_report import write_control_report
 

@@ -47,8 +47,9 @@ SHRINK: dict[str, list[tuple[str, str]]] = {
         ("--samples 20", "--samples 5"),
     ],
     "guides/training.md": [
-        ("--runs 2 --test-runs 1 --minutes 2", "--runs 1 --test-runs 1 --minutes 0.2"),
-        ("batch_size = 32", "batch_size = 4"),
+        # ten-step windows: a run of 0.2 minutes would hold only validation windows
+        ("--runs 2 --test-runs 1 --minutes 2", "--runs 1 --test-runs 1 --minutes 0.4"),
+        ("batch_size = 16", "batch_size = 4"),
         ("max_steps = 1000", "max_steps = 2"),
         ("eval_every = 100", "eval_every = 1"),
         ("n_val = 256", "n_val = 4"),

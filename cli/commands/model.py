@@ -193,7 +193,8 @@ def train(
                                          "convlstm, simvp, unet (models/zoo/)."),
     preset: str = typer.Option(TRAIN.preset, "--preset",
                                help="The network's size or variant: small (trains on a CPU), tiny (tests); EchoPT "
-                                    "also paper (~9 M parameters), EchoWarp also its ablation variants "
+                                    "also paper (~9 M parameters), EchoWarp also wide, patch4 (every "
+                                    "convolution at 1/4 resolution) and its ablation variants "
                                     "(docs/echowarp.md). A preset the network lacks is refused with its list."),
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Run directory: model.safetensors + model.json, "
                                                                "metrics.jsonl, state.safetensors. Default: the "

@@ -167,13 +167,13 @@ class ControlResult:
 
 
 def condition_name(spec: str, name: str) -> str:
-    """``bursts+NAME`` (the predictor's name) for a name the registry knows (``bursts+echopt`` for
-    ``pretrained`` and ``echopt:pretrained``); ``bursts+SPEC`` for a checkpoint's path or a
+    """``bursts+NAME`` (the predictor's name) for a name the registry knows (``bursts+echowarp`` for
+    ``pretrained`` and ``echowarp:pretrained``); ``bursts+SPEC`` for a checkpoint's path or a
     ``module:factory``, which stay apart where names may not."""
     return "bursts+" + (name if spec.partition(":")[2] in ("", "pretrained") else spec)
 
 
-def run_control_experiment(models: list[str] | tuple[str, ...] = ("echopt:pretrained",), runs: int = 50, seed: int = 0,
+def run_control_experiment(models: list[str] | tuple[str, ...] = ("pretrained",), runs: int = 50, seed: int = 0,
                            grid: SensorGrid | None = None, workers: int | None = None, device: str = "cpu",
                            max_time_s: float = 120.0, progress: Callable[[int, int], None] | None = None,
                            processing: Processing | str | None = None, precision: str = "auto") -> ControlResult:
