@@ -151,6 +151,7 @@ def test_the_page_runs(page, tmp_path, monkeypatch):
             assert arg.strip(), f"{where}: say why it is not run"
             continue
         if marker == "file":
+            (tmp_path / arg.strip()).parent.mkdir(parents=True, exist_ok=True)  # a bag directory's sidecar
             (tmp_path / arg.strip()).write_text(code)
             continue
         if lang in ("bash", "sh") and (commands := sonarset_commands(code)):

@@ -118,6 +118,15 @@ def test_import_records_processing_and_rig(tmp_path):
     assert validate_store(tmp_path / "b.zarr") == []
 
 
+def test_a_named_profile_in_a_sidecar_is_that_profiles_settings(tmp_path):
+    """{"profile": "ertis"} is the ertis images, not ertis's name on the per-key defaults' images;
+    a setting given overrides the profile's, as import-raw's --beamformer does."""
+    import_recording(_recording(tmp_path, processing={"profile": "ertis"}), tmp_path / "a.zarr")
+    assert open_store(tmp_path / "a.zarr").processing == Processing.ertis()
+    import_recording(_recording(tmp_path, processing={"profile": "ertis", "beamformer": "das"}), tmp_path / "b.zarr")
+    assert open_store(tmp_path / "b.zarr").processing == Processing.ertis().model_copy(update={"beamformer": "das"})
+
+
 @pytest.mark.parametrize("meta,expect", [
     ({"processing": {"beamformer": "mvdr"}}, "metadata.processing.beamformer: Input should be 'das' or 'dmas3-cf'"),
     ({"processing": {"smoothing_rang_m": 0.1}}, "metadata.processing: Value error, unknown key(s) smoothing_rang_m"),

@@ -10,7 +10,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from sonarset.format.attrs import ImageEncoding, Processing, RobotRig, RunAttrs, run_name_problems
+from sonarset.format.attrs import PROCESSING_PROFILES, ImageEncoding, Processing, RobotRig, RunAttrs, run_name_problems
 
 
 class RecordingUnits(BaseModel):
@@ -87,6 +87,17 @@ class RecordingMeta(BaseModel):
     @classmethod
     def _split(cls, v: str) -> str:
         return RunAttrs._split(v)
+
+    @field_validator("processing", mode="before")
+    @classmethod
+    def _named_profile(cls, v: Any) -> Any:
+        # A named profile's omitted settings are the profile's, as import-raw's --processing ertis
+        # --beamformer das is ertis with another beamformer: {"profile": "ertis"} filled with the
+        # format's per-key defaults (delay-and-sum, no post-processing) would not be ertis's images.
+        if not (isinstance(v, dict) and v.get("profile") in PROCESSING_PROFILES):
+            return v
+        named = Processing.named(v["profile"]).model_dump()
+        return {**named, **v}
 
     @field_validator("processing", "rig")
     @classmethod

@@ -269,10 +269,11 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
     instead (the default when the bag has no image topic and one such topic), with ``import-raw``'s
     sidecar, ``processing`` and ``beamformer``, on ``workers`` threads. ``stamps``: 'header' or
     'bag'. ``command_offset_s`` is added to every command time (a known clock offset). The sidecar
-    (``meta_path``, default ``BAG.json``) gives what ``import`` (or ``import-raw``) takes from one:
+    (``meta_path``; default ``BAG.json`` beside a bag file, ``BAG/recording.json`` in a bag
+    directory; ``export_bag`` writes one) gives what ``import`` (or ``import-raw``) takes from one:
     name, split, grid (needed for ``sensor_msgs/Image``), rig, processing, image encoding. A new
-    store records the measured frame interval (in the sidecar's rig, if it gives one); an existing
-    one must have the same grid and frame rate. ``note`` receives, in one line, what was done to fit
+    store records the sidecar rig's frame interval where the bag's measured one agrees with it,
+    else the measured one; an existing store must have the same grid and frame rate. ``note`` receives, in one line, what was done to fit
     the data (gaps recorded and splits at lost pings, dropped frames, resampling). Every run is built aside and the
     runs are published together: an import killed or failed midway leaves ``out`` as it was.
     The values must be plausible, as for ``import``: ``allow_implausible`` imports what the rules
