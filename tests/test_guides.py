@@ -66,7 +66,7 @@ SHRINK: dict[str, list[tuple[str, str]]] = {
         ("--models flow,example-decay,example-decay:0.25", "--models flow,example-decay,example-decay:0.25 --samples 10"),
     ],
     "guides/benchmark.md": [
-        ("sonarset benchmark flow echopt:pretrained --out bench-v1", "sonarset benchmark flow --quick --out bench-v1"),
+        ("sonarset benchmark flow pretrained --out bench-v1", "sonarset benchmark flow --quick --out bench-v1"),
         ('run_benchmark(["echopt:pretrained"], "bench-echopt")', 'run_benchmark(["naive"], "bench-echopt", quick=True)'),
         ("here/results.json gpu-box/results.json", "bench-v1/results.json bench-echopt/results.json"),
     ],
