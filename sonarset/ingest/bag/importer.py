@@ -273,9 +273,10 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
     directory; ``export_bag`` writes one) gives what ``import`` (or ``import-raw``) takes from one:
     name, split, grid (needed for ``sensor_msgs/Image``), rig, processing, image encoding. A new
     store records the sidecar rig's frame interval where the bag's measured one agrees with it,
-    else the measured one; an existing store must have the same grid and frame rate. ``note`` receives, in one line, what was done to fit
-    the data (gaps recorded and splits at lost pings, dropped frames, resampling). Every run is built aside and the
-    runs are published together: an import killed or failed midway leaves ``out`` as it was.
+    else the measured one; an existing store must have the same grid and frame rate. ``note``
+    receives, in one line, what was done to fit the data (gaps recorded and splits at lost pings,
+    dropped frames, resampling). Every run is built aside and the runs are published together: an
+    import killed or failed midway leaves ``out`` as it was.
     The values must be plausible, as for ``import``: ``allow_implausible`` imports what the rules
     question, passing each finding to ``warn``.
     """
