@@ -197,6 +197,19 @@ def test_ros2_sqlite3_and_ros1_bags_import_too(tmp_path):
         np.testing.assert_allclose(run.read("velocity"), drive.expected_velocity(), atol=1e-3)
 
 
+@pytest.mark.parametrize("name, says", [
+    ("drive.bag.active", "a ROS 1 bag its recorder did not close (still recording, or killed): `rosbag reindex` it"),
+    ("drive.rosbag", "a ROS 1 bag: name it *.bag"),
+])
+def test_a_ros1_bag_under_another_name_is_said_so(tmp_path, name, says):
+    """rosbags tells ROS 1 bags by their suffix: another name was misread as a ROS 2 bag."""
+    bag = write_bag(Drive(n_frames=4), tmp_path / "drive.bag", "ros1").rename(tmp_path / name)
+    res = CliRunner().invoke(app, ["import-bag", str(bag), str(tmp_path / "s.zarr")])
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 1 and len(lines) == 1 and lines[0].startswith(f"error: {bag}: {says}"), res.output
+    assert not (tmp_path / "s.zarr").exists()
+
+
 def _drop_data(k, msg):
     msg["image"]["data"] = msg["image"]["data"][:-3]
     return msg

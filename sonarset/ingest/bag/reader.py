@@ -65,6 +65,11 @@ def open_reader(bag: Path):
         raise InputValidationError(str(bag), ["no such file or directory"])
     if not (bag.is_dir() or bag.is_file()):
         raise InputValidationError(str(bag), ["not a regular file or a bag directory"])
+    if bag.is_file() and bag.suffix != ".bag" and _starts_with(bag, bounds.ROS1_MAGIC):
+        # rosbags tells ROS 1 bags by their name: any other is taken for a ROS 2 one and misread
+        why = (["a ROS 1 bag its recorder did not close (still recording, or killed): `rosbag reindex` it, "
+                "then name it *.bag"] if bag.suffix == ".active" else ["a ROS 1 bag: name it *.bag"])
+        raise InputValidationError(str(bag), why)
     for path in [bag] if bag.is_file() else sorted(bag.glob("*.mcap")) + sorted(bag.glob("*.db3")):
         problem = (mcap_chunk_problem(path) or bounds.ros1_chunk_problem(path, MAX_CHUNK_BYTES)
                    if path.suffix != ".db3" else bounds.sqlite_message_problem(path, MAX_CHUNK_BYTES))
@@ -82,6 +87,14 @@ def open_reader(bag: Path):
     if missing:  # a bag that does not define them (sqlite3 bags before Iron): the shipped definitions
         reader.typestore.register(missing)
     return reader
+
+
+def _starts_with(path: Path, magic: bytes) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(magic)) == magic
+    except OSError:
+        return False
 
 
 def mcap_chunk_problem(path: Path, limit: int | None = None) -> str | None:
