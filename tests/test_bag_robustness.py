@@ -344,3 +344,40 @@ def test_a_drive_at_another_rate_than_the_store_is_told_so(tmp_path):
                                                    r"the store declares 0\.2 s frames\)"):
         import_bag(Drive(n_frames=20, hz=10.0).write(tmp_path / "b.mcap"), tmp_path / "s.zarr")
     assert open_store(tmp_path / "s.zarr").runs() == ["a"]
+
+
+def test_what_was_dropped_is_said_before_a_refusal_that_follows(tmp_path):
+    """The note of dropped frames comes out even when the import is then refused (here: into a
+    store of another frame rate), so the refusal can be read with it."""
+    import_bag(Drive(n_frames=12, hz=5.0).write(tmp_path / "five.mcap"), tmp_path / "s.zarr")
+    drive = Drive(n_frames=12, hz=8.0)
+    late = drive.command_ns > drive.frame_ns[2]
+    drive.command_ns, drive.v, drive.w = drive.command_ns[late], drive.v[late], drive.w[late]
+    bag = drive.write(tmp_path / "eight.mcap")
+    res = CliRunner().invoke(app, ["import-bag", str(bag), str(tmp_path / "s.zarr")])
+    lines = [line for line in res.output.splitlines() if line.strip()]
+    assert res.exit_code != 0 and len(lines) == 2, res.output
+    assert "eight.mcap" in lines[0] and "frames 0..2 dropped: before the first command" in lines[0], res.output
+    assert "the store declares 0.2 s frames" in lines[1] and "Traceback" not in res.output, res.output
+    assert open_store(tmp_path / "s.zarr").runs() == ["five"]
+
+
+def test_integer_pixels_follow_a_declared_encoding(tmp_path):
+    """Integer pixels are a fraction of full scale unless the sidecar says they are decibels or
+    linear energy: then they map as ``import`` maps them, or are refused when they cannot be that."""
+    import json
+
+    drive = Drive(n_frames=10)
+    bag = drive.write(tmp_path / "lin.mcap", image_dtype=2)
+    (tmp_path / "lin.json").write_text(json.dumps({"image_encoding": "linear", "dynamic_range_db": 40}))
+    import_bag(bag, tmp_path / "lin.zarr")
+    run = open_store(tmp_path / "lin.zarr").run("lin")
+    energy = drive.images.astype(np.float64) * 257
+    with np.errstate(divide="ignore"):
+        expected = np.clip((10 * np.log10(energy / energy.max()) + 40) / 40, 0, 1)
+    np.testing.assert_allclose(run.read("images"), expected, atol=2e-3)
+    assert run.attrs.source["value_rule"] == "uint16 linear, mapped over 40 dB"
+    bag = drive.write(tmp_path / "db.mcap")
+    (tmp_path / "db.json").write_text(json.dumps({"image_encoding": "db"}))
+    with pytest.raises(InputValidationError, match="decibel values must be <= 0 dB re full scale, found up to 255"):
+        import_bag(bag, tmp_path / "db.zarr")

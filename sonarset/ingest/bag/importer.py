@@ -9,9 +9,9 @@ the end (``ImportTarget.write_runs``): a drive split into several runs is import
 at all.
 
 Pixel values become the store's [0, 1] energyscape by one recorded rule (``source.value_rule``):
-integer pixels are divided by their type's full scale (255 for uint8); float pixels are taken as
-an energyscape already, unless the sidecar's ``image_encoding`` says 'db' (decibels re full
-scale) or 'linear' (energy), which map over ``dynamic_range_db`` as for ``import``.
+integer pixels are divided by their type's full scale (255 for uint8) and float pixels are taken
+as an energyscape already, unless the sidecar's ``image_encoding`` says 'db' (decibels re full
+scale) or 'linear' (energy), which map either over ``dynamic_range_db`` as for ``import``.
 """
 
 from __future__ import annotations
@@ -68,13 +68,16 @@ def load_bag(bag: str | os.PathLike, *, images: str | None = None, commands: str
              command_timeout_s: float = align.COMMAND_TIMEOUT_S, meta_path: str | os.PathLike | None = None,
              name: str | None = None, grid: SensorGrid | None = None, raw: str | None = None,
              sidecar_meta=None, frame_interval_s: float | None = None, rig: RobotRig | None = None,
-             allow_implausible: bool = False) -> tuple[BagRecording, object]:
+             allow_implausible: bool = False, note: Callable[[str], None] | None = None
+             ) -> tuple[BagRecording, object]:
     """Read and check a bag into runs; InputValidationError listing every problem. Returns the runs
     and the sidecar's metadata (``RecordingMeta``; for microphone signals, ``sidecar_meta``, the
     raw sidecar already read). ``frame_interval_s``: the interval the store to be written declares,
     which every run must keep to (default: the bag's median). The values must be plausible
     (``plausible``, as ``import`` checks them) against ``rig`` (the store's; default: the
-    sidecar's); ``allow_implausible`` lets the findings through, as the recording's ``warnings``."""
+    sidecar's); ``allow_implausible`` lets the findings through, as the recording's ``warnings``.
+    A bag refused after frames were dropped or split off tells ``note`` which first (a success
+    returns them in the recording's ``notes``)."""
     bag = Path(bag)
     where = str(bag)
     problems: list[str] = []
@@ -122,6 +125,8 @@ def load_bag(bag: str | os.PathLike, *, images: str | None = None, commands: str
     hint = offset_hint(clock, command_offset_s)  # commands that reach no frame: a clock offset says why
     problems = [p + hint if p.startswith(f"topic {streams.commands.topic!r}: no command") else p for p in problems]
     if problems:
+        if note is not None and notes:  # the frames dropped or split off may be why no run is left
+            note(f"{bag}: {'; '.join(notes)}")
         named = (("allow_implausible",) * bool(implausible and not allow_implausible)
                  + ("command_offset_s",) * bool(hint))
         raise InputValidationError(where, problems, parameter=named[0] if len(named) == 1 else named or None)
@@ -214,7 +219,7 @@ def _energyscape_rule(streams: BagStreams, meta, problems: list[str]) -> Callabl
     as they are written."""
     frames = streams.frames.values["images"]
     dtype = np.dtype(str(streams.frames.values["dtype"]) or "f4")
-    if dtype.kind in "iu":
+    if dtype.kind in "iu" and meta.image_encoding == "energyscape":
         full = np.float32(np.iinfo(dtype).max)
         return lambda block: np.clip(block / full, 0.0, 1.0, dtype=np.float32)
     if not frames:
@@ -244,11 +249,12 @@ def _energyscape_rule(streams: BagStreams, meta, problems: list[str]) -> Callabl
 
 def _value_rule(streams: BagStreams, meta) -> str:
     dtype = np.dtype(str(streams.frames.values["dtype"]) or "f4")
-    if dtype.kind in "iu":
-        return f"{dtype.name} / {np.iinfo(dtype).max} (full scale)"
     if meta.image_encoding == "energyscape":
+        if dtype.kind in "iu":
+            return f"{dtype.name} / {np.iinfo(dtype).max} (full scale)"
         return "float, taken as an energyscape in [0, 1]"
-    return f"float {meta.image_encoding}, mapped over {meta.dynamic_range_db:g} dB"
+    kind = dtype.name if dtype.kind in "iu" else "float"
+    return f"{kind} {meta.image_encoding}, mapped over {meta.dynamic_range_db:g} dB"
 
 
 def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | None = None,
@@ -299,7 +305,8 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
                          meta_path=meta_path, name=name, grid=have.grid if have is not None else None,
                          raw=raw, sidecar_meta=sidecar_meta,
                          frame_interval_s=1.0 / have.attrs.frame_rate_hz if have is not None else None,
-                         rig=have.rig if have is not None else None, allow_implausible=allow_implausible)
+                         rig=have.rig if have is not None else None, allow_implausible=allow_implausible,
+                         note=note)
     for line in rec.warnings:
         if warn is not None:
             warn(f"{bag}: {line}")
@@ -314,6 +321,10 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
         rig = meta.rig.model_copy(update={"frame_interval_s": 1.0 / rate_hz})
         rec.notes.append(f"the sidecar's rig says {meta.rig.frame_interval_s:g} s frames; the bag's are "
                          f"{rec.frame_interval_s:.4g} s (median), which the store records")
+    # One line, however much was done (a drive can lose a hundred pings), said before anything can
+    # refuse the import: what was dropped explains a refusal that follows.
+    if note is not None and rec.notes:
+        note(f"{bag}: {'; '.join(rec.notes)}")
     if have is not None:
         declared = 1.0 / have.attrs.frame_rate_hz
         if abs(declared - rec.frame_interval_s) > FRAME_INTERVAL_TOLERANCE * declared:
@@ -334,8 +345,6 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
                                       rec.to_energyscape, run_split, rec.attrs)) for n, arrays in rec.runs.items()]
         description = f"imported from the ROS bag {bag.name}"
     writers = [(n, GapRecorder(write, rec.gaps.get(n, []))) for n, write in writers]
-    if note is not None and rec.notes:  # one line, however much was done: a drive can lose a hundred pings
-        note(f"{bag}: {'; '.join(rec.notes)}")
     # every run is built aside and published at the end: a killed import leaves the store as it was
     return target.write_runs(writers, overwrite=overwrite, grid=grid, processing=proc,
                              rig=rig if have is None else None,
