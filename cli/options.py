@@ -24,8 +24,8 @@ Model = Annotated[str, typer.Option("--model", help="The model: any registered n
 Workers = Annotated[Optional[int], typer.Option("--workers", min=1, help="Processes (default: all cores).")]
 ModelDevice = Annotated[Device, typer.Option("--device", help="Device for learned models.")]
 ExperimentProcessing = Annotated[Optional[ProcessingProfile], typer.Option(
-    "--processing", help="Images to simulate. Default: those the EchoPT model was trained on (its card); a "
+    "--processing", help="Images to simulate. Default: those the model was trained on (its card); a "
                          "different profile is refused.")]
 ModelPrecision = Annotated[Precision, typer.Option(
-    "--precision", help="EchoPT's arithmetic: auto (bf16 autocast where the CPU has bf16 units or on a GPU, "
+    "--precision", help="Learned models' arithmetic: auto (bf16 autocast where the CPU has bf16 units or on a GPU, "
                         "else fp32), fp32 or bf16. ONNX models run in fp32.")]

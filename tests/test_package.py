@@ -38,7 +38,14 @@ def test_wheel_installs_in_fresh_venv(tmp_path):
             "sonarset/models/experiments/control.py"} <= set(names)
     # package data the simulator and the demo load at run time
     assert "sonarset/data/ertis32_microphones.csv" in names
-    assert {"sonarset/models/pretrained/echopt-small.safetensors", "sonarset/models/pretrained/echopt-small.json"} <= set(names)
+    # every module of the checkout, each under the sonarset namespace (a package left out of
+    # pyproject's list installs nowhere), and every shipped checkpoint with its card
+    homes = {"sonarset": "sonarset", "models": "sonarset/models", "cli": "sonarset/cli"}
+    modules = {f"{homes[top]}/{p.relative_to(ROOT / top).as_posix()}" for top in homes
+               for p in (ROOT / top).rglob("*.py")}
+    assert modules - set(names) == set(), "modules missing from the wheel"
+    shipped = {f"sonarset/models/pretrained/{p.name}" for p in (ROOT / "models" / "pretrained").iterdir()}
+    assert {"sonarset/models/pretrained/echowarp-small.safetensors"} <= shipped <= set(names)
 
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
@@ -49,7 +56,7 @@ def test_wheel_installs_in_fresh_venv(tmp_path):
     deps = sysconfig.get_paths()["purelib"]
     code = (f"import sys; sys.path.append({deps!r}); "
             "import sonarset, sonarset.models, sonarset.cli.app, sonarset.store.store, sonarset.sim.generation, "
-            "sonarset.models.experiments.control; "
+            "sonarset.models.experiments.control, sonarset.models.echowarp.model; "
             f"assert sonarset.__file__.startswith({str(venv)!r}), sonarset.__file__; "
             "import importlib.util as u; "
             "assert u.find_spec('models') is None and u.find_spec('cli') is None, 'top-level models/cli'; "

@@ -68,16 +68,14 @@ def load_bag(bag: str | os.PathLike, *, images: str | None = None, commands: str
              command_timeout_s: float = align.COMMAND_TIMEOUT_S, meta_path: str | os.PathLike | None = None,
              name: str | None = None, grid: SensorGrid | None = None, raw: str | None = None,
              sidecar_meta=None, frame_interval_s: float | None = None, rig: RobotRig | None = None,
-             allow_implausible: bool = False, note: Callable[[str], None] | None = None
-             ) -> tuple[BagRecording, object]:
+             allow_implausible: bool = False, note: Callable[[str], None] | None = None) -> tuple[BagRecording, object]:
     """Read and check a bag into runs; InputValidationError listing every problem. Returns the runs
     and the sidecar's metadata (``RecordingMeta``; for microphone signals, ``sidecar_meta``, the
     raw sidecar already read). ``frame_interval_s``: the interval the store to be written declares,
     which every run must keep to (default: the bag's median). The values must be plausible
     (``plausible``, as ``import`` checks them) against ``rig`` (the store's; default: the
     sidecar's); ``allow_implausible`` lets the findings through, as the recording's ``warnings``.
-    A bag refused after frames were dropped or split off tells ``note`` which first (a success
-    returns them in the recording's ``notes``)."""
+    A bag refused after frames were dropped tells ``note`` which (a success: ``notes``)."""
     bag = Path(bag)
     where = str(bag)
     problems: list[str] = []
@@ -305,8 +303,7 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
                          meta_path=meta_path, name=name, grid=have.grid if have is not None else None,
                          raw=raw, sidecar_meta=sidecar_meta,
                          frame_interval_s=1.0 / have.attrs.frame_rate_hz if have is not None else None,
-                         rig=have.rig if have is not None else None, allow_implausible=allow_implausible,
-                         note=note)
+                         rig=have.rig if have is not None else None, allow_implausible=allow_implausible, note=note)
     for line in rec.warnings:
         if warn is not None:
             warn(f"{bag}: {line}")
@@ -321,10 +318,6 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
         rig = meta.rig.model_copy(update={"frame_interval_s": 1.0 / rate_hz})
         rec.notes.append(f"the sidecar's rig says {meta.rig.frame_interval_s:g} s frames; the bag's are "
                          f"{rec.frame_interval_s:.4g} s (median), which the store records")
-    # One line, however much was done (a drive can lose a hundred pings), said before anything can
-    # refuse the import: what was dropped explains a refusal that follows.
-    if note is not None and rec.notes:
-        note(f"{bag}: {'; '.join(rec.notes)}")
     if have is not None:
         declared = 1.0 / have.attrs.frame_rate_hz
         if abs(declared - rec.frame_interval_s) > FRAME_INTERVAL_TOLERANCE * declared:
@@ -345,6 +338,8 @@ def import_bag(bag: str | os.PathLike, out: str | os.PathLike, *, images: str | 
                                       rec.to_energyscape, run_split, rec.attrs)) for n, arrays in rec.runs.items()]
         description = f"imported from the ROS bag {bag.name}"
     writers = [(n, GapRecorder(write, rec.gaps.get(n, []))) for n, write in writers]
+    if note is not None and rec.notes:  # one line, however much was done: a drive can lose a hundred pings
+        note(f"{bag}: {'; '.join(rec.notes)}")
     # every run is built aside and published at the end: a killed import leaves the store as it was
     return target.write_runs(writers, overwrite=overwrite, grid=grid, processing=proc,
                              rig=rig if have is None else None,
