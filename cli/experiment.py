@@ -34,7 +34,7 @@ def experiment_slip(
     model: Model = "pretrained",
     baselines: str = typer.Option("naive,flow", "--baselines",
                                   help="Comma-separated other predictors to compare (any registered name, KIND:PATH "
-                                       "or package.module:factory; sonarset models lists the names)."),
+                                       "or package.module:factory[:ARG]; sonarset models lists the names)."),
     trials: int = typer.Option(20, "--trials", min=1, help="Random trajectories for the ROC analysis."),
     seed: int = typer.Option(0, "--seed", help="Master seed: trajectories, slip periods, sensor noise."),
     workers: Workers = None,
@@ -75,7 +75,7 @@ def experiment_control(
     model: Model = "pretrained",
     compare: str = typer.Option("flow", "--compare",
                                 help="Comma-separated other predictors that also bridge the bursts ('' for none): "
-                                     "any registered name, KIND:PATH or package.module:factory."),
+                                     "any registered name, KIND:PATH or package.module:factory[:ARG]."),
     runs: int = typer.Option(50, "--runs", min=1, help="Runs per condition."),
     seed: int = typer.Option(0, "--seed", help="Master seed: spawn poses, burst schedules, sensor noise."),
     max_time: float = typer.Option(120.0, "--max-time", min=1.0, help="Seconds before a run times out."),

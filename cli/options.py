@@ -20,7 +20,7 @@ Overwrite = Annotated[bool, typer.Option("--overwrite", help="Replace a run of t
 Model = Annotated[str, typer.Option("--model", help="The model: any registered name (pretrained, the recommended "
                                                     "shipped one; flow; a plugin's; sonarset models lists them), "
                                                     "KIND:PATH (echopt:run/model.safetensors, .onnx) or "
-                                                    "package.module:factory. A bare path is an EchoPT checkpoint.")]
+                                                    "package.module:factory[:ARG]. A bare path is an EchoPT checkpoint.")]
 Workers = Annotated[Optional[int], typer.Option("--workers", min=1, help="Processes (default: all cores).")]
 ModelDevice = Annotated[Device, typer.Option("--device", help="Device for learned models.")]
 ExperimentProcessing = Annotated[Optional[ProcessingProfile], typer.Option(

@@ -11,13 +11,15 @@ A model spec is resolved in this order:
    - a plugin: an entry point of an installed package in the group ``sonarset.predictors``
      (name = ``package.module:factory``). A plugin never shadows a built-in name: the built-in
      wins and :func:`shadowed_plugins` says so (``sonarset models``, eval's notes);
-2. ``package.module:factory``, the module imported from ``sys.path`` and the working directory.
+2. ``package.module:factory``, or ``package.module:factory:ARG``, the module imported from
+   ``sys.path`` and the working directory.
 
 A factory (a plugin's or a module's) is called as ``factory(grid=SensorGrid, rig=RobotRig)``, plus
-``arg=ARG`` when the spec was ``NAME:ARG`` (a factory without an ``arg`` parameter refuses an ARG;
-none is passed without one), plus ``device=`` and ``precision=`` where the factory has parameters
-of those names. What it returns must answer the protocol (models/predictor.py); every spec comes
-back as a :class:`~sonarset.models.predictor.CheckedPredictor`.
+``arg=ARG`` when the spec was ``NAME:ARG`` or ``package.module:factory:ARG`` (a checkpoint of
+one's own, say; a factory without an ``arg`` parameter refuses an ARG; none is passed without
+one), plus ``device=`` and ``precision=`` where the factory has parameters of those names. What
+it returns must answer the protocol (models/predictor.py); every spec comes back as a
+:class:`~sonarset.models.predictor.CheckedPredictor`.
 
 It imports neither torch nor SciPy (a predictor's modules are imported when one is made), so the
 command line reads ``BASELINES`` and lists the names without loading a model.
@@ -185,6 +187,12 @@ def known_names() -> list[str]:
 _MODULE = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*")
 
 
+def _factory_part(text: str) -> bool:
+    """Whether ``text``, after a module's name and ':', is ``factory`` or ``factory:ARG``."""
+    attribute, with_arg, arg = text.partition(":")
+    return bool(_MODULE.fullmatch(attribute)) and (not with_arg or bool(arg))
+
+
 def make_predictor(spec: str, grid: SensorGrid, rig: RobotRig, *, device: str = "cpu",
                    precision: str = "auto") -> CheckedPredictor:
     """The predictor ``spec`` names (see the module's docstring for the order), on ``grid`` for a
@@ -208,8 +216,10 @@ def make_predictor(spec: str, grid: SensorGrid, rig: RobotRig, *, device: str = 
                 raise SonarSetError(f"predictor {spec!r}: plugin {ep.name!r} of {_distribution(ep)} does not load "
                                     f"({ep.value}: {_one_line(exc)})") from exc
             obj = _call_factory(factory, spec, ep.value, None if spec in plugins else arg, grid, rig, device, precision)
-        elif sep and _MODULE.fullmatch(name) and _MODULE.fullmatch(arg):
-            obj = _call_factory(_import_factory(spec, name, arg), spec, spec, None, grid, rig, device, precision)
+        elif sep and _MODULE.fullmatch(name) and _factory_part(arg):
+            attribute, with_arg, factory_arg = arg.partition(":")
+            obj = _call_factory(_import_factory(spec, name, attribute), spec, f"{name}:{attribute}",
+                                factory_arg if with_arg else None, grid, rig, device, precision)
         else:
             raise SonarSetError(f"unknown model {spec!r}: {_known_hint()}", parameter="model_specs")
     return as_predictor(obj, spec)
@@ -287,7 +297,7 @@ def model_option_spec(text: str) -> str:
     all the option took before."""
     text = text.strip()
     name, sep, arg = text.partition(":")
-    if _built_in(name) or name in _plugins()[0] or (sep and _MODULE.fullmatch(name) and _MODULE.fullmatch(arg)):
+    if _built_in(name) or name in _plugins()[0] or (sep and _MODULE.fullmatch(name) and _factory_part(arg)):
         return text
     if "/" in text or os.sep in text or text.endswith((".safetensors", ".onnx", ".json")) or Path(text).exists():
         return f"echopt:{text}"

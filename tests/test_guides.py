@@ -64,6 +64,7 @@ SHRINK: dict[str, list[tuple[str, str]]] = {
          f"{sys.executable} -m pip install -q --no-deps --no-build-isolation --no-index --target plugins "
          f"{ROOT / 'examples' / 'sonarset-plugin-example'}"),
         ("--models flow,example-decay,example-decay:0.25", "--models flow,example-decay,example-decay:0.25 --samples 10"),
+        ("steps = 300", "steps = 3"),
     ],
     "guides/benchmark.md": [
         ("sonarset benchmark flow pretrained --out bench-v1", "sonarset benchmark flow --quick --out bench-v1"),

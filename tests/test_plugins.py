@@ -256,6 +256,29 @@ def test_module_factory_errors_are_one_line(store, tmp_path, monkeypatch):
     sys.modules.pop("sonarset_test_markup", None)
 
 
+def test_a_module_factory_takes_an_argument_after_a_second_colon(store, tmp_path, monkeypatch):
+    """``module:factory:ARG`` hands ARG (a checkpoint of one's own, say: a path with its own ':'
+    and '/') to a factory with an ``arg`` parameter, and is refused in one line by one without."""
+    (tmp_path / "sonarset_test_arg.py").write_text(
+        "class Scaled:\n    n_in = 3\n    def __init__(self, arg):\n        self.name, self.arg = 'scaled', arg\n"
+        "    def predict(self, f, c):\n        return f[:, -1] * 0.5\n"
+        "def make(grid, rig, arg):\n    return Scaled(arg)\n"
+        "def plain(grid, rig):\n    return Scaled('none')\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    p = make_predictor("sonarset_test_arg:make:runs/a:b", TINY, RobotRig())
+    assert p.predictor.arg == "runs/a:b" and p.label == "scaled"
+    assert model_option_spec("sonarset_test_arg:make:runs/a") == "sonarset_test_arg:make:runs/a"
+    with pytest.raises(SonarSetError, match="^predictor 'sonarset_test_arg:plain:x': its factory "
+                                            "sonarset_test_arg:plain takes nothing after ':'"):
+        make_predictor("sonarset_test_arg:plain:x", TINY, RobotRig())
+    r = runner.invoke(app, ["eval", store.location, "--models", "flow,sonarset_test_arg:make:runs/a", "--horizons", "1",
+                            "--samples", "5", "--out", str(tmp_path / "o")])
+    assert r.exit_code == 0, r.output
+    assert "| scaled |" in (tmp_path / "o" / "report.md").read_text()
+    sys.modules.pop("sonarset_test_arg", None)
+
+
 def test_an_installed_plugin_is_listed_and_evaluated(store, tmp_path):
     """The example package installed (into a folder on PYTHONPATH, so the environment is left as it
     was): ``sonarset models`` lists its entry point, eval scores it by name, by name:ARG and by

@@ -42,7 +42,7 @@ def eval_(
                                help="Comma-separated predictors: any registered name (persistence, naive, flow, "
                                     "pretrained, a plugin's; sonarset models lists them), KIND:PATH "
                                     "(echopt:run/model.safetensors, echopt:model.onnx, echopt:pretrained) or "
-                                    "package.module:factory."),
+                                    "package.module:factory[:ARG]."),
     horizons: str = typer.Option(",".join(map(str, HORIZONS)), "--horizons", help="Prediction horizons (1 = one-shot)."),
     samples: int = typer.Option(1000, "--samples", min=1, help="Windows drawn (seeded), shared by all methods."),
     out_dir: Path = typer.Option(Path("eval-out"), "--out",

@@ -22,5 +22,5 @@ def models() -> None:
     out.print(table)
     for note in shadowed_plugins().values():
         out.print(note, style="yellow", markup=False, highlight=False)
-    out.print(f"Any other predictor: package.module:factory, or a plugin (entry-point group {PLUGIN_GROUP!r}); "
-              "see docs/guides/own-predictor.md.", markup=False, highlight=False)
+    out.print(f"Any other predictor: package.module:factory[:ARG] (ARG handed to the factory), or a plugin "
+              f"(entry-point group {PLUGIN_GROUP!r}); see docs/guides/own-predictor.md.", markup=False, highlight=False)

@@ -35,7 +35,7 @@ def view(
     model: Annotated[Optional[list[str]], typer.Option(
         "--model", help="A predictor to show (repeat): any registered name (persistence, naive, flow, pretrained, "
                         "a plugin's; sonarset models lists them), KIND:PATH (echopt:PATH) or "
-                        "package.module:factory.")] = None,
+                        "package.module:factory[:ARG].")] = None,
     horizon: Annotated[int, typer.Option("--horizon", min=1, help="Auto-regressive steps of each prediction.")] = 1,
     frames: Annotated[Optional[str], typer.Option("--frames", help="Frames A:B (default: the whole run).")] = None,
     out_file: Annotated[Optional[Path], typer.Option(
