@@ -227,7 +227,7 @@ def make_predictor(spec: str, grid: SensorGrid, rig: RobotRig, *, device: str = 
 
 def _known_hint() -> str:
     return (f"the known names are {', '.join(known_names())} (sonarset models lists them); name any other "
-            f"predictor as package.module:factory, or install a package that registers it in the entry-point "
+            f"predictor as package.module:factory[:ARG], or install a package that registers it in the entry-point "
             f"group {PLUGIN_GROUP!r}")
 
 
@@ -297,7 +297,9 @@ def model_option_spec(text: str) -> str:
     all the option took before."""
     text = text.strip()
     name, sep, arg = text.partition(":")
-    if _built_in(name) or name in _plugins()[0] or (sep and _MODULE.fullmatch(name) and _factory_part(arg)):
+    if _built_in(name) or name in _plugins()[0]:
+        return text
+    if sep and _MODULE.fullmatch(name) and _factory_part(arg) and not Path(text).exists():
         return text
     if "/" in text or os.sep in text or text.endswith((".safetensors", ".onnx", ".json")) or Path(text).exists():
         return f"echopt:{text}"

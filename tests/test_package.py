@@ -2,6 +2,7 @@
 
 import graphlib
 import os
+import shutil
 import subprocess
 import sys
 import sysconfig
@@ -27,8 +28,13 @@ def test_cli_help_does_not_import_torch():
 
 @pytest.mark.slow
 def test_wheel_installs_in_fresh_venv(tmp_path):
+    # built from a copy without the checkout's build/: setuptools never empties build/lib, so a
+    # package dropped from pyproject's list would still ride along from an earlier build there
+    source = tmp_path / "source"
+    shutil.copytree(ROOT, source, ignore=shutil.ignore_patterns("build", ".git", "*.egg-info", "__pycache__",
+                                                                 ".pytest_cache", ".ruff_cache", "site"))
     wheels = tmp_path / "wheels"
-    subprocess.run([sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "--no-build-isolation",
+    subprocess.run([sys.executable, "-m", "pip", "wheel", str(source), "--no-deps", "--no-build-isolation",
                     "-q", "-w", str(wheels)], check=True, cwd=tmp_path)
     (wheel,) = wheels.glob("sonarset-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
