@@ -131,6 +131,19 @@ def test_library_errors_name_the_commands_flags(store, tmp_path):
     assert r.exit_code == 1 and "unknown model 'magic'" in r.output and "(--models)" in r.output, r.output
 
 
+def test_echowarp_on_the_options_defaults_is_noted(store, tmp_path):
+    """EchoWarp with the paper EchoPT's one-step default learns one horizon: said before training
+    (here refused at once, its --out taken), and not said for a recipe's ten steps."""
+    from sonarset.models.echopt.train_config import TrainConfig
+
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "x").write_text("")
+    r = runner.invoke(app, ["train", store.location, "--model", "echowarp", "--out", str(busy)])
+    assert r.exit_code == 1 and r.output.startswith("note: EchoWarp on one-step windows"), r.output
+    assert TrainConfig(model="echowarp", curriculum="10").notes() == [] and TrainConfig().notes() == []
+
+
 def test_a_parameter_no_option_sets_is_left_as_the_library_says_it():
     """... and a parenthesis that opens with the parameter's name opens with its flag."""
     import typer

@@ -301,6 +301,7 @@ def train(
     s = open_store(settings["store"], check=True)
     cfg = config_of(settings)
     main = int(os.environ.get("RANK", "0")) == 0  # under torchrun only rank 0 reports
+    _print_notes(cfg.notes() if main else [])
     with _training_bar(main) as progress:
         res = run_training(s, out_dir, cfg, resume=resume, progress=progress)
     if not main:

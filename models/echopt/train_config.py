@@ -129,6 +129,14 @@ class TrainConfig:
             raise SonarSetError(f"init {self.init}: a {init_kind} checkpoint, but this run trains model {self.model}; "
                                 f"set model {init_kind} to fine-tune it", parameter="init")
 
+    def notes(self) -> list[str]:
+        """Settings that run but are probably not meant: EchoWarp forecasts every horizon at once,
+        and the options' defaults (the paper EchoPT's one-step windows) train its first alone."""
+        if self.model == "echowarp" and self.k_max == 1 and not self.horizons:
+            return ["note: EchoWarp on one-step windows (curriculum 1, the paper EchoPT's default) learns its first "
+                    "horizon alone; its recipes train all ten (curriculum 10: docs/guides/training.md)"]
+        return []
+
     def init_parts(self) -> tuple[str, str]:
         """``init`` as (kind, checkpoint): it may be written as eval names a checkpoint
         (``echowarp:RUN``); kind is "" when it names none."""
