@@ -51,7 +51,7 @@ def test_wheel_installs_in_fresh_venv(tmp_path):
                for p in (ROOT / top).rglob("*.py")}
     assert modules - set(names) == set(), "modules missing from the wheel"
     shipped = {f"sonarset/models/pretrained/{p.name}" for p in (ROOT / "models" / "pretrained").iterdir()}
-    assert {"sonarset/models/pretrained/echowarp-small.safetensors"} <= shipped <= set(names)
+    assert {"sonarset/models/pretrained/echowarp-patch4.safetensors"} <= shipped <= set(names)
 
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
