@@ -28,12 +28,12 @@ from sonarset.perf import keep_freed_memory
 RECIPE_LOSS = "cc=1,w1=100,energy=2,nrmsd_capped=2,nrmsd=2,echo=6"
 #: name -> (what it is, config overrides, activation)
 VARIANTS = {
-    "small": ("small (shipped)", {}, "gelu"),
+    "small": ("small (shipped until 2026-12-08)", {}, "gelu"),
     "relu": ("small, ReLU for GELU", {}, "relu"),
     "full8": ("small, 8 full-resolution channels for 16", {"full_channels": 8}, "gelu"),
     "wide": ("wide: U-Net 48-96-192 for 32-64-128", {"channels": (48, 96, 192)}, "gelu"),
     "wide-relu": ("wide with ReLU", {"channels": (48, 96, 192)}, "relu"),
-    "patch4": ("patch4: 4 x 4 patches, U-Net 64-128-256 from 1/4 resolution", {"patch": 4, "channels": (64, 128, 256),
+    "patch4": ("patch4 (shipped): 4 x 4 patches, U-Net 64-128-256 from 1/4 resolution", {"patch": 4, "channels": (64, 128, 256),
                                                                              "full_channels": 64}, "gelu"),
 }
 
